@@ -1,0 +1,69 @@
+//! Errors a caller can act on: each names the problem in one line.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in diffluid, with a message that names the problem.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A scene file that cannot be read.
+    #[error("cannot read scene file {path}: {source}")]
+    ReadScene {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// A scene file that is not valid TOML or does not match the scene format
+    /// (a missing or unknown key, a wrong type). The message carries the line.
+    #[error("scene {origin}: {message}")]
+    ParseScene {
+        /// The file or `<embedded>`.
+        origin: String,
+        /// toml's message, with line and column.
+        message: String,
+    },
+    /// A scene that parses but describes something impossible (non-positive dx, liquid
+    /// outside the domain, a NaN...).
+    #[error("scene {origin}: {message}")]
+    InvalidScene {
+        /// The file or `<embedded>`.
+        origin: String,
+        /// What is wrong, naming the key.
+        message: String,
+    },
+    /// The pressure solve did not reach its tolerance.
+    #[error(
+        "pressure solve did not converge at step {step}: relative residual {residual:.3e} after \
+         {iterations} iterations (tolerance {tolerance:.1e}); raise solver.max_iterations or \
+         loosen solver.tolerance"
+    )]
+    NotConverged {
+        /// The step that failed.
+        step: usize,
+        /// Iterations done.
+        iterations: usize,
+        /// Relative residual reached.
+        residual: f64,
+        /// The tolerance asked for.
+        tolerance: f64,
+    },
+    /// A non-finite value appeared in the state.
+    #[error("the simulation blew up at step {step}: {what} is not finite")]
+    NonFinite {
+        /// The step.
+        step: usize,
+        /// Which quantity.
+        what: String,
+    },
+    /// Writing an output failed.
+    #[error("cannot write {path}: {source}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+}
+
+/// Result with diffluid's error.
+pub type Result<T> = std::result::Result<T, Error>;

@@ -1,0 +1,325 @@
+//! The MAC grid: cells, faces and nodes as sample lattices, trilinear sampling, its
+//! derivative in the sample point, and its transpose (a scatter).
+//!
+//! Layout: every lattice is stored x-fastest, z-slowest (`i + n0 * (j + n1 * k)`), so a
+//! z-slab is a contiguous chunk and rayon can split a loop by slabs. Cell (i, j, k) is the
+//! cube `[i, i+1]·dx × [j, j+1]·dx × [k, k+1]·dx`; the face lattice of axis `a` has one more
+//! sample along `a` and sits on the cell faces normal to `a` (MAC staggering).
+
+use crate::math::{v3, Vec3};
+use rayon::prelude::*;
+
+/// Marks "no such index" in compact index maps.
+pub const NONE: u32 = u32::MAX;
+
+/// Chunk length for deterministic parallel reductions: partial sums are formed over fixed
+/// chunks and then added in order, so a sum never depends on the number of threads.
+pub const REDUCE_CHUNK: usize = 4096;
+
+/// The simulation grid: `n` cells of side `dx`, the domain `[0, n·dx]`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Grid {
+    /// Cells along x, y, z.
+    pub n: [usize; 3],
+    /// Cell side in metres.
+    pub dx: f64,
+}
+
+impl Grid {
+    /// Lattice of cell centres (pressure, liquid signed distance).
+    pub fn cells(&self) -> Lattice {
+        Lattice { n: self.n, off: [0.5; 3], dx: self.dx }
+    }
+
+    /// Lattice of the faces normal to `axis` (velocity component `axis`).
+    pub fn faces(&self, axis: usize) -> Lattice {
+        let mut n = self.n;
+        n[axis] += 1;
+        let mut off = [0.5; 3];
+        off[axis] = 0.0;
+        Lattice { n, off, dx: self.dx }
+    }
+
+    /// Lattice of cell corners (solid signed distance samples).
+    pub fn nodes(&self) -> Lattice {
+        Lattice { n: [self.n[0] + 1, self.n[1] + 1, self.n[2] + 1], off: [0.0; 3], dx: self.dx }
+    }
+
+    /// Number of cells.
+    pub fn num_cells(&self) -> usize {
+        self.n[0] * self.n[1] * self.n[2]
+    }
+
+    /// Domain extent in metres.
+    pub fn size(&self) -> Vec3 {
+        v3([0, 1, 2].map(|a| self.n[a] as f64 * self.dx))
+    }
+
+    /// Index of cell (i, j, k).
+    #[inline]
+    pub fn cell(&self, i: usize, j: usize, k: usize) -> usize {
+        i + self.n[0] * (j + self.n[1] * k)
+    }
+
+    /// The cells on the − and + side of face `f` of `axis`, `None` on the domain boundary.
+    #[inline]
+    pub fn face_cells(&self, axis: usize, f: [usize; 3]) -> (Option<usize>, Option<usize>) {
+        let minus = (f[axis] > 0).then(|| {
+            let mut c = f;
+            c[axis] -= 1;
+            self.cell(c[0], c[1], c[2])
+        });
+        let plus = (f[axis] < self.n[axis]).then(|| self.cell(f[0], f[1], f[2]));
+        (minus, plus)
+    }
+}
+
+/// A regular lattice of samples at `(index + off) · dx`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lattice {
+    /// Samples along each axis.
+    pub n: [usize; 3],
+    /// Offset of sample 0 from the origin, in cells.
+    pub off: [f64; 3],
+    /// Spacing.
+    pub dx: f64,
+}
+
+/// The eight samples and weights of a trilinear interpolation, and the weights' derivative
+/// with respect to the sample point (zero along an axis where the point was clamped).
+#[derive(Clone, Copy, Debug)]
+pub struct Stencil {
+    /// Flat indices of the 8 corners.
+    pub idx: [usize; 8],
+    /// Interpolation weights (sum to 1).
+    pub w: [f64; 8],
+    /// d w / d x for each corner.
+    pub dw: [Vec3; 8],
+}
+
+impl Lattice {
+    /// Total number of samples.
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.n[0] * self.n[1] * self.n[2]
+    }
+
+    /// True when the lattice has no samples.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Samples per z-slab.
+    #[inline]
+    pub fn slab(&self) -> usize {
+        self.n[0] * self.n[1]
+    }
+
+    /// Flat index of sample (i, j, k).
+    #[inline]
+    pub fn index(&self, i: usize, j: usize, k: usize) -> usize {
+        i + self.n[0] * (j + self.n[1] * k)
+    }
+
+    /// (i, j, k) of a flat index.
+    #[inline]
+    pub fn ijk(&self, idx: usize) -> [usize; 3] {
+        let i = idx % self.n[0];
+        let r = idx / self.n[0];
+        [i, r % self.n[1], r / self.n[1]]
+    }
+
+    /// World position of sample (i, j, k).
+    #[inline]
+    pub fn position(&self, i: usize, j: usize, k: usize) -> Vec3 {
+        Vec3::new(
+            (i as f64 + self.off[0]) * self.dx,
+            (j as f64 + self.off[1]) * self.dx,
+            (k as f64 + self.off[2]) * self.dx,
+        )
+    }
+
+    /// The trilinear stencil at `x`. The point is clamped to the lattice's hull, so a sample
+    /// outside the domain takes the nearest boundary value (and has zero derivative across
+    /// the clamped axis).
+    #[inline]
+    pub fn stencil(&self, x: Vec3) -> Stencil {
+        let xa = x.to_array();
+        let mut lo = [0usize; 3];
+        let mut hi = [0usize; 3];
+        let mut t = [0.0f64; 3];
+        let mut live = [0.0f64; 3];
+        for a in 0..3 {
+            let g = xa[a] / self.dx - self.off[a];
+            let top = (self.n[a] - 1) as f64;
+            let (gc, inside) = if g <= 0.0 {
+                (0.0, false)
+            } else if g >= top {
+                (top, false)
+            } else {
+                (g, true)
+            };
+            let i0 = (gc.floor() as usize).min(self.n[a].saturating_sub(2));
+            lo[a] = i0;
+            hi[a] = (i0 + 1).min(self.n[a] - 1);
+            t[a] = gc - i0 as f64;
+            live[a] = if inside { 1.0 / self.dx } else { 0.0 };
+        }
+        let mut st = Stencil { idx: [0; 8], w: [0.0; 8], dw: [Vec3::ZERO; 8] };
+        for c in 0..8 {
+            let bit = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
+            let mut f = [0.0; 3];
+            let mut df = [0.0; 3];
+            let mut ii = [0usize; 3];
+            for a in 0..3 {
+                if bit[a] == 1 {
+                    f[a] = t[a];
+                    df[a] = live[a];
+                    ii[a] = hi[a];
+                } else {
+                    f[a] = 1.0 - t[a];
+                    df[a] = -live[a];
+                    ii[a] = lo[a];
+                }
+            }
+            st.idx[c] = self.index(ii[0], ii[1], ii[2]);
+            st.w[c] = f[0] * f[1] * f[2];
+            st.dw[c] = Vec3::new(df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]);
+        }
+        st
+    }
+
+    /// Trilinear interpolation of `field` at `x`.
+    #[inline]
+    pub fn sample(&self, field: &[f64], x: Vec3) -> f64 {
+        let s = self.stencil(x);
+        (0..8).map(|c| s.w[c] * field[s.idx[c]]).sum()
+    }
+
+    /// Trilinear interpolation and its gradient with respect to `x`.
+    #[inline]
+    pub fn sample_grad(&self, field: &[f64], x: Vec3) -> (f64, Vec3) {
+        let s = self.stencil(x);
+        let mut v = 0.0;
+        let mut g = Vec3::ZERO;
+        for c in 0..8 {
+            let f = field[s.idx[c]];
+            v += s.w[c] * f;
+            g += s.dw[c] * f;
+        }
+        (v, g)
+    }
+
+    /// Fills `out` (one value per sample) in parallel over z-slabs.
+    pub fn fill_par<F>(&self, out: &mut [f64], f: F)
+    where
+        F: Fn(usize, usize, usize) -> f64 + Sync,
+    {
+        assert_eq!(out.len(), self.len());
+        let slab = self.slab().max(1);
+        out.par_chunks_mut(slab).enumerate().for_each(|(k, chunk)| {
+            for j in 0..self.n[1] {
+                for i in 0..self.n[0] {
+                    chunk[i + self.n[0] * j] = f(i, j, k);
+                }
+            }
+        });
+    }
+}
+
+/// A MAC velocity field: one array per component, on the face lattices.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mac {
+    /// u, v, w.
+    pub c: [Vec<f64>; 3],
+}
+
+impl Mac {
+    /// The zero field on `grid`.
+    pub fn zeros(grid: &Grid) -> Self {
+        Mac { c: [0, 1, 2].map(|a| vec![0.0; grid.faces(a).len()]) }
+    }
+
+    /// Velocity at `x`, each component interpolated on its own face lattice.
+    #[inline]
+    pub fn velocity(&self, grid: &Grid, x: Vec3) -> Vec3 {
+        v3([0, 1, 2].map(|a| grid.faces(a).sample(&self.c[a], x)))
+    }
+
+    /// Largest |component| over all faces (a cheap bound used in reports).
+    pub fn max_abs(&self) -> f64 {
+        self.c.iter().flat_map(|c| c.iter()).fold(0.0f64, |m, &x| m.max(x.abs()))
+    }
+
+    /// True when every component is finite.
+    pub fn is_finite(&self) -> bool {
+        self.c.iter().all(|c| c.iter().all(|x| x.is_finite()))
+    }
+
+    /// Euclidean inner product over all faces.
+    pub fn dot(&self, other: &Mac) -> f64 {
+        (0..3).map(|a| dot(&self.c[a], &other.c[a])).sum()
+    }
+}
+
+/// Deterministic parallel dot product: fixed chunks, partial sums added in order.
+pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    debug_assert_eq!(a.len(), b.len());
+    let parts: Vec<f64> = a
+        .par_chunks(REDUCE_CHUNK)
+        .zip(b.par_chunks(REDUCE_CHUNK))
+        .map(|(x, y)| x.iter().zip(y).map(|(p, q)| p * q).sum::<f64>())
+        .collect();
+    parts.iter().sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grid() -> Grid {
+        Grid { n: [5, 4, 3], dx: 0.25 }
+    }
+
+    #[test]
+    fn trilinear_reproduces_linear_fields() {
+        // Trilinear interpolation is exact for affine functions inside the hull.
+        let g = grid();
+        for axis in 0..3 {
+            let lat = g.faces(axis);
+            let mut f = vec![0.0; lat.len()];
+            lat.fill_par(&mut f, |i, j, k| {
+                let p = lat.position(i, j, k);
+                1.0 + 2.0 * p.x - 3.0 * p.y + 0.5 * p.z
+            });
+            let x = Vec3::new(0.61, 0.43, 0.37);
+            let (val, grad) = lat.sample_grad(&f, x);
+            assert!((val - (1.0 + 2.0 * x.x - 3.0 * x.y + 0.5 * x.z)).abs() < 1e-12);
+            assert!((grad - Vec3::new(2.0, -3.0, 0.5)).length() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn sample_gradient_matches_central_differences() {
+        let g = grid();
+        let lat = g.cells();
+        let f: Vec<f64> = (0..lat.len()).map(|i| ((i * 37) % 11) as f64 * 0.3).collect();
+        let x = Vec3::new(0.52, 0.33, 0.41);
+        let (_, grad) = lat.sample_grad(&f, x);
+        let h = 1e-6;
+        for a in 0..3 {
+            let e = crate::math::unit(a) * h;
+            let fd = (lat.sample(&f, x + e) - lat.sample(&f, x - e)) / (2.0 * h);
+            assert!((fd - crate::math::comp(grad, a)).abs() < 1e-7, "axis {a}: {fd} vs {grad}");
+        }
+    }
+
+    #[test]
+    fn ijk_inverts_index() {
+        let lat = grid().faces(1);
+        for idx in 0..lat.len() {
+            let [i, j, k] = lat.ijk(idx);
+            assert_eq!(lat.index(i, j, k), idx);
+        }
+    }
+}

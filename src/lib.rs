@@ -1,0 +1,28 @@
+//! diffluid: differentiable Eulerian liquid simulation with strong two-way rigid coupling.
+//!
+//! The forward step is a pipeline of stages, one module each (see [`sim`]):
+//! [`surface`] (marker particles, liquid signed distance), [`advect`], [`forces`],
+//! [`pressure`] (with [`cg`] and [`mic0`]), and [`extrapolate`]. Geometry enters through
+//! [`shape`] (parry shapes) and [`fractions`] (face weights from signed distances); scenes
+//! are TOML files read by [`scene`].
+#![warn(missing_docs)]
+
+pub mod advect;
+pub mod cg;
+pub mod error;
+pub mod extrapolate;
+pub mod forces;
+pub mod fractions;
+pub mod grid;
+pub mod math;
+pub mod mic0;
+pub mod output;
+pub mod pressure;
+pub mod scene;
+pub mod shape;
+pub mod sim;
+pub mod surface;
+
+pub use error::{Error, Result};
+pub use scene::Scene;
+pub use sim::{Simulation, StepReport};
