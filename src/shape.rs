@@ -156,9 +156,14 @@ impl ShapeSpec {
                     return Err("convex_hull needs at least 4 finite points".into());
                 }
                 let pts: Vec<Vec3> = points.iter().map(|p| v3(*p)).collect();
-                SharedShape::convex_hull(&pts)
-                    .map(|s| (s, Vec3::ZERO))
-                    .ok_or_else(|| "convex_hull points are degenerate (coplanar or repeated)".into())
+                let hull = SharedShape::convex_hull(&pts)
+                    .ok_or_else(|| "convex_hull points are degenerate (coplanar or repeated)".to_string())?;
+                // parry returns a flat hull for coplanar points: reject what has no volume.
+                let extent = hull.compute_local_aabb().extents().max_element();
+                if hull.mass_properties(1.0).mass() <= 1e-9 * extent.powi(3) {
+                    return Err("convex_hull points are degenerate (coplanar: the hull has no volume)".into());
+                }
+                Ok((hull, Vec3::ZERO))
             }
         }
     }
