@@ -9,6 +9,7 @@
 
 pub mod advect;
 pub mod cg;
+pub mod density;
 pub mod error;
 pub mod extrapolate;
 pub mod forces;

@@ -107,6 +107,10 @@ pub struct Solver {
     /// Smallest ghost-fluid fraction θ at a liquid–air face. Default 0.01 (Gibou et al.;
     /// bounds the diagonal at 100× a full face).
     pub theta_min: f64,
+    /// Push marker particles out of over-full cells after advecting them (particle density
+    /// projection, see `density.rs`). Default true: without it the dam break loses about
+    /// 10% of its volume to particles bunching at the floor.
+    pub density_correction: bool,
 }
 
 impl Default for Solver {
@@ -118,6 +122,7 @@ impl Default for Solver {
             extrapolation_layers: 3,
             particles_per_cell: 8,
             theta_min: 0.01,
+            density_correction: true,
         }
     }
 }

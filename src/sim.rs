@@ -10,6 +10,7 @@
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
 use crate::advect::advect;
+use crate::density::{self, DensityInputs};
 use crate::error::{Error, Result};
 use crate::extrapolate::correct_velocity;
 use crate::forces::add_gravity;
@@ -170,6 +171,16 @@ impl Simulation {
 
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
         surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
+        if self.scene.solver.density_correction {
+            let inputs = DensityInputs {
+                grid: &grid,
+                weights: &self.statics.weights,
+                node_sdf: &self.statics.node_sdf,
+                centre_in_solid: &self.statics.centre_in_solid,
+                radius: self.radius,
+            };
+            density::correct(&mut self.particles, &inputs, &self.scene.solver, self.step + 1)?;
+        }
         lap(&mut times.advect_particles);
 
         // 1. Self-advection of the velocity.

@@ -90,14 +90,21 @@ pub fn advect(pos: &mut [Vec3], u: &Mac, grid: &Grid, dt: f64, node_sdf: &[f64])
     let nodes = grid.nodes();
     let size = grid.size();
     let margin = 1e-3 * grid.dx;
+    // Sub-steps so no particle moves more than half a cell per sub-step: the surface is not
+    // differentiated (it is held fixed in the backward pass), so this costs no gradient.
+    let umax = u.max_abs();
+    let subs = ((umax * dt / (0.5 * grid.dx)).ceil() as usize).clamp(1, 64);
+    let h = dt / subs as f64;
     pos.par_iter_mut().for_each(|x| {
-        let mid = *x + 0.5 * dt * u.velocity(grid, *x);
-        let mut y = *x + dt * u.velocity(grid, mid);
-        let (d, g) = nodes.sample_grad(node_sdf, y);
-        if d < margin && g.length() > 1e-12 {
-            y += (margin - d) * g.normalize();
+        for _ in 0..subs {
+            let mid = *x + 0.5 * h * u.velocity(grid, *x);
+            let mut y = *x + h * u.velocity(grid, mid);
+            let (d, g) = nodes.sample_grad(node_sdf, y);
+            if d < margin && g.length() > 1e-12 {
+                y += (margin - d) * g.normalize();
+            }
+            *x = y.clamp(Vec3::splat(margin), size - Vec3::splat(margin));
         }
-        *x = y.clamp(Vec3::splat(margin), size - Vec3::splat(margin));
     });
 }
 
@@ -183,7 +190,16 @@ pub fn liquid_sdf(pos: &[Vec3], bins: &Bins, grid: &Grid, radius: f64) -> Vec<f6
         if d > dx {
             d = nearest(2).min(2.0 * dx);
         }
-        d - radius
+        let phi = d - radius;
+        // A cell that holds a particle is liquid even where the particles are too sparse
+        // for the distance to say so (thin sheets, splashes): the projection then keeps it
+        // divergence-free instead of leaving its particles to extrapolated air velocities,
+        // which bunch them up and lose volume.
+        if phi >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {
+            -1e-3 * dx
+        } else {
+            phi
+        }
     });
     phi
 }
@@ -228,37 +244,35 @@ fn tent_reflected(x: f64, c: f64, len: f64, dx: f64) -> f64 {
     h(x - c) + h(x + c) + h(2.0 * len - x - c)
 }
 
-/// Liquid volume in m³: the marker particles' number density deposited on cell centres with
-/// a trilinear kernel, capped at one full cell per cell, times the cell volume. A freshly
-/// seeded region gives its exact volume; marker particles that bunch up (the way a
-/// marker-particle liquid loses volume) push cells over full and lower it.
-pub fn liquid_volume(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> f64 {
+/// Marker particle number density at cell centres, in full cells (1 = as dense as freshly
+/// seeded): particles deposited with a trilinear kernel whose mass beyond a tank wall is
+/// reflected back in, so every particle deposits exactly one unit.
+pub fn particle_density(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> Vec<f64> {
     let cells = grid.cells();
     let size = grid.size().to_array();
     let dx = grid.dx;
-    let per_slab: Vec<f64> = (0..grid.n[2])
-        .into_par_iter()
-        .map(|k| {
-            let mut sum = 0.0;
-            for j in 0..grid.n[1] {
-                for i in 0..grid.n[0] {
-                    let c = cells.position(i, j, k).to_array();
-                    let mut dens = 0.0;
-                    for_neighbour_cells(grid, [i, j, k], 1, |nc| {
-                        for &p in bins.cell(nc) {
-                            let x = pos[p as usize].to_array();
-                            dens += (0..3)
-                                .map(|a| tent_reflected(x[a], c[a], size[a], dx))
-                                .product::<f64>();
-                        }
-                    });
-                    sum += (dens / ppc as f64).min(1.0);
-                }
+    let mut out = vec![0.0; cells.len()];
+    cells.fill_par(&mut out, |i, j, k| {
+        let c = cells.position(i, j, k).to_array();
+        let mut dens = 0.0;
+        for_neighbour_cells(grid, [i, j, k], 1, |nc| {
+            for &p in bins.cell(nc) {
+                let x = pos[p as usize].to_array();
+                dens += (0..3).map(|a| tent_reflected(x[a], c[a], size[a], dx)).product::<f64>();
             }
-            sum
-        })
-        .collect();
-    per_slab.iter().sum::<f64>() * dx * dx * dx
+        });
+        dens / ppc as f64
+    });
+    out
+}
+
+/// Liquid volume in m³: the particle density capped at one full cell per cell, times the
+/// cell volume. A freshly seeded region gives its exact volume; marker particles that bunch
+/// up (the way a marker-particle liquid loses volume) push cells over full and lower it.
+pub fn liquid_volume(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> f64 {
+    let dens = particle_density(pos, bins, grid, ppc);
+    let parts: Vec<f64> = dens.chunks(crate::grid::REDUCE_CHUNK).map(|c| c.iter().map(|d| d.min(1.0)).sum()).collect();
+    parts.iter().sum::<f64>() * grid.dx.powi(3)
 }
 
 #[cfg(test)]
