@@ -43,7 +43,12 @@ pub struct DensityInputs<'a> {
 }
 
 /// Pushes particles out of over-full cells. `step` names the step in errors.
-pub fn correct(particles: &mut [Vec3], g: &DensityInputs<'_>, solver: &Solver, step: usize) -> Result<DensityStats> {
+pub fn correct(
+    particles: &mut [Vec3],
+    g: &DensityInputs<'_>,
+    solver: &Solver,
+    step: usize,
+) -> Result<DensityStats> {
     let grid = g.grid;
     let ppc = solver.particles_per_cell;
     let bins = Bins::new(particles, grid);
@@ -52,15 +57,35 @@ pub fn correct(particles: &mut [Vec3], g: &DensityInputs<'_>, solver: &Solver, s
     let dens = surface::particle_density(particles, &bins, grid, ppc);
     // Unit Δt and density: the "velocity" update below is then a displacement in metres
     // whose volume flux out of each cell equals the right-hand side.
-    let params = PressureParams { dt: 1.0, density: 1.0, theta_min: solver.theta_min };
+    let params = PressureParams {
+        dt: 1.0,
+        density: 1.0,
+        theta_min: solver.theta_min,
+    };
     let sys = PressureSystem::build(grid, &phi, g.weights, params);
     let vol = grid.dx.powi(3);
-    let b: Vec<f64> = sys.cell_of_row.iter().map(|&c| (dens[c as usize] - 1.0).max(0.0) * vol).collect();
+    // Densities within 1e-6 of full are full: round-off in the deposit must not start a solve.
+    let b: Vec<f64> = sys
+        .cell_of_row
+        .iter()
+        .map(|&c| {
+            if dens[c as usize] > 1.0 + 1e-6 {
+                (dens[c as usize] - 1.0) * vol
+            } else {
+                0.0
+            }
+        })
+        .collect();
     let excess_volume: f64 = b.iter().sum();
     if excess_volume == 0.0 {
         return Ok(DensityStats::default());
     }
-    let (q, stats) = sys.solve(&b, solver.preconditioner, solver.tolerance.max(1e-6), solver.max_iterations);
+    let (q, stats) = sys.solve(
+        &b,
+        solver.preconditioner,
+        solver.tolerance.max(1e-6),
+        solver.max_iterations,
+    );
     if !stats.converged {
         return Err(Error::NotConverged {
             step,
@@ -89,5 +114,8 @@ pub fn correct(particles: &mut [Vec3], g: &DensityInputs<'_>, solver: &Solver, s
         }
         *x = y.clamp(Vec3::splat(margin), size - Vec3::splat(margin));
     });
-    Ok(DensityStats { excess_volume, cg_iterations: stats.iterations })
+    Ok(DensityStats {
+        excess_volume,
+        cg_iterations: stats.iterations,
+    })
 }

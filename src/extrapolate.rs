@@ -59,23 +59,35 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
                 }
             });
     }
-    field.par_iter_mut().zip(valid.par_iter()).for_each(|(f, v)| {
-        if *v == 0 {
-            *f = 0.0;
-        }
-    });
+    field
+        .par_iter_mut()
+        .zip(valid.par_iter())
+        .for_each(|(f, v)| {
+            if *v == 0 {
+                *f = 0.0;
+            }
+        });
 }
 
 /// Extrapolates all three components and then sets every face closed to the fluid
 /// (weight 0: static solid or tank wall) to the solid's velocity, zero.
-pub fn correct_velocity(u: &mut Mac, valid: &mut [Vec<u8>; 3], weights: &[Vec<f64>; 3], grid: &Grid, layers: usize) {
+pub fn correct_velocity(
+    u: &mut Mac,
+    valid: &mut [Vec<u8>; 3],
+    weights: &[Vec<f64>; 3],
+    grid: &Grid,
+    layers: usize,
+) {
     for a in 0..3 {
         extrapolate(&mut u.c[a], &mut valid[a], &grid.faces(a), layers);
-        u.c[a].par_iter_mut().zip(weights[a].par_iter()).for_each(|(x, w)| {
-            if *w <= 0.0 {
-                *x = 0.0;
-            }
-        });
+        u.c[a]
+            .par_iter_mut()
+            .zip(weights[a].par_iter())
+            .for_each(|(x, w)| {
+                if *w <= 0.0 {
+                    *x = 0.0;
+                }
+            });
     }
 }
 
@@ -85,7 +97,11 @@ mod tests {
 
     #[test]
     fn extrapolation_spreads_one_layer_per_pass_and_keeps_valid_values() {
-        let lat = Lattice { n: [6, 1, 1], off: [0.0; 3], dx: 1.0 };
+        let lat = Lattice {
+            n: [6, 1, 1],
+            off: [0.0; 3],
+            dx: 1.0,
+        };
         let mut f = vec![0.0, 2.0, 9.0, 9.0, 9.0, 9.0];
         let mut v = vec![0, 1, 0, 0, 0, 0];
         extrapolate(&mut f, &mut v, &lat, 2);

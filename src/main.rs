@@ -10,7 +10,11 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 #[derive(Parser)]
-#[command(name = "diffluid", version, about = "Differentiable Eulerian liquid simulation with two-way rigid coupling")]
+#[command(
+    name = "diffluid",
+    version,
+    about = "Differentiable Eulerian liquid simulation with two-way rigid coupling"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -43,7 +47,10 @@ fn load_scene(arg: Option<&Path>) -> Result<Scene, Error> {
         None => Ok(Scene::embedded_default()),
         Some(p) if !p.exists() && p.extension().is_none() => {
             let name = p.to_string_lossy();
-            if diffluid::scene::BUILTIN_SCENES.iter().any(|(n, _)| *n == name) {
+            if diffluid::scene::BUILTIN_SCENES
+                .iter()
+                .any(|(n, _)| *n == name)
+            {
                 Scene::builtin(&name)
             } else {
                 Scene::from_file(p)
@@ -69,11 +76,16 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let mut scene = load_scene(args.scene.as_deref())?;
     if let Some(n) = args.steps {
         if n == 0 {
-            return Err(Error::InvalidScene { origin: "--steps".into(), message: "must be at least 1".into() });
+            return Err(Error::InvalidScene {
+                origin: "--steps".into(),
+                message: "must be at least 1".into(),
+            });
         }
         scene.time.steps = n;
     }
-    let out = args.out.unwrap_or_else(|| PathBuf::from("out").join(&scene.name));
+    let out = args
+        .out
+        .unwrap_or_else(|| PathBuf::from("out").join(&scene.name));
     let steps = scene.time.steps;
     let every = scene.output.every;
     let write_particles = scene.output.particles;
@@ -81,16 +93,25 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let initial_volume = sim.liquid_volume();
     let frame = |sim: &Simulation, n: usize| -> Result<(), Error> {
         if write_particles && n % every == 0 {
-            write_ply_points(&out.join("particles").join(format!("{n:04}.ply")), &sim.particles)?;
+            write_ply_points(
+                &out.join("particles").join(format!("{n:04}.ply")),
+                &sim.particles,
+            )?;
         }
         Ok(())
     };
     frame(&sim, 0)?;
-    let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(steps as u64) };
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(steps as u64)
+    };
     bar.set_style(
-        ProgressStyle::with_template("{spinner} {msg} [{bar:30}] step {pos}/{len} ({elapsed} < {eta})")
-            .expect("valid template")
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{spinner} {msg} [{bar:30}] step {pos}/{len} ({elapsed} < {eta})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
     );
     bar.set_message(sim.scene().name.clone());
     let start = Instant::now();

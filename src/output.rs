@@ -7,7 +7,10 @@ use std::io::Write;
 use std::path::Path;
 
 fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
-    move |source| Error::Write { path: path.to_path_buf(), source }
+    move |source| Error::Write {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 /// Writes points as a binary little-endian PLY with `float x y z` per vertex, which
@@ -58,7 +61,10 @@ mod tests {
         let end = b"end_header\n";
         let pos = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
         assert_eq!(bytes.len() - pos, 24);
-        assert_eq!(f32::from_le_bytes(bytes[pos + 4..pos + 8].try_into().unwrap()), 2.0);
+        assert_eq!(
+            f32::from_le_bytes(bytes[pos + 4..pos + 8].try_into().unwrap()),
+            2.0
+        );
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -95,7 +95,12 @@ fn neighbour(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> Option<u
 impl PressureSystem {
     /// Classifies cells and builds the stencil from the liquid signed distance `phi` (cell
     /// centres) and the face fluid weights.
-    pub fn build(grid: &Grid, phi: &[f64], weights: &[Vec<f64>; 3], params: PressureParams) -> Self {
+    pub fn build(
+        grid: &Grid,
+        phi: &[f64],
+        weights: &[Vec<f64>; 3],
+        params: PressureParams,
+    ) -> Self {
         let cells = grid.cells();
         let mut row_of_cell = vec![NONE; cells.len()];
         let mut cell_of_row = Vec::new();
@@ -126,7 +131,9 @@ impl PressureSystem {
                         if w <= 0.0 {
                             continue;
                         }
-                        let Some(n) = neighbour(grid, a, ijk, side) else { continue };
+                        let Some(n) = neighbour(grid, a, ijk, side) else {
+                            continue;
+                        };
                         let rn = row_of_cell[n];
                         if rn != NONE {
                             diag += s * w;
@@ -149,7 +156,14 @@ impl PressureSystem {
             plus: rows.iter().map(|r| r.1).collect(),
             nbr: rows.iter().map(|r| r.2).collect(),
         };
-        PressureSystem { grid: *grid, params, cell_of_row, row_of_cell, stencil, has_air }
+        PressureSystem {
+            grid: *grid,
+            params,
+            cell_of_row,
+            row_of_cell,
+            stencil,
+            has_air,
+        }
     }
 
     /// Number of unknowns.
@@ -217,23 +231,43 @@ impl PressureSystem {
         max_iterations: usize,
     ) -> (Vec<f64>, CgStats) {
         let mut p = vec![0.0; self.len()];
-        let settings = CgSettings { tolerance, max_iterations, project_constant: !self.has_air };
+        let settings = CgSettings {
+            tolerance,
+            max_iterations,
+            project_constant: !self.has_air,
+        };
         let apply = |x: &[f64], y: &mut [f64]| self.apply(x, y);
         let stats = match preconditioner {
             Preconditioner::Mic0 => {
                 let m = Mic0::new(&self.stencil);
-                pcg(apply, |r: &[f64], z: &mut [f64]| m.apply(&self.stencil, r, z), b, &mut p, &settings)
+                pcg(
+                    apply,
+                    |r: &[f64], z: &mut [f64]| m.apply(&self.stencil, r, z),
+                    b,
+                    &mut p,
+                    &settings,
+                )
             }
-            Preconditioner::None => {
-                pcg(apply, |r: &[f64], z: &mut [f64]| z.copy_from_slice(r), b, &mut p, &settings)
-            }
+            Preconditioner::None => pcg(
+                apply,
+                |r: &[f64], z: &mut [f64]| z.copy_from_slice(r),
+                b,
+                &mut p,
+                &settings,
+            ),
         };
         (p, stats)
     }
 
     /// Applies `u −= (Δt/ρ) ∇p` on every open face next to a liquid cell (with p = 0 in air
     /// at distance θ·dx) and returns the mask of faces so updated (the valid faces).
-    pub fn update_velocity(&self, p: &[f64], u: &mut Mac, weights: &[Vec<f64>; 3], phi: &[f64]) -> [Vec<u8>; 3] {
+    pub fn update_velocity(
+        &self,
+        p: &[f64],
+        u: &mut Mac,
+        weights: &[Vec<f64>; 3],
+        phi: &[f64],
+    ) -> [Vec<u8>; 3] {
         let grid = &self.grid;
         let k = self.params.dt / (self.params.density * grid.dx);
         let tmin = self.params.theta_min;
@@ -281,7 +315,10 @@ mod tests {
 
     /// A small tank with a free surface and a partly blocked face.
     fn system() -> PressureSystem {
-        let grid = Grid { n: [5, 6, 4], dx: 0.1 };
+        let grid = Grid {
+            n: [5, 6, 4],
+            dx: 0.1,
+        };
         let cells = grid.cells();
         let mut phi = vec![0.0; cells.len()];
         cells.fill_par(&mut phi, |_, j, _| (j as f64 + 0.5) * 0.1 - 0.33);
@@ -299,7 +336,16 @@ mod tests {
             w
         });
         weights[0][grid.faces(0).index(2, 1, 1)] = 0.3;
-        PressureSystem::build(&grid, &phi, &weights, PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 })
+        PressureSystem::build(
+            &grid,
+            &phi,
+            &weights,
+            PressureParams {
+                dt: 0.01,
+                density: 1000.0,
+                theta_min: 0.01,
+            },
+        )
     }
 
     #[test]

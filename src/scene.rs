@@ -14,7 +14,10 @@ pub const DEFAULT_SCENE: &str = include_str!("../assets/scenes/dam_break.toml");
 /// Scenes shipped with diffluid, by name, so tests and the CLI can load them anywhere.
 pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("dam_break", include_str!("../assets/scenes/dam_break.toml")),
-    ("still_water", include_str!("../assets/scenes/still_water.toml")),
+    (
+        "still_water",
+        include_str!("../assets/scenes/still_water.toml"),
+    ),
 ];
 
 /// A whole scene.
@@ -139,7 +142,10 @@ pub struct Output {
 
 impl Default for Output {
     fn default() -> Self {
-        Output { particles: true, every: 1 }
+        Output {
+            particles: true,
+            every: 1,
+        }
     }
 }
 
@@ -170,14 +176,18 @@ fn locate(src: &str, path: &str) -> Option<usize> {
         Some(s) => s,
         // A top-level key, or a dotted key without its own header.
         None => {
-            return src.lines().position(|l| {
-                let t = l.trim_start();
-                t.starts_with(head) && t[head.len()..].trim_start().starts_with('=')
-            })
-            .map(|n| n + 1)
+            return src
+                .lines()
+                .position(|l| {
+                    let t = l.trim_start();
+                    t.starts_with(head) && t[head.len()..].trim_start().starts_with('=')
+                })
+                .map(|n| n + 1)
         }
     };
-    let Some(key) = key else { return Some(start + 1) };
+    let Some(key) = key else {
+        return Some(start + 1);
+    };
     for (n, line) in src.lines().enumerate().skip(start + 1) {
         let t = line.trim_start();
         if t.starts_with('[') {
@@ -197,7 +207,10 @@ struct Problem {
 }
 
 fn problem(key: impl Into<String>, message: impl Into<String>) -> Problem {
-    Problem { key: key.into(), message: message.into() }
+    Problem {
+        key: key.into(),
+        message: message.into(),
+    }
 }
 
 fn check_positive(key: &str, x: f64) -> std::result::Result<(), Problem> {
@@ -219,15 +232,19 @@ fn check_finite(key: &str, xs: &[f64]) -> std::result::Result<(), Problem> {
 impl Scene {
     /// Reads and validates a scene file.
     pub fn from_file(path: &Path) -> Result<Scene> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| Error::ReadScene { path: path.to_path_buf(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| Error::ReadScene {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Scene::from_toml(&text, &path.display().to_string())
     }
 
     /// Parses and validates a scene from TOML text; `origin` names it in errors.
     pub fn from_toml(text: &str, origin: &str) -> Result<Scene> {
         let scene: Scene = toml::from_str(text).map_err(|e| {
-            let line = e.span().map(|s| text[..s.start.min(text.len())].lines().count().max(1));
+            let line = e
+                .span()
+                .map(|s| text[..s.start.min(text.len())].lines().count().max(1));
             let msg = e.message().trim().replace('\n', " ");
             Error::ParseScene {
                 origin: origin.to_string(),
@@ -238,7 +255,9 @@ impl Scene {
             }
         })?;
         scene.validate().map_err(|p| {
-            let at = locate(text, &p.key).map(|l| format!("line {l}: ")).unwrap_or_default();
+            let at = locate(text, &p.key)
+                .map(|l| format!("line {l}: "))
+                .unwrap_or_default();
             Error::InvalidScene {
                 origin: origin.to_string(),
                 message: format!("{at}{}: {}", p.key, p.message),
@@ -275,18 +294,30 @@ impl Scene {
 
     /// The grid the domain is cut into.
     pub fn grid(&self) -> Grid {
-        let n = self.domain.size.map(|s| (s / self.domain.dx).round() as usize);
-        Grid { n, dx: self.domain.dx }
+        let n = self
+            .domain
+            .size
+            .map(|s| (s / self.domain.dx).round() as usize);
+        Grid {
+            n,
+            dx: self.domain.dx,
+        }
     }
 
     /// Built static obstacles.
     pub fn obstacles(&self) -> Vec<Solid> {
-        self.obstacle.iter().map(|p| p.build().expect("validated")).collect()
+        self.obstacle
+            .iter()
+            .map(|p| p.build().expect("validated"))
+            .collect()
     }
 
     /// Built liquid regions.
     pub fn liquid_regions(&self) -> Vec<Solid> {
-        self.liquid.iter().map(|p| p.build().expect("validated")).collect()
+        self.liquid
+            .iter()
+            .map(|p| p.build().expect("validated"))
+            .collect()
     }
 
     fn validate(&self) -> std::result::Result<(), Problem> {
@@ -298,13 +329,19 @@ impl Scene {
             if n < 1.0 || (n * d.dx - s).abs() > 1e-6 * s {
                 return Err(problem(
                     "domain.size",
-                    format!("size {s} along axis {a} is not a whole number of cells of dx = {}", d.dx),
+                    format!(
+                        "size {s} along axis {a} is not a whole number of cells of dx = {}",
+                        d.dx
+                    ),
                 ));
             }
         }
         let cells: f64 = d.size.iter().map(|s| (s / d.dx).round()).product();
         if cells > 512.0f64.powi(3) {
-            return Err(problem("domain", format!("{cells} cells is more than 512³; raise dx")));
+            return Err(problem(
+                "domain",
+                format!("{cells} cells is more than 512³; raise dx"),
+            ));
         }
         check_positive("time.dt", self.time.dt)?;
         if self.time.steps == 0 {
@@ -331,11 +368,15 @@ impl Scene {
             }
         }
         for (i, o) in self.obstacle.iter().enumerate() {
-            o.build().map_err(|m| problem(format!("obstacle[{i}]"), m))?;
+            o.build()
+                .map_err(|m| problem(format!("obstacle[{i}]"), m))?;
         }
         let s = &self.solver;
         if !(s.tolerance.is_finite() && s.tolerance > 0.0 && s.tolerance < 1.0) {
-            return Err(problem("solver.tolerance", format!("must be in (0, 1), got {}", s.tolerance)));
+            return Err(problem(
+                "solver.tolerance",
+                format!("must be in (0, 1), got {}", s.tolerance),
+            ));
         }
         if s.max_iterations == 0 {
             return Err(problem("solver.max_iterations", "must be at least 1"));
@@ -344,11 +385,17 @@ impl Scene {
         if !(1..=4).contains(&m) || m * m * m != s.particles_per_cell {
             return Err(problem(
                 "solver.particles_per_cell",
-                format!("must be 1, 8, 27 or 64 (a regular sub-lattice), got {}", s.particles_per_cell),
+                format!(
+                    "must be 1, 8, 27 or 64 (a regular sub-lattice), got {}",
+                    s.particles_per_cell
+                ),
             ));
         }
         if !(s.theta_min.is_finite() && s.theta_min > 0.0 && s.theta_min <= 0.5) {
-            return Err(problem("solver.theta_min", format!("must be in (0, 0.5], got {}", s.theta_min)));
+            return Err(problem(
+                "solver.theta_min",
+                format!("must be in (0, 0.5], got {}", s.theta_min),
+            ));
         }
         if self.output.every == 0 {
             return Err(problem("output.every", "must be at least 1"));

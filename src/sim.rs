@@ -108,7 +108,11 @@ impl Simulation {
             particles,
             pressure: vec![0.0; grid.num_cells()],
             phi: vec![0.0; grid.num_cells()],
-            statics: StaticGeometry { node_sdf, weights, centre_in_solid },
+            statics: StaticGeometry {
+                node_sdf,
+                weights,
+                centre_in_solid,
+            },
             radius,
             grid,
             scene,
@@ -154,7 +158,12 @@ impl Simulation {
     /// Liquid volume of the current particles, m³.
     pub fn liquid_volume(&self) -> f64 {
         let bins = Bins::new(&self.particles, &self.grid);
-        surface::liquid_volume(&self.particles, &bins, &self.grid, self.scene.solver.particles_per_cell)
+        surface::liquid_volume(
+            &self.particles,
+            &bins,
+            &self.grid,
+            self.scene.solver.particles_per_cell,
+        )
     }
 
     /// Advances one step.
@@ -170,7 +179,13 @@ impl Simulation {
         };
 
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
-        surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
+        surface::advect(
+            &mut self.particles,
+            &self.u,
+            &grid,
+            dt,
+            &self.statics.node_sdf,
+        );
         if self.scene.solver.density_correction {
             let inputs = DensityInputs {
                 grid: &grid,
@@ -179,7 +194,12 @@ impl Simulation {
                 centre_in_solid: &self.statics.centre_in_solid,
                 radius: self.radius,
             };
-            density::correct(&mut self.particles, &inputs, &self.scene.solver, self.step + 1)?;
+            density::correct(
+                &mut self.particles,
+                &inputs,
+                &self.scene.solver,
+                self.step + 1,
+            )?;
         }
         lap(&mut times.advect_particles);
 
@@ -199,10 +219,19 @@ impl Simulation {
 
         // 4. Projection.
         let solver = &self.scene.solver;
-        let params = PressureParams { dt, density: self.scene.fluid.density, theta_min: solver.theta_min };
+        let params = PressureParams {
+            dt,
+            density: self.scene.fluid.density,
+            theta_min: solver.theta_min,
+        };
         let sys = PressureSystem::build(&grid, &phi, &self.statics.weights, params);
         let b = sys.rhs(&u, &self.statics.weights);
-        let (p, stats) = sys.solve(&b, solver.preconditioner, solver.tolerance, solver.max_iterations);
+        let (p, stats) = sys.solve(
+            &b,
+            solver.preconditioner,
+            solver.tolerance,
+            solver.max_iterations,
+        );
         if !stats.converged {
             return Err(Error::NotConverged {
                 step: self.step + 1,
@@ -218,12 +247,21 @@ impl Simulation {
         lap(&mut times.pressure);
 
         // 5. Velocity correction.
-        correct_velocity(&mut u, &mut valid, &self.statics.weights, &grid, solver.extrapolation_layers);
+        correct_velocity(
+            &mut u,
+            &mut valid,
+            &self.statics.weights,
+            &grid,
+            solver.extrapolation_layers,
+        );
         lap(&mut times.correct_velocity);
 
         self.step += 1;
         if !u.is_finite() {
-            return Err(Error::NonFinite { step: self.step, what: "the fluid velocity".into() });
+            return Err(Error::NonFinite {
+                step: self.step,
+                what: "the fluid velocity".into(),
+            });
         }
         self.u = u;
         self.pressure = sys.scatter(&p);
@@ -235,7 +273,12 @@ impl Simulation {
             cg_iterations: stats.iterations,
             cg_relative_residual: stats.relative_residual,
             max_divergence,
-            liquid_volume: surface::liquid_volume(&self.particles, &bins, &grid, solver.particles_per_cell),
+            liquid_volume: surface::liquid_volume(
+                &self.particles,
+                &bins,
+                &grid,
+                solver.particles_per_cell,
+            ),
             max_speed: self.max_liquid_speed(&sys),
             kinetic_energy,
             stage_seconds: times,
@@ -268,7 +311,8 @@ impl Simulation {
                     let lat = self.grid.faces(a);
                     let mut hi = ijk;
                     hi[a] += 1;
-                    0.5 * (self.u.c[a][lat.index(ijk[0], ijk[1], ijk[2])] + self.u.c[a][lat.index(hi[0], hi[1], hi[2])])
+                    0.5 * (self.u.c[a][lat.index(ijk[0], ijk[1], ijk[2])]
+                        + self.u.c[a][lat.index(hi[0], hi[1], hi[2])])
                 });
                 (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
             })
@@ -277,6 +321,10 @@ impl Simulation {
 
     /// Cells that are liquid in the last step's φ_L.
     pub fn liquid_cells(&self) -> impl Iterator<Item = usize> + '_ {
-        self.phi.iter().enumerate().filter(|(_, p)| **p < 0.0).map(|(c, _)| c)
+        self.phi
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| **p < 0.0)
+            .map(|(c, _)| c)
     }
 }

@@ -258,7 +258,9 @@ pub fn particle_density(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> V
         for_neighbour_cells(grid, [i, j, k], 1, |nc| {
             for &p in bins.cell(nc) {
                 let x = pos[p as usize].to_array();
-                dens += (0..3).map(|a| tent_reflected(x[a], c[a], size[a], dx)).product::<f64>();
+                dens += (0..3)
+                    .map(|a| tent_reflected(x[a], c[a], size[a], dx))
+                    .product::<f64>();
             }
         });
         dens / ppc as f64
@@ -271,7 +273,10 @@ pub fn particle_density(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> V
 /// up (the way a marker-particle liquid loses volume) push cells over full and lower it.
 pub fn liquid_volume(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> f64 {
     let dens = particle_density(pos, bins, grid, ppc);
-    let parts: Vec<f64> = dens.chunks(crate::grid::REDUCE_CHUNK).map(|c| c.iter().map(|d| d.min(1.0)).sum()).collect();
+    let parts: Vec<f64> = dens
+        .chunks(crate::grid::REDUCE_CHUNK)
+        .map(|c| c.iter().map(|d| d.min(1.0)).sum())
+        .collect();
     parts.iter().sum::<f64>() * grid.dx.powi(3)
 }
 
@@ -288,9 +293,15 @@ mod tests {
     #[test]
     fn seeded_box_has_exact_volume_and_flat_surface() {
         use crate::shape::{Placed, ShapeSpec};
-        let grid = Grid { n: [8, 8, 8], dx: 0.125 };
+        let grid = Grid {
+            n: [8, 8, 8],
+            dx: 0.125,
+        };
         let region = Placed {
-            shape: ShapeSpec::Box { min: [0.0, 0.0, 0.0], max: [1.0, 0.5, 1.0] },
+            shape: ShapeSpec::Box {
+                min: [0.0, 0.0, 0.0],
+                max: [1.0, 0.5, 1.0],
+            },
             position: [0.0; 3],
             quaternion: None,
             axis_angle: None,
