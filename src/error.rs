@@ -55,6 +55,19 @@ pub enum Error {
         /// Which quantity.
         what: String,
     },
+    /// A body left the tank (contact is off).
+    #[error(
+        "body {body} left the tank at step {step} (bounds {bounds:?}); turn on [contact] or \
+         change its initial state"
+    )]
+    BodyLeftTank {
+        /// The step.
+        step: usize,
+        /// The body.
+        body: String,
+        /// Its bounds then.
+        bounds: ([f64; 3], [f64; 3]),
+    },
     /// Writing an output failed.
     #[error("cannot write {path}: {source}")]
     Write {

@@ -137,3 +137,97 @@ mod tests {
         }
     }
 }
+
+/// The faces a rigid body covers, with its solid fraction β on each (β > 0 only).
+#[derive(Clone, Debug, Default)]
+pub struct BodyFaces {
+    /// Per axis, (face index, β) sorted by face index.
+    pub faces: [Vec<(usize, f64)>; 3],
+}
+
+/// Solid fractions of one body on the faces near it, from its signed distance at the
+/// nodes of its bounding box grown by one cell. `sdf` evaluates the body's signed distance.
+pub fn body_faces(grid: &Grid, bounds: (crate::math::Vec3, crate::math::Vec3), sdf: impl Fn(crate::math::Vec3) -> f64 + Sync) -> BodyFaces {
+    let nodes = grid.nodes();
+    let (lo, hi) = bounds;
+    let lo = lo.to_array();
+    let hi = hi.to_array();
+    // Node index range [n0, n1] per axis covering the grown box.
+    let range: [(usize, usize); 3] = [0, 1, 2].map(|a| {
+        let n0 = ((lo[a] / grid.dx).floor() - 1.0).max(0.0) as usize;
+        let n1 = (((hi[a] / grid.dx).ceil() + 1.0).max(0.0) as usize).min(grid.n[a]);
+        (n0.min(grid.n[a]), n1)
+    });
+    let ext = range.map(|(a, b)| b - a + 1);
+    let local = |i: usize, j: usize, k: usize| (i - range[0].0) + ext[0] * ((j - range[1].0) + ext[1] * (k - range[2].0));
+    let mut phi = vec![0.0; ext[0] * ext[1] * ext[2]];
+    {
+        use rayon::prelude::*;
+        phi.par_iter_mut().enumerate().for_each(|(l, v)| {
+            let i = l % ext[0] + range[0].0;
+            let j = (l / ext[0]) % ext[1] + range[1].0;
+            let k = l / (ext[0] * ext[1]) + range[2].0;
+            *v = sdf(nodes.position(i, j, k));
+        });
+    }
+    let mut out = BodyFaces::default();
+    for axis in 0..3 {
+        let lat = grid.faces(axis);
+        let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
+        let mut fr = [(0usize, 0usize); 3];
+        fr[axis] = range[axis];
+        fr[b] = (range[b].0, range[b].1.saturating_sub(1));
+        fr[c] = (range[c].0, range[c].1.saturating_sub(1));
+        if range[b].1 == range[b].0 || range[c].1 == range[c].0 {
+            continue;
+        }
+        for k in fr[2].0..=fr[2].1 {
+            for j in fr[1].0..=fr[1].1 {
+                for i in fr[0].0..=fr[0].1 {
+                    let f = [i, j, k];
+                    let corner = |db: usize, dc: usize| {
+                        let mut p = f;
+                        p[b] += db;
+                        p[c] += dc;
+                        phi[local(p[0], p[1], p[2])]
+                    };
+                    let beta = square_fraction_inside([corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)]);
+                    if beta > 0.0 {
+                        out.faces[axis].push((lat.index(i, j, k), beta));
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Column i of J for one body, for every cell next to a covered face:
+/// `J_i = Σ_f σ_if·dx²·β_f·[e_f ; r_f × e_f]` with σ = +1 on the cell's + face, −1 on its
+/// − face, and `r_f` from the centre of mass to the face centre. `J·p` is then the pressure
+/// force and torque on the body (−∇p integrated over the solid part of each face), and
+/// `(Jᵀ·[v; ω])_i` the volume flux the body's motion pushes out of cell i. Sorted by cell.
+pub fn body_jacobian(grid: &Grid, faces: &BodyFaces, com: crate::math::Vec3) -> Vec<(usize, [f64; 6])> {
+    let area = grid.dx * grid.dx;
+    let mut acc: std::collections::BTreeMap<usize, [f64; 6]> = Default::default();
+    for axis in 0..3 {
+        let lat = grid.faces(axis);
+        let e = crate::math::unit(axis);
+        for &(f, beta) in &faces.faces[axis] {
+            let ijk = lat.ijk(f);
+            let r = lat.position(ijk[0], ijk[1], ijk[2]) - com;
+            let t = r.cross(e);
+            let col = [e.x, e.y, e.z, t.x, t.y, t.z].map(|x| x * area * beta);
+            let (minus, plus) = grid.face_cells(axis, ijk);
+            for (cell, sign) in [(minus, 1.0), (plus, -1.0)] {
+                if let Some(c) = cell {
+                    let entry = acc.entry(c).or_insert([0.0; 6]);
+                    for d in 0..6 {
+                        entry[d] += sign * col[d];
+                    }
+                }
+            }
+        }
+    }
+    acc.into_iter().collect()
+}

@@ -10,7 +10,10 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod advect;
+pub mod body;
 pub mod cg;
+#[cfg(feature = "contact")]
+pub mod contact;
 pub mod density;
 pub mod error;
 pub mod extrapolate;
@@ -18,6 +21,7 @@ pub mod forces;
 pub mod fractions;
 pub mod grid;
 pub mod math;
+pub mod mesh;
 pub mod mic0;
 pub mod output;
 pub mod pressure;

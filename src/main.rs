@@ -101,6 +101,19 @@ fn run(args: RunArgs) -> Result<(), Error> {
         Ok(())
     };
     frame(&sim, 0)?;
+    let mut csv = String::from("step,time,body,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz\n");
+    let mut body_rows = |sim: &Simulation, step: usize| {
+        for b in &sim.bodies {
+            let (x, q, v, w) = (b.x, b.q, b.v, b.w);
+            csv.push_str(&format!(
+                "{step},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+                step as f64 * sim.scene().time.dt,
+                b.name,
+                x.x, x.y, x.z, q.w, q.x, q.y, q.z, v.x, v.y, v.z, w.x, w.y, w.z
+            ));
+        }
+    };
+    body_rows(&sim, 0);
     let bar = if args.quiet {
         ProgressBar::hidden()
     } else {
@@ -119,12 +132,16 @@ fn run(args: RunArgs) -> Result<(), Error> {
     for _ in 0..steps {
         let r = sim.step()?;
         frame(&sim, r.step)?;
+        body_rows(&sim, r.step);
         bar.set_message(format!("{} cg {:>3} it", sim.scene().name, r.cg_iterations));
         bar.inc(1);
         reports.push(r);
     }
     let total = start.elapsed().as_secs_f64();
     bar.finish_and_clear();
+    if !sim.bodies.is_empty() {
+        diffluid::output::write_atomic(&out.join("bodies.csv"), csv.as_bytes())?;
+    }
     let grid = *sim.grid();
     write_json(
         &out.join("summary.json"),

@@ -7,10 +7,7 @@ use std::io::Write;
 use std::path::Path;
 
 fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
-    move |source| Error::Write {
-        path: path.to_path_buf(),
-        source,
-    }
+    move |source| Error::Write { path: path.to_path_buf(), source }
 }
 
 /// Writes points as a binary little-endian PLY with `float x y z` per vertex, which
@@ -27,6 +24,47 @@ pub fn write_ply_points(path: &Path, points: &[Vec3]) -> Result<()> {
     for p in points {
         for c in p.to_array() {
             buf.extend_from_slice(&(c as f32).to_le_bytes());
+        }
+    }
+    write_atomic(path, &buf)
+}
+
+/// Writes a triangle mesh as a binary little-endian PLY: `float x y z` per vertex and an
+/// `element face` with `property list uchar int vertex_indices` (three per face), which
+/// ParaView, Blender and MeshLab read. A triangle index past the vertices (or beyond what an
+/// `int` holds) is an error and nothing is written.
+pub fn write_ply_mesh(path: &Path, vertices: &[Vec3], triangles: &[[u32; 3]]) -> Result<()> {
+    let limit = vertices.len().min(i32::MAX as usize);
+    if let Some((n, t)) =
+        triangles.iter().enumerate().find(|(_, t)| t.iter().any(|&i| i as usize >= limit))
+    {
+        return Err(Error::Write {
+            path: path.to_path_buf(),
+            source: std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("triangle {n} {t:?} refers past the {} vertices", vertices.len()),
+            ),
+        });
+    }
+    let mut buf = Vec::with_capacity(256 + 12 * vertices.len() + 13 * triangles.len());
+    write!(
+        buf,
+        "ply\nformat binary_little_endian 1.0\ncomment diffluid surface mesh\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\nelement face {}\n\
+         property list uchar int vertex_indices\nend_header\n",
+        vertices.len(),
+        triangles.len()
+    )
+    .expect("writing to memory");
+    for p in vertices {
+        for c in p.to_array() {
+            buf.extend_from_slice(&(c as f32).to_le_bytes());
+        }
+    }
+    for t in triangles {
+        buf.push(3);
+        for &i in t {
+            buf.extend_from_slice(&(i as i32).to_le_bytes());
         }
     }
     write_atomic(path, &buf)
@@ -61,10 +99,44 @@ mod tests {
         let end = b"end_header\n";
         let pos = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
         assert_eq!(bytes.len() - pos, 24);
-        assert_eq!(
-            f32::from_le_bytes(bytes[pos + 4..pos + 8].try_into().unwrap()),
-            2.0
-        );
+        assert_eq!(f32::from_le_bytes(bytes[pos + 4..pos + 8].try_into().unwrap()), 2.0);
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn ply_mesh_has_counts_in_header_and_thirteen_bytes_per_face() {
+        let dir = std::env::temp_dir().join(format!("diffluid-plymesh-{}", std::process::id()));
+        let path = dir.join("m.ply");
+        let vertices = [Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::new(0.0, 0.0, 2.5)];
+        let triangles = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]];
+        write_ply_mesh(&path, &vertices, &triangles).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let end = b"end_header\n";
+        let pos = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+        let header = std::str::from_utf8(&bytes[..pos]).unwrap();
+        let count = |element: &str| -> usize {
+            header
+                .lines()
+                .find_map(|l| l.strip_prefix(&format!("element {element} ")))
+                .unwrap()
+                .parse()
+                .unwrap()
+        };
+        let (nv, nf) = (count("vertex"), count("face"));
+        assert_eq!((nv, nf), (4, 4));
+        assert!(header.starts_with("ply\nformat binary_little_endian 1.0\n"));
+        assert!(header.contains("property list uchar int vertex_indices\n"));
+        assert_eq!(bytes.len() - pos, 12 * nv + 13 * nf);
+        let body = &bytes[pos..];
+        let f32_at = |o: usize| f32::from_le_bytes(body[o..o + 4].try_into().unwrap());
+        assert_eq!(f32_at(3 * 12 + 8), 2.5);
+        let face = &body[12 * nv + 13..12 * nv + 26];
+        assert_eq!(face[0], 3);
+        let idx: Vec<i32> =
+            face[1..].chunks_exact(4).map(|c| i32::from_le_bytes(c.try_into().unwrap())).collect();
+        assert_eq!(idx, [0, 1, 3]);
+        assert!(write_ply_mesh(&dir.join("bad.ply"), &vertices, &[[0, 1, 4]]).is_err());
+        assert!(!dir.join("bad.ply").exists());
         std::fs::remove_dir_all(dir).ok();
     }
 }

@@ -57,6 +57,61 @@ pub struct PressureSystem {
     pub stencil: Stencil,
     /// True when some liquid cell touches air (then A is definite).
     pub has_air: bool,
+    /// Rank-6 coupling terms, one per dynamic body.
+    pub bodies: Vec<BodyCoupling>,
+}
+
+/// One body's coupling over the unknowns: the non-zero columns of J and Δt·M_S⁻¹.
+#[derive(Clone, Debug)]
+pub struct BodyCoupling {
+    /// Unknowns the body touches.
+    pub rows: Vec<u32>,
+    /// Column of J for each of those rows.
+    pub j: Vec<[f64; 6]>,
+    /// Δt·M_S⁻¹, row-major.
+    pub dt_minv: [[f64; 6]; 6],
+}
+
+impl BodyCoupling {
+    /// Keeps the J columns of cells that are unknowns.
+    pub fn new(row_of_cell: &[u32], jac: &[(usize, [f64; 6])], dt_minv: [[f64; 6]; 6]) -> BodyCoupling {
+        let (rows, j) = jac
+            .iter()
+            .filter(|(c, _)| row_of_cell[*c] != NONE)
+            .map(|(c, col)| (row_of_cell[*c], *col))
+            .unzip();
+        BodyCoupling { rows, j, dt_minv }
+    }
+
+    /// J·x: the generalised force of a pressure field (force, torque).
+    pub fn force(&self, x: &[f64]) -> [f64; 6] {
+        let mut t = [0.0; 6];
+        for (r, col) in self.rows.iter().zip(&self.j) {
+            let xr = x[*r as usize];
+            for d in 0..6 {
+                t[d] += col[d] * xr;
+            }
+        }
+        t
+    }
+
+    /// Δt·M⁻¹·f.
+    pub fn dt_minv_times(&self, f: &[f64; 6]) -> [f64; 6] {
+        let mut s = [0.0; 6];
+        for r in 0..6 {
+            for c in 0..6 {
+                s[r] += self.dt_minv[r][c] * f[c];
+            }
+        }
+        s
+    }
+
+    /// y += J ᵀ·s.
+    pub fn add_jt(&self, s: &[f64; 6], y: &mut [f64]) {
+        for (r, col) in self.rows.iter().zip(&self.j) {
+            y[*r as usize] += (0..6).map(|d| col[d] * s[d]).sum::<f64>();
+        }
+    }
 }
 
 /// Ghost-fluid fraction of a liquid–air face: where φ_L crosses zero between the centres,
@@ -163,6 +218,7 @@ impl PressureSystem {
             row_of_cell,
             stencil,
             has_air,
+            bodies: Vec::new(),
         }
     }
 
@@ -193,6 +249,10 @@ impl PressureSystem {
             }
             *yr = v;
         });
+        for b in &self.bodies {
+            let s = b.dt_minv_times(&b.force(x));
+            b.add_jt(&s, y);
+        }
     }
 
     /// Volume flux out of each liquid cell through its fluid faces, `Σ_f σ_if·dx²·w_f·u_f`.
@@ -215,10 +275,17 @@ impl PressureSystem {
             .collect()
     }
 
-    /// Right-hand side: minus the flux out of each cell.
-    pub fn rhs(&self, u: &Mac, weights: &[Vec<f64>; 3]) -> Vec<f64> {
+    /// Right-hand side `(1/ρ) Gᵀ M_F u − Jᵀ V`: minus the volume flux out of each cell,
+    /// through its fluid faces and pushed by each body's velocity `V = [v; ω]` (one per
+    /// entry of `bodies`).
+    pub fn rhs(&self, u: &Mac, weights: &[Vec<f64>; 3], body_velocity: &[[f64; 6]]) -> Vec<f64> {
+        assert_eq!(body_velocity.len(), self.bodies.len());
         let mut b = self.fluid_flux(u, weights);
         b.iter_mut().for_each(|x| *x = -*x);
+        for (body, v) in self.bodies.iter().zip(body_velocity) {
+            let minus_v = v.map(|x| -x);
+            body.add_jt(&minus_v, &mut b);
+        }
         b
     }
 

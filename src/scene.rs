@@ -4,20 +4,21 @@
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::math::{v3, Arr3};
-use crate::shape::{Placed, Solid};
+use crate::body::RigidBody;
+use crate::shape::{AxisAngle, Placed, ShapeSpec, Solid};
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// The scene `cargo run --release` runs when no scene is given.
-pub const DEFAULT_SCENE: &str = include_str!("../assets/scenes/dam_break.toml");
+pub const DEFAULT_SCENE: &str = include_str!("../assets/scenes/block_drop.toml");
 
 /// Scenes shipped with diffluid, by name, so tests and the CLI can load them anywhere.
 pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("dam_break", include_str!("../assets/scenes/dam_break.toml")),
-    (
-        "still_water",
-        include_str!("../assets/scenes/still_water.toml"),
-    ),
+    ("still_water", include_str!("../assets/scenes/still_water.toml")),
+    ("block_drop", include_str!("../assets/scenes/block_drop.toml")),
+    ("dam_break_ball", include_str!("../assets/scenes/dam_break_ball.toml")),
+    ("floating_box", include_str!("../assets/scenes/floating_box.toml")),
 ];
 
 /// A whole scene.
@@ -44,9 +45,90 @@ pub struct Scene {
     /// Solver settings.
     #[serde(default)]
     pub solver: Solver,
+    /// Rigid bodies coupled to the liquid.
+    #[serde(default)]
+    pub body: Vec<BodySpec>,
+    /// Rigid contact (body–wall, body–body), resolved after the fluid step.
+    #[serde(default)]
+    pub contact: Contact,
     /// What to write out.
     #[serde(default)]
     pub output: Output,
+    /// Folder that relative mesh paths start from (the scene file's folder).
+    #[serde(skip)]
+    pub base_dir: Option<PathBuf>,
+}
+
+/// A rigid body as written in a scene file: a shape with a pose, a density or a mass, and
+/// an initial velocity. `position` places the shape's local origin (the centre for
+/// primitives).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BodySpec {
+    /// Name used in outputs (default `body<i>`).
+    #[serde(default)]
+    pub name: String,
+    /// The shape.
+    pub shape: ShapeSpec,
+    /// Position of the shape's local origin, m.
+    #[serde(default)]
+    pub position: Arr3,
+    /// Orientation as a quaternion `[w, x, y, z]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quaternion: Option<[f64; 4]>,
+    /// Orientation as axis and angle.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub axis_angle: Option<AxisAngle>,
+    /// Density, kg/m³ (give this or `mass`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub density: Option<f64>,
+    /// Mass, kg (give this or `density`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mass: Option<f64>,
+    /// Initial linear velocity of the centre of mass, m/s.
+    #[serde(default)]
+    pub velocity: Arr3,
+    /// Initial angular velocity (world frame), rad/s.
+    #[serde(default)]
+    pub angular_velocity: Arr3,
+    /// False for a body held still (it still couples, with zero velocity). Default true.
+    #[serde(default = "yes")]
+    pub dynamic: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+impl BodySpec {
+    /// The shape and pose part.
+    pub fn placed(&self) -> Placed {
+        Placed {
+            shape: self.shape.clone(),
+            position: self.position,
+            quaternion: self.quaternion,
+            axis_angle: self.axis_angle.clone(),
+        }
+    }
+}
+
+/// Rigid contact settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Contact {
+    /// Resolve body–wall and body–body contact with rapier after each fluid step. Default
+    /// false: then a body that would leave the tank is an error.
+    pub enabled: bool,
+    /// Coulomb friction coefficient. Default 0.5.
+    pub friction: f64,
+    /// Restitution. Default 0 (bodies in water do not bounce much).
+    pub restitution: f64,
+}
+
+impl Default for Contact {
+    fn default() -> Self {
+        Contact { enabled: false, friction: 0.5, restitution: 0.0 }
+    }
 }
 
 /// The tank: a box `[0, size]` with solid walls, cut into cubes of side `dx`.
@@ -236,15 +318,28 @@ impl Scene {
             path: path.to_path_buf(),
             source,
         })?;
-        Scene::from_toml(&text, &path.display().to_string())
+        let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Scene::from_toml_in(&text, &path.display().to_string(), base)
     }
 
-    /// Parses and validates a scene from TOML text; `origin` names it in errors.
+    /// Parses and validates TOML text whose relative mesh paths start from `base`.
+    pub fn from_toml_in(text: &str, origin: &str, base: PathBuf) -> Result<Scene> {
+        let mut scene = Scene::parse(text, origin)?;
+        scene.base_dir = Some(base);
+        scene.validated(text, origin)
+    }
+
+    /// Parses and validates a scene from TOML text; `origin` names it in errors. Relative
+    /// mesh paths start from `assets/scenes/`.
     pub fn from_toml(text: &str, origin: &str) -> Result<Scene> {
-        let scene: Scene = toml::from_str(text).map_err(|e| {
+        Scene::from_toml_in(text, origin, Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes"))
+    }
+
+    fn parse(text: &str, origin: &str) -> Result<Scene> {
+        toml::from_str(text).map_err(|e| {
             let line = e
                 .span()
-                .map(|s| text[..s.start.min(text.len())].lines().count().max(1));
+                .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             let msg = e.message().trim().replace('\n', " ");
             Error::ParseScene {
                 origin: origin.to_string(),
@@ -253,8 +348,11 @@ impl Scene {
                     None => msg,
                 },
             }
-        })?;
-        scene.validate().map_err(|p| {
+        })
+    }
+
+    fn validated(self, text: &str, origin: &str) -> Result<Scene> {
+        self.validate().map_err(|p| {
             let at = locate(text, &p.key)
                 .map(|l| format!("line {l}: "))
                 .unwrap_or_default();
@@ -263,7 +361,7 @@ impl Scene {
                 message: format!("{at}{}: {}", p.key, p.message),
             }
         })?;
-        Ok(scene)
+        Ok(self)
     }
 
     /// A scene shipped with diffluid, by name (`dam_break`, `still_water`, ...).
@@ -304,20 +402,79 @@ impl Scene {
         }
     }
 
+    /// Folder relative mesh paths start from.
+    pub fn base(&self) -> PathBuf {
+        self.base_dir.clone().unwrap_or_else(|| PathBuf::from("."))
+    }
+
     /// Built static obstacles.
     pub fn obstacles(&self) -> Vec<Solid> {
-        self.obstacle
-            .iter()
-            .map(|p| p.build().expect("validated"))
-            .collect()
+        let base = self.base();
+        self.obstacle.iter().map(|p| p.build(&base).expect("validated")).collect()
     }
 
     /// Built liquid regions.
     pub fn liquid_regions(&self) -> Vec<Solid> {
-        self.liquid
+        let base = self.base();
+        self.liquid.iter().map(|p| p.build(&base).expect("validated")).collect()
+    }
+
+    /// Built rigid bodies in their initial state.
+    pub fn bodies(&self) -> Result<Vec<RigidBody>> {
+        self.body
             .iter()
-            .map(|p| p.build().expect("validated"))
+            .enumerate()
+            .map(|(i, b)| {
+                self.build_body(i, b).map_err(|p| Error::InvalidScene {
+                    origin: self.name.clone(),
+                    message: format!("{}: {}", p.key, p.message),
+                })
+            })
             .collect()
+    }
+
+    fn build_body(&self, i: usize, b: &BodySpec) -> std::result::Result<RigidBody, Problem> {
+        let key = format!("body[{i}]");
+        let solid = b.placed().build(&self.base()).map_err(|m| problem(&key, m))?;
+        let (density, mass) = match (b.density, b.mass) {
+            (Some(d), None) => {
+                check_positive(&format!("{key}.density"), d)?;
+                (d, None)
+            }
+            (None, Some(m)) => {
+                check_positive(&format!("{key}.mass"), m)?;
+                (1.0, Some(m))
+            }
+            _ => return Err(problem(&key, "give exactly one of density and mass")),
+        };
+        check_finite(&format!("{key}.velocity"), &b.velocity)?;
+        check_finite(&format!("{key}.angular_velocity"), &b.angular_velocity)?;
+        let name = if b.name.is_empty() { format!("body{i}") } else { b.name.clone() };
+        let mut body = RigidBody::new(name, solid.shape, solid.pose, density);
+        if !(body.mass.is_finite() && body.mass > 0.0) {
+            return Err(problem(&key, "the shape has no volume (degenerate shape)"));
+        }
+        if let Some(m) = mass {
+            body.set_mass(m);
+        }
+        body.v = v3(b.velocity);
+        body.w = v3(b.angular_velocity);
+        body.dynamic = b.dynamic;
+        let (lo, hi) = body.bounds();
+        let size = v3(self.domain.size);
+        if lo.min_element() <= 0.0 || (hi - size).max_element() >= 0.0 {
+            return Err(problem(
+                &key,
+                format!(
+                    "body spans {:?}..{:?}: it must start inside the tank [0, 0, 0]..{:?} \
+                     without touching a wall",
+                    lo.to_array(),
+                    hi.to_array(),
+                    self.domain.size
+                ),
+            ));
+        }
+        Ok(body)
     }
 
     fn validate(&self) -> std::result::Result<(), Problem> {
@@ -353,7 +510,7 @@ impl Scene {
         let tol = 1e-9 * size.max_element();
         for (i, l) in self.liquid.iter().enumerate() {
             let key = format!("liquid[{i}]");
-            let s = l.build().map_err(|m| problem(&key, m))?;
+            let s = l.build(&self.base()).map_err(|m| problem(&key, m))?;
             let (lo, hi) = s.bounds();
             if lo.min_element() < -tol || (hi - size).max_element() > tol {
                 return Err(problem(
@@ -368,7 +525,7 @@ impl Scene {
             }
         }
         for (i, o) in self.obstacle.iter().enumerate() {
-            o.build()
+            o.build(&self.base())
                 .map_err(|m| problem(format!("obstacle[{i}]"), m))?;
         }
         let s = &self.solver;
@@ -396,6 +553,16 @@ impl Scene {
                 "solver.theta_min",
                 format!("must be in (0, 0.5], got {}", s.theta_min),
             ));
+        }
+        for (i, b) in self.body.iter().enumerate() {
+            self.build_body(i, b)?;
+        }
+        let c = &self.contact;
+        if !(c.friction.is_finite() && c.friction >= 0.0) {
+            return Err(problem("contact.friction", format!("must be a non-negative number, got {}", c.friction)));
+        }
+        if !(c.restitution.is_finite() && (0.0..=1.0).contains(&c.restitution)) {
+            return Err(problem("contact.restitution", format!("must be in [0, 1], got {}", c.restitution)));
         }
         if self.output.every == 0 {
             return Err(problem("output.every", "must be at least 1"));

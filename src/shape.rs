@@ -3,6 +3,7 @@
 
 use crate::math::{v3, Arr3, Pose, Rotation, SharedShape, Vec3};
 use serde::{Deserialize, Serialize};
+use std::path::Path;
 
 /// A shape as written in a scene file. All lengths in metres, in the shape's local frame
 /// (capsules and cylinders have their axis along local y, as in parry).
@@ -45,6 +46,19 @@ pub enum ShapeSpec {
         /// Points in the local frame.
         points: Vec<Arr3>,
     },
+    /// A closed triangle mesh from a Wavefront OBJ file. A relative path is taken from the
+    /// scene file's folder (for built-in scenes, `assets/scenes/`).
+    Mesh {
+        /// Path of the OBJ file.
+        obj: String,
+        /// Uniform scale applied to the vertices.
+        #[serde(default = "one")]
+        scale: f64,
+    },
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 /// Orientation given as an axis and an angle in degrees.
@@ -120,7 +134,8 @@ fn positive(name: &str, x: f64) -> Result<(), String> {
 
 impl ShapeSpec {
     /// The parry shape and the offset of its local origin (non-zero only for `box`).
-    pub fn build(&self) -> Result<(SharedShape, Vec3), String> {
+    /// `base` is the folder relative mesh paths start from.
+    pub fn build(&self, base: &Path) -> Result<(SharedShape, Vec3), String> {
         match self {
             ShapeSpec::Box { min, max } => {
                 if !all_finite(min) || !all_finite(max) {
@@ -179,6 +194,11 @@ impl ShapeSpec {
                 }
                 Ok((hull, Vec3::ZERO))
             }
+            ShapeSpec::Mesh { obj, scale } => {
+                positive("mesh scale", *scale)?;
+                let path = base.join(obj);
+                crate::mesh::load_obj(&path, *scale).map(|s| (s, Vec3::ZERO))
+            }
         }
     }
 }
@@ -209,12 +229,12 @@ impl Placed {
         }
     }
 
-    /// Builds the parry shape at its pose.
-    pub fn build(&self) -> Result<Solid, String> {
+    /// Builds the parry shape at its pose; `base` is the folder relative mesh paths start from.
+    pub fn build(&self, base: &Path) -> Result<Solid, String> {
         if !all_finite(&self.position) {
             return Err(format!("position {:?} must be finite", self.position));
         }
-        let (shape, offset) = self.shape.build()?;
+        let (shape, offset) = self.shape.build(base)?;
         let rot = self.rotation()?;
         let pose = Pose::from_parts(v3(self.position) + rot * offset, rot);
         Ok(Solid { shape, pose })
@@ -236,19 +256,16 @@ mod tests {
             quaternion: None,
             axis_angle: None,
         };
-        let s = p.build().unwrap();
+        let s = p.build(Path::new(".")).unwrap();
         assert!((s.sdf(Vec3::new(0.5, 1.0, 0.5)) + 0.5).abs() < 1e-12);
         assert!((s.sdf(Vec3::new(1.5, 1.0, 0.5)) - 0.5).abs() < 1e-12);
     }
 
     #[test]
     fn degenerate_shapes_are_rejected() {
-        assert!(ShapeSpec::Ball { radius: 0.0 }.build().is_err());
-        assert!(ShapeSpec::Cuboid {
-            half_extents: [1.0, f64::NAN, 1.0]
-        }
-        .build()
-        .is_err());
+        assert!(ShapeSpec::Ball { radius: 0.0 }.build(Path::new(".")).is_err());
+        let nan = ShapeSpec::Cuboid { half_extents: [1.0, f64::NAN, 1.0] };
+        assert!(nan.build(Path::new(".")).is_err());
         let flat = ShapeSpec::ConvexHull {
             points: vec![
                 [0.0, 0.0, 0.0],
@@ -257,6 +274,6 @@ mod tests {
                 [1.0, 1.0, 0.0],
             ],
         };
-        assert!(flat.build().is_err());
+        assert!(flat.build(Path::new(".")).is_err());
     }
 }

@@ -5,7 +5,13 @@
 //! 2. add gravity;
 //! 3. rebuild the liquid signed distance φ_L from the particles;
 //! 4. project: build the pressure system, solve it, update the velocity;
-//! 5. correct the velocity: extrapolate into air, zero it inside static solids.
+//! 5. correct the velocity: extrapolate into air, zero it inside static solids, give faces
+//!    inside a body the body's velocity;
+//! 6. integrate the bodies (x += Δt·v, quaternion update), or let rapier resolve contact.
+//!
+//! Bodies enter stage 3 as solid fractions β on the faces they cover (the fluid weight is
+//! what is left) and as J, and stage 4 as the rank-6 term Δt·Jᵀ M_S⁻¹ J of one monolithic
+//! solve (Batty et al. 2007): v += Δt·M_S⁻¹ J p.
 //!
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
@@ -19,6 +25,10 @@ use crate::grid::{Grid, Mac};
 use crate::math::Vec3;
 use crate::pressure::{PressureParams, PressureSystem};
 use crate::scene::Scene;
+use crate::body::RigidBody;
+#[cfg(feature = "contact")]
+use crate::contact::ContactWorld;
+use crate::pressure::BodyCoupling;
 use crate::surface::{self, Bins};
 use serde::Serialize;
 use std::time::Instant;
@@ -38,6 +48,21 @@ pub struct StageSeconds {
     pub pressure: f64,
     /// Stage 5: extrapolation and solid velocities.
     pub correct_velocity: f64,
+    /// Stage 3 (bodies): face fractions, J, combined weights.
+    pub geometry: f64,
+    /// Stage 6: rigid integration or contact.
+    pub rigid: f64,
+}
+
+/// Pressure force and torque on one body in one step, as written to `summary.json`.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct BodyForce {
+    /// Body name.
+    pub name: String,
+    /// Pressure force J·p (first three rows), N.
+    pub force: [f64; 3],
+    /// Pressure torque about the centre of mass, N·m.
+    pub torque: [f64; 3],
 }
 
 /// What one step did, as written to `summary.json`.
@@ -61,8 +86,21 @@ pub struct StepReport {
     pub max_speed: f64,
     /// Kinetic energy of the liquid, ½ Σ ρ·w_f·dx³·u_f² over faces next to liquid, J.
     pub kinetic_energy: f64,
+    /// Pressure force and torque on each dynamic body.
+    pub bodies: Vec<BodyForce>,
     /// Wall time per stage.
     pub stage_seconds: StageSeconds,
+}
+
+/// Where the solids are this step: combined face weights and the bodies' faces.
+#[derive(Clone, Debug)]
+pub struct Geometry {
+    /// Fluid weight of every face: static weight minus the bodies' fractions, in [0, 1].
+    pub weights: [Vec<f64>; 3],
+    /// Cells whose centre is inside a static solid or a body.
+    pub centre_in_solid: Vec<bool>,
+    /// Faces covered by each body.
+    pub body_faces: Vec<fractions::BodyFaces>,
 }
 
 /// Geometry that does not move: tank walls and obstacles.
@@ -87,6 +125,8 @@ pub struct Simulation {
     pub u: Mac,
     /// Marker particle positions.
     pub particles: Vec<Vec3>,
+    /// Rigid bodies.
+    pub bodies: Vec<RigidBody>,
     pressure: Vec<f64>,
     phi: Vec<f64>,
     step: usize,
@@ -103,7 +143,12 @@ impl Simulation {
         let ppc = scene.solver.particles_per_cell;
         let particles = surface::seed(&grid, &scene.liquid_regions(), ppc, &node_sdf);
         let radius = surface::particle_radius(grid.dx, surface::per_axis(ppc));
+        let bodies = scene.bodies()?;
+        let mut particles = particles;
+        let margin = 1e-3 * grid.dx;
+        particles.retain(|x| bodies.iter().all(|b| b.sdf(*x) > margin));
         Ok(Simulation {
+            bodies,
             u: Mac::zeros(&grid),
             particles,
             pressure: vec![0.0; grid.num_cells()],
@@ -166,6 +211,37 @@ impl Simulation {
         )
     }
 
+    /// Where the solids are now: static weights minus each body's face fractions.
+    pub fn geometry(&self) -> Geometry {
+        let grid = &self.grid;
+        let mut weights = self.statics.weights.clone();
+        let mut centre_in_solid = self.statics.centre_in_solid.clone();
+        let mut body_faces = Vec::with_capacity(self.bodies.len());
+        let cells = grid.cells();
+        for b in &self.bodies {
+            let faces = fractions::body_faces(grid, b.bounds(), |p| b.sdf(p));
+            for a in 0..3 {
+                for &(f, beta) in &faces.faces[a] {
+                    weights[a][f] = (weights[a][f] - beta).clamp(0.0, 1.0);
+                }
+            }
+            let (lo, hi) = b.bounds();
+            let lo = lo.to_array().map(|x| ((x / grid.dx).floor().max(0.0)) as usize);
+            let hi = hi.to_array();
+            for k in lo[2]..grid.n[2].min((hi[2] / grid.dx).ceil() as usize + 1) {
+                for j in lo[1]..grid.n[1].min((hi[1] / grid.dx).ceil() as usize + 1) {
+                    for i in lo[0]..grid.n[0].min((hi[0] / grid.dx).ceil() as usize + 1) {
+                        if b.sdf(cells.position(i, j, k)) < 0.0 {
+                            centre_in_solid[grid.cell(i, j, k)] = true;
+                        }
+                    }
+                }
+            }
+            body_faces.push(faces);
+        }
+        Geometry { weights, centre_in_solid, body_faces }
+    }
+
     /// Advances one step.
     pub fn step(&mut self) -> Result<StepReport> {
         let dt = self.scene.time.dt;
@@ -178,28 +254,23 @@ impl Simulation {
             clock = now;
         };
 
+        // 3a. The solids where they are at the start of the step (bodies move in stage 6).
+        let geo = self.geometry();
+        lap(&mut times.geometry);
+
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
-        surface::advect(
-            &mut self.particles,
-            &self.u,
-            &grid,
-            dt,
-            &self.statics.node_sdf,
-        );
+        surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
+        surface::push_out_of_bodies(&mut self.particles, &self.bodies, 1e-3 * grid.dx);
         if self.scene.solver.density_correction {
             let inputs = DensityInputs {
                 grid: &grid,
-                weights: &self.statics.weights,
+                weights: &geo.weights,
                 node_sdf: &self.statics.node_sdf,
-                centre_in_solid: &self.statics.centre_in_solid,
+                centre_in_solid: &geo.centre_in_solid,
                 radius: self.radius,
             };
-            density::correct(
-                &mut self.particles,
-                &inputs,
-                &self.scene.solver,
-                self.step + 1,
-            )?;
+            density::correct(&mut self.particles, &inputs, &self.scene.solver, self.step + 1)?;
+            surface::push_out_of_bodies(&mut self.particles, &self.bodies, 1e-3 * grid.dx);
         }
         lap(&mut times.advect_particles);
 
@@ -207,31 +278,35 @@ impl Simulation {
         let mut u = advect(&self.u, &grid, dt);
         lap(&mut times.advect_velocity);
 
-        // 2. Gravity.
-        add_gravity(&mut u, self.scene.fluid.gravity, dt);
+        // 2. Gravity, on the liquid and on the bodies.
+        let gravity = self.scene.fluid.gravity;
+        add_gravity(&mut u, gravity, dt);
+        for b in self.bodies.iter_mut().filter(|b| b.dynamic) {
+            b.v += dt * crate::math::v3(gravity);
+        }
         lap(&mut times.forces);
 
         // 3. Where the liquid is now.
         let bins = Bins::new(&self.particles, &grid);
         let mut phi = surface::liquid_sdf(&self.particles, &bins, &grid, self.radius);
-        surface::extend_into_solids(&mut phi, &grid, &self.statics.centre_in_solid);
+        surface::extend_into_solids(&mut phi, &grid, &geo.centre_in_solid);
         lap(&mut times.surface);
 
-        // 4. Projection.
-        let solver = &self.scene.solver;
-        let params = PressureParams {
-            dt,
-            density: self.scene.fluid.density,
-            theta_min: solver.theta_min,
-        };
-        let sys = PressureSystem::build(&grid, &phi, &self.statics.weights, params);
-        let b = sys.rhs(&u, &self.statics.weights);
-        let (p, stats) = sys.solve(
-            &b,
-            solver.preconditioner,
-            solver.tolerance,
-            solver.max_iterations,
-        );
+        // 4. Projection, coupled with the dynamic bodies.
+        let solver = self.scene.solver.clone();
+        let params =
+            PressureParams { dt, density: self.scene.fluid.density, theta_min: solver.theta_min };
+        let mut sys = PressureSystem::build(&grid, &phi, &geo.weights, params);
+        let dynamic: Vec<usize> = (0..self.bodies.len()).filter(|&i| self.bodies[i].dynamic).collect();
+        for &i in &dynamic {
+            let b = &self.bodies[i];
+            let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], b.x);
+            sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(b, dt)));
+        }
+        let vel: Vec<[f64; 6]> = dynamic.iter().map(|&i| generalized_velocity(&self.bodies[i])).collect();
+        let b = sys.rhs(&u, &geo.weights, &vel);
+        let (p, stats) =
+            sys.solve(&b, solver.preconditioner, solver.tolerance, solver.max_iterations);
         if !stats.converged {
             return Err(Error::NotConverged {
                 step: self.step + 1,
@@ -240,28 +315,55 @@ impl Simulation {
                 tolerance: solver.tolerance,
             });
         }
-        let mut valid = sys.update_velocity(&p, &mut u, &self.statics.weights, &phi);
-        let flux = sys.fluid_flux(&u, &self.statics.weights);
+        let mut valid = sys.update_velocity(&p, &mut u, &geo.weights, &phi);
+        let mut forces = Vec::with_capacity(dynamic.len());
+        for (coupling, &i) in sys.bodies.iter().zip(&dynamic) {
+            let f = coupling.force(&p);
+            let dv = coupling.dt_minv_times(&f);
+            let body = &mut self.bodies[i];
+            body.v += Vec3::new(dv[0], dv[1], dv[2]);
+            body.w += Vec3::new(dv[3], dv[4], dv[5]);
+            forces.push(BodyForce {
+                name: body.name.clone(),
+                force: [f[0], f[1], f[2]],
+                torque: [f[3], f[4], f[5]],
+            });
+        }
+        let mut flux = sys.fluid_flux(&u, &geo.weights);
+        for (coupling, &i) in sys.bodies.iter().zip(&dynamic) {
+            coupling.add_jt(&generalized_velocity(&self.bodies[i]), &mut flux);
+        }
         let max_divergence = flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / grid.dx.powi(3);
-        let kinetic_energy = self.kinetic_energy(&u, &valid);
+        let kinetic_energy = kinetic_energy(&u, &valid, &geo.weights, self.scene.fluid.density, grid.dx);
         lap(&mut times.pressure);
 
-        // 5. Velocity correction.
-        correct_velocity(
-            &mut u,
-            &mut valid,
-            &self.statics.weights,
-            &grid,
-            solver.extrapolation_layers,
-        );
+        // 5. Velocity correction: extrapolate, zero in static solids, rigid velocity in bodies.
+        correct_velocity(&mut u, &mut valid, &geo.weights, &grid, solver.extrapolation_layers);
+        for (b, faces) in self.bodies.iter().zip(&geo.body_faces) {
+            for a in 0..3 {
+                let lat = grid.faces(a);
+                for &(f, _) in &faces.faces[a] {
+                    if geo.weights[a][f] <= 0.0 {
+                        let [i, j, k] = lat.ijk(f);
+                        u.c[a][f] = crate::math::comp(b.velocity_at(lat.position(i, j, k)), a);
+                    }
+                }
+            }
+        }
         lap(&mut times.correct_velocity);
+
+        // 6. Rigid integration (or contact).
+        self.move_bodies(dt)?;
+        lap(&mut times.rigid);
 
         self.step += 1;
         if !u.is_finite() {
-            return Err(Error::NonFinite {
-                step: self.step,
-                what: "the fluid velocity".into(),
-            });
+            return Err(Error::NonFinite { step: self.step, what: "the fluid velocity".into() });
+        }
+        for b in &self.bodies {
+            if !(b.x.is_finite() && b.v.is_finite() && b.w.is_finite() && b.q.is_finite()) {
+                return Err(Error::NonFinite { step: self.step, what: format!("body {}", b.name) });
+            }
         }
         self.u = u;
         self.pressure = sys.scatter(&p);
@@ -281,23 +383,35 @@ impl Simulation {
             ),
             max_speed: self.max_liquid_speed(&sys),
             kinetic_energy,
+            bodies: forces,
             stage_seconds: times,
         })
     }
 
-    /// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated.
-    fn kinetic_energy(&self, u: &Mac, valid: &[Vec<u8>; 3]) -> f64 {
-        let m = self.scene.fluid.density * self.grid.dx.powi(3);
-        // Sequential on purpose: the sum is cheap and its order fixed.
-        let mut e = 0.0;
-        for a in 0..3 {
-            for (f, &uf) in u.c[a].iter().enumerate() {
-                if valid[a][f] != 0 {
-                    e += self.statics.weights[a][f] * uf * uf;
-                }
+    /// Stage 6: integrate the bodies, through rapier when contact is on; without contact, a
+    /// body that leaves the tank is an error.
+    fn move_bodies(&mut self, dt: f64) -> Result<()> {
+        #[cfg(feature = "contact")]
+        if self.scene.contact.enabled {
+            // A fresh world per step: the fluid step changed every velocity, and rebuilding
+            // a handful of colliders costs microseconds.
+            ContactWorld::new(self.grid.size(), &self.bodies, &self.scene.contact)
+                .step(&mut self.bodies, dt);
+            return Ok(());
+        }
+        let size = self.grid.size();
+        for b in self.bodies.iter_mut() {
+            b.integrate(dt);
+            let (lo, hi) = b.bounds();
+            if lo.min_element() < 0.0 || (hi - size).max_element() > 0.0 {
+                return Err(Error::BodyLeftTank {
+                    step: self.step + 1,
+                    body: b.name.clone(),
+                    bounds: (lo.to_array(), hi.to_array()),
+                });
             }
         }
-        0.5 * m * e
+        Ok(())
     }
 
     /// Largest speed at the centre of a liquid cell (faces averaged per axis).
@@ -327,4 +441,38 @@ impl Simulation {
             .filter(|(_, p)| **p < 0.0)
             .map(|(c, _)| c)
     }
+}
+
+/// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated. Sequential on purpose: the
+/// sum is cheap and its order fixed.
+fn kinetic_energy(u: &Mac, valid: &[Vec<u8>; 3], weights: &[Vec<f64>; 3], rho: f64, dx: f64) -> f64 {
+    let mut e = 0.0;
+    for a in 0..3 {
+        for (f, &uf) in u.c[a].iter().enumerate() {
+            if valid[a][f] != 0 {
+                e += weights[a][f] * uf * uf;
+            }
+        }
+    }
+    0.5 * rho * dx.powi(3) * e
+}
+
+/// `[v; ω]`.
+pub fn generalized_velocity(b: &RigidBody) -> [f64; 6] {
+    [b.v.x, b.v.y, b.v.z, b.w.x, b.w.y, b.w.z]
+}
+
+/// Δt·M_S⁻¹ for a body: `diag(Δt/m·I, Δt·(R I Rᵀ)⁻¹)`.
+pub fn dt_minv(b: &RigidBody, dt: f64) -> [[f64; 6]; 6] {
+    let mut m = [[0.0; 6]; 6];
+    for d in 0..3 {
+        m[d][d] = dt / b.mass;
+    }
+    let inv = b.world_inertia().inverse();
+    for r in 0..3 {
+        for c in 0..3 {
+            m[3 + r][3 + c] = dt * inv.col(c).to_array()[r];
+        }
+    }
+    m
 }

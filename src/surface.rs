@@ -108,6 +108,28 @@ pub fn advect(pos: &mut [Vec3], u: &Mac, grid: &Grid, dt: f64, node_sdf: &[f64])
     });
 }
 
+/// Moves particles that ended inside a rigid body to its surface, `margin` outside.
+pub fn push_out_of_bodies(pos: &mut [Vec3], bodies: &[crate::body::RigidBody], margin: f64) {
+    for b in bodies {
+        let (lo, hi) = b.bounds();
+        let pose = b.pose();
+        pos.par_iter_mut().for_each(|x| {
+            if x.cmplt(lo).any() || x.cmpgt(hi).any() {
+                return;
+            }
+            let proj = b.shape.project_point(&pose, *x, false);
+            if proj.is_inside {
+                let n = proj.point - *x;
+                let len = n.length();
+                *x = if len > 0.0 { proj.point + n * (margin / len) } else { proj.point };
+            } else if (proj.point - *x).length() < margin {
+                let n = *x - proj.point;
+                *x = proj.point + n.normalize_or_zero() * margin;
+            }
+        });
+    }
+}
+
 /// Particles sorted by cell (a counting sort, so the order is deterministic).
 #[derive(Clone, Debug, Default)]
 pub struct Bins {
@@ -235,36 +257,42 @@ pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]
     }
 }
 
-/// 1D tent weight of a particle at `x` for the cell centre `c`, with the mass that would
-/// fall beyond a wall of the tank `[0, len]` reflected back in (so every particle deposits
-/// exactly one unit in total).
-#[inline]
-fn tent_reflected(x: f64, c: f64, len: f64, dx: f64) -> f64 {
-    let h = |d: f64| (1.0 - d.abs() / dx).max(0.0);
-    h(x - c) + h(x + c) + h(2.0 * len - x - c)
-}
-
 /// Marker particle number density at cell centres, in full cells (1 = as dense as freshly
-/// seeded): particles deposited with a trilinear kernel whose mass beyond a tank wall is
-/// reflected back in, so every particle deposits exactly one unit.
-pub fn particle_density(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> Vec<f64> {
+/// seeded): each particle is deposited on its 8 nearest cell centres with trilinear weights,
+/// and a weight that would fall on a cell beyond a tank wall lands on its mirror image inside
+/// (reflection), so every particle deposits exactly one unit. The scatter runs in particle
+/// order on one thread, so the sums do not depend on the thread count.
+pub fn particle_density(pos: &[Vec3], _bins: &Bins, grid: &Grid, ppc: usize) -> Vec<f64> {
     let cells = grid.cells();
-    let size = grid.size().to_array();
-    let dx = grid.dx;
     let mut out = vec![0.0; cells.len()];
-    cells.fill_par(&mut out, |i, j, k| {
-        let c = cells.position(i, j, k).to_array();
-        let mut dens = 0.0;
-        for_neighbour_cells(grid, [i, j, k], 1, |nc| {
-            for &p in bins.cell(nc) {
-                let x = pos[p as usize].to_array();
-                dens += (0..3)
-                    .map(|a| tent_reflected(x[a], c[a], size[a], dx))
-                    .product::<f64>();
-            }
-        });
-        dens / ppc as f64
-    });
+    let unit = 1.0 / ppc as f64;
+    for x in pos {
+        let a = x.to_array();
+        let mut idx = [[0usize; 2]; 3];
+        let mut w = [[0.0f64; 2]; 3];
+        for d in 0..3 {
+            let g = a[d] / grid.dx - 0.5;
+            let i0 = g.floor();
+            let t = g - i0;
+            let n = grid.n[d] as i64;
+            let fold = |i: i64| -> usize {
+                if i < 0 {
+                    (-i - 1).min(n - 1) as usize
+                } else if i >= n {
+                    (2 * n - 1 - i).max(0) as usize
+                } else {
+                    i as usize
+                }
+            };
+            idx[d] = [fold(i0 as i64), fold(i0 as i64 + 1)];
+            w[d] = [1.0 - t, t];
+        }
+        for c in 0..8 {
+            let (bi, bj, bk) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
+            let cell = grid.cell(idx[0][bi], idx[1][bj], idx[2][bk]);
+            out[cell] += w[0][bi] * w[1][bj] * w[2][bk] * unit;
+        }
+    }
     out
 }
 
@@ -306,7 +334,7 @@ mod tests {
             quaternion: None,
             axis_angle: None,
         }
-        .build()
+        .build(std::path::Path::new("."))
         .unwrap();
         let sdf = vec![1e3; grid.nodes().len()];
         let pos = seed(&grid, &[region], 8, &sdf);

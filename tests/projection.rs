@@ -45,7 +45,7 @@ fn projection_leaves_divergence_at_solver_tolerance() {
             degrees: 33.0,
         }),
     }
-    .build()
+    .build(std::path::Path::new("."))
     .unwrap();
     let sdf = node_sdf(&grid, &[obstacle]);
     let weights = face_weights(&grid, &sdf);
@@ -73,7 +73,7 @@ fn projection_leaves_divergence_at_solver_tolerance() {
     let sys = PressureSystem::build(&grid, &phi, &weights, params);
     assert!(sys.has_air && sys.len() > 1000);
     let mut u = rough_field(&grid);
-    let b = sys.rhs(&u, &weights);
+    let b = sys.rhs(&u, &weights, &[]);
     let tol = 1e-8;
     let (p, stats) = sys.solve(&b, Preconditioner::Mic0, tol, 1000);
     assert!(

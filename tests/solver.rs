@@ -27,7 +27,7 @@ fn system(n: [usize; 3], level: f64) -> (PressureSystem, [Vec<f64>; 3]) {
         quaternion: None,
         axis_angle: None,
     }
-    .build()
+    .build(std::path::Path::new("."))
     .unwrap();
     let weights = face_weights(&grid, &node_sdf(&grid, &[ball]));
     let cells = grid.cells();
@@ -72,7 +72,7 @@ fn rhs(sys: &PressureSystem, weights: &[Vec<f64>; 3]) -> Vec<f64> {
             *x = ((f * 37 + a * 11) % 19) as f64 / 9.0 - 1.0;
         }
     }
-    sys.rhs(&u, weights)
+    sys.rhs(&u, weights, &[])
 }
 
 #[test]

@@ -1,0 +1,615 @@
+//! Triangle meshes: OBJ loading into a parry shape that answers inside/outside queries, and
+//! triangle meshes of any shape for output.
+//!
+//! A loaded mesh must be a closed, consistently oriented surface: every undirected edge is
+//! shared by exactly two triangles and every directed edge appears once. parry's
+//! [`TriMesh`](parry3d_f64::shape::TriMesh) then gives a signed distance (negative inside)
+//! when it is built with [`TriMeshFlags::ORIENTED`]: that flag makes parry compute the
+//! angle-weighted vertex and edge pseudo-normals and use them (and the face normals) to
+//! decide on which side of the closest feature a point lies. Without it,
+//! `distance_to_point(pose, p, false)` is the unsigned distance to the surface.
+
+use crate::math::{Pose, SharedShape, Vec3};
+use parry3d_f64::shape::{TriMeshFlags, TypedShape};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// Subdivisions around the axis of round shapes in [`surface_mesh`] (22.5° steps); the
+/// meridians of balls and capsule caps use the same angular step.
+const ROUND_SUBDIV: u32 = 16;
+
+/// A mesh whose enclosed volume is at most this fraction of its bounding-box volume
+/// is degenerate.
+const MIN_RELATIVE_VOLUME: f64 = 1e-9;
+
+/// Loads a closed, consistently oriented triangle mesh from a Wavefront OBJ file, scaled
+/// uniformly by `scale`, as a parry `TriMesh` whose signed distance is negative inside.
+///
+/// All objects and groups of the file are merged into one mesh; polygons are triangulated
+/// as fans, points and lines are ignored, and vertices with identical coordinates are
+/// merged (so objects sharing vertices are stitched). Coordinates are read with tobj (single
+/// precision) and recovered as the shortest decimal that reads back to the same `f32`, so
+/// a coordinate written with up to 7 significant digits (`0.1`) is exact in `f64`.
+/// Triangles with a repeated vertex (what a polygon with a doubled vertex triangulates
+/// into) are dropped.
+///
+/// Errors, each one line naming the file: the file cannot be read or is not valid OBJ; it
+/// has no triangles; a vertex is not finite; a triangle has zero area; the mesh is not
+/// closed (some edges belong to one triangle, or to more than two); the orientation is
+/// inconsistent (a directed edge appears twice); the mesh encloses no volume.
+///
+/// A closed mesh whose triangles all face inward (negative enclosed volume) is **flipped**,
+/// not rejected: its orientation is unambiguous, only reversed. A mesh with several shells
+/// is flipped as a whole, so a hollow body (outer shell outward, inner shell inward) is kept
+/// as it is.
+pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
+    let name = path.display();
+    if !(scale.is_finite() && scale > 0.0) {
+        return Err(format!("mesh {name}: scale must be a positive number, got {scale}"));
+    }
+    // Read the file ourselves: tobj only says "open file failed", not why.
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read mesh {name}: {e}"))?;
+    let options = tobj::LoadOptions {
+        triangulate: true,
+        ignore_points: true,
+        ignore_lines: true,
+        ..Default::default()
+    };
+    // Materials are not needed: a referenced .mtl file is not opened.
+    let (models, _materials) = tobj::load_obj_buf(&mut bytes.as_slice(), &options, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
+    .map_err(|e| format!("mesh {name} is not a valid OBJ file: {e}"))?;
+
+    let mut positions = Vec::new();
+    let mut triangles = Vec::new();
+    for model in &models {
+        let base = positions.len();
+        let mesh = &model.mesh;
+        positions.extend(
+            mesh.positions
+                .chunks_exact(3)
+                .map(|p| Vec3::new(decimal(p[0]), decimal(p[1]), decimal(p[2]))),
+        );
+        for t in mesh.indices.chunks_exact(3) {
+            let mut tri = [0u32; 3];
+            for (k, &i) in t.iter().enumerate() {
+                tri[k] = u32::try_from(base + i as usize)
+                    .map_err(|_| format!("mesh {name} has too many vertices"))?;
+            }
+            triangles.push(tri);
+        }
+    }
+
+    let mut closed =
+        ClosedMesh::new(&positions, &triangles).map_err(|e| format!("mesh {name} {e}"))?;
+    for v in &mut closed.vertices {
+        *v *= scale;
+    }
+    SharedShape::trimesh_with_flags(closed.vertices, closed.triangles, TriMeshFlags::ORIENTED)
+        .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))
+}
+
+/// The `f64` with the shortest decimal form that tobj's parsed value stands for: OBJ files
+/// are decimal text, tobj keeps `f32`, and `0.1f32 as f64` is not `0.1`.
+fn decimal<T: std::fmt::Display>(x: T) -> f64 {
+    x.to_string().parse().unwrap_or(f64::NAN)
+}
+
+/// A validated closed, consistently and outward oriented triangle mesh.
+#[derive(Debug)]
+struct ClosedMesh {
+    /// Vertices, each referenced by some triangle, all distinct.
+    vertices: Vec<Vec3>,
+    /// Triangles, counter-clockwise seen from outside.
+    triangles: Vec<[u32; 3]>,
+    /// True when the input faced inward and every triangle was reversed.
+    flipped: bool,
+}
+
+impl ClosedMesh {
+    /// Merges identical vertices, drops triangles with a repeated vertex, checks the
+    /// topology and orientation, and flips an inside-out mesh. The error completes a
+    /// sentence starting with the mesh's name ("is not closed: ...").
+    fn new(positions: &[Vec3], triangles: &[[u32; 3]]) -> Result<ClosedMesh, String> {
+        if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
+            return Err(format!("has a non-finite vertex (number {})", i + 1));
+        }
+
+        // Merge vertices by exact coordinates (+0.0 folds -0.0 into 0.0); keep only those
+        // that triangles use.
+        let mut ids: HashMap<[u64; 3], u32> = HashMap::new();
+        let mut remap = vec![u32::MAX; positions.len()];
+        let mut vertices = Vec::new();
+        let mut tris = Vec::with_capacity(triangles.len());
+        for tri in triangles {
+            let mut t = [0u32; 3];
+            for (k, &i) in tri.iter().enumerate() {
+                let Some(&p) = positions.get(i as usize) else {
+                    return Err(format!("has a triangle using missing vertex {}", i + 1));
+                };
+                if remap[i as usize] == u32::MAX {
+                    let key = (p + Vec3::ZERO).to_array().map(f64::to_bits);
+                    remap[i as usize] = *ids.entry(key).or_insert_with(|| {
+                        vertices.push(p);
+                        (vertices.len() - 1) as u32
+                    });
+                }
+                t[k] = remap[i as usize];
+            }
+            if t[0] != t[1] && t[1] != t[2] && t[2] != t[0] {
+                tris.push(t);
+            }
+        }
+        if tris.is_empty() {
+            return Err("contains no triangles".into());
+        }
+
+        let corners = |t: &[u32; 3]| t.map(|i| vertices[i as usize]);
+        if let Some(n) = tris.iter().position(|t| {
+            let [a, b, c] = corners(t);
+            (b - a).cross(c - a) == Vec3::ZERO
+        }) {
+            return Err(format!("has a zero-area triangle (number {}, corners collinear)", n + 1));
+        }
+
+        // Every undirected edge in exactly two triangles, every directed edge once.
+        let mut undirected: HashMap<(u32, u32), u32> = HashMap::new();
+        let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
+        for t in &tris {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                *undirected.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+                *directed.entry((a, b)).or_insert(0) += 1;
+            }
+        }
+        let boundary = undirected.values().filter(|&&n| n == 1).count();
+        let non_manifold = undirected.values().filter(|&&n| n > 2).count();
+        if boundary > 0 || non_manifold > 0 {
+            let mut parts = Vec::new();
+            if boundary > 0 {
+                parts.push(format!(
+                    "{boundary} boundary edge{} (in one triangle only)",
+                    plural(boundary)
+                ));
+            }
+            if non_manifold > 0 {
+                parts.push(format!(
+                    "{non_manifold} edge{} shared by more than two triangles",
+                    plural(non_manifold)
+                ));
+            }
+            return Err(format!(
+                "is not closed: {}; every edge must be shared by exactly two triangles",
+                parts.join(" and ")
+            ));
+        }
+        let twice = directed.values().filter(|&&n| n > 1).count();
+        if twice > 0 {
+            return Err(format!(
+                "has inconsistent orientation: {twice} directed edge{} appear{} twice \
+                 (neighbouring triangles must wind the same way)",
+                plural(twice),
+                if twice == 1 { "s" } else { "" }
+            ));
+        }
+
+        // Enclosed volume, about the bounding-box centre for accuracy.
+        let (lo, hi) = vertices
+            .iter()
+            .fold((Vec3::splat(f64::INFINITY), Vec3::splat(f64::NEG_INFINITY)), |(lo, hi), &p| {
+                (lo.min(p), hi.max(p))
+            });
+        let centre = (lo + hi) * 0.5;
+        let volume = tris
+            .iter()
+            .map(|t| {
+                let [a, b, c] = corners(t).map(|p| p - centre);
+                a.dot(b.cross(c))
+            })
+            .sum::<f64>()
+            / 6.0;
+        let extent = (hi - lo).max_element();
+        if volume.abs() <= MIN_RELATIVE_VOLUME * extent.powi(3) {
+            return Err(format!(
+                "encloses no volume ({volume:.3e} m³ before scaling): it is flat or its shells cancel"
+            ));
+        }
+        let flipped = volume < 0.0;
+        if flipped {
+            for t in &mut tris {
+                t.swap(1, 2);
+            }
+        }
+        Ok(ClosedMesh { vertices, triangles: tris, flipped })
+    }
+}
+
+fn plural(n: usize) -> &'static str {
+    if n == 1 {
+        ""
+    } else {
+        "s"
+    }
+}
+
+/// A triangle mesh of the surface of `shape` in its local frame, for output: cuboids,
+/// balls, capsules, cylinders, cones, convex polyhedra and triangle meshes (and compounds
+/// of these, parts placed at their poses). Round shapes use [`ROUND_SUBDIV`] subdivisions
+/// around their axis. Triangles are counter-clockwise seen from outside. Shapes with no
+/// finite closed surface or not used by diffluid (half-spaces, segments, polylines, rounded
+/// shapes, custom shapes) give an empty mesh.
+pub fn surface_mesh(shape: &SharedShape) -> (Vec<Vec3>, Vec<[u32; 3]>) {
+    let n = ROUND_SUBDIV;
+    match shape.as_typed_shape() {
+        TypedShape::Cuboid(s) => s.to_trimesh(),
+        TypedShape::Ball(s) => s.to_trimesh(n, n / 2),
+        TypedShape::Capsule(s) => s.to_trimesh(n, n / 2),
+        TypedShape::Cylinder(s) => s.to_trimesh(n),
+        TypedShape::Cone(s) => s.to_trimesh(n),
+        TypedShape::ConvexPolyhedron(s) => s.to_trimesh(),
+        TypedShape::TriMesh(s) => (s.vertices().to_vec(), s.indices().to_vec()),
+        TypedShape::Triangle(s) => (vec![s.a, s.b, s.c], vec![[0, 1, 2]]),
+        TypedShape::HeightField(s) => s.to_trimesh(),
+        TypedShape::Voxels(s) => s.to_trimesh(),
+        TypedShape::Compound(s) => {
+            let mut vertices = Vec::new();
+            let mut triangles = Vec::new();
+            for (pose, part) in s.shapes() {
+                append_placed(&mut vertices, &mut triangles, pose, surface_mesh(part));
+            }
+            (vertices, triangles)
+        }
+        _ => (Vec::new(), Vec::new()),
+    }
+}
+
+/// Appends a part's mesh, moved by `pose`, to a mesh being assembled.
+fn append_placed(
+    vertices: &mut Vec<Vec3>,
+    triangles: &mut Vec<[u32; 3]>,
+    pose: &Pose,
+    (part_vertices, part_triangles): (Vec<Vec3>, Vec<[u32; 3]>),
+) {
+    let base = vertices.len() as u32;
+    vertices.extend(part_vertices.into_iter().map(|p| pose.transform_point(p)));
+    triangles.extend(part_triangles.into_iter().map(|t| t.map(|i| i + base)));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::{PointQuery, Rotation};
+    use parry3d_f64::shape::TriMesh;
+    use std::path::PathBuf;
+
+    fn cube_path() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/meshes/cube.obj")
+    }
+
+    /// A temporary OBJ file, removed (with its folder, once empty) when dropped.
+    struct TempObj(PathBuf);
+
+    impl Drop for TempObj {
+        fn drop(&mut self) {
+            std::fs::remove_file(&self.0).ok();
+            if let Some(dir) = self.0.parent() {
+                std::fs::remove_dir(dir).ok();
+            }
+        }
+    }
+
+    impl std::ops::Deref for TempObj {
+        type Target = Path;
+        fn deref(&self) -> &Path {
+            &self.0
+        }
+    }
+
+    /// Writes `text` to a fresh temporary OBJ file named after the test.
+    fn temp_obj(test: &str, text: &str) -> TempObj {
+        let dir = std::env::temp_dir().join(format!("diffluid-mesh-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join(format!("{test}.obj"));
+        std::fs::write(&path, text).unwrap();
+        TempObj(path)
+    }
+
+    const CUBE_VERTICES: &str = "v -0.1 -0.1 -0.1\nv 0.1 -0.1 -0.1\nv 0.1 0.1 -0.1\n\
+        v -0.1 0.1 -0.1\nv -0.1 -0.1 0.1\nv 0.1 -0.1 0.1\nv 0.1 0.1 0.1\nv -0.1 0.1 0.1\n";
+    /// The 12 outward triangles of the cube above (1-based, as in OBJ).
+    const CUBE_FACES: [[u32; 3]; 12] = [
+        [1, 4, 3],
+        [1, 3, 2],
+        [5, 6, 7],
+        [5, 7, 8],
+        [1, 2, 6],
+        [1, 6, 5],
+        [4, 8, 7],
+        [4, 7, 3],
+        [1, 5, 8],
+        [1, 8, 4],
+        [2, 3, 7],
+        [2, 7, 6],
+    ];
+
+    fn cube_obj(faces: impl Iterator<Item = [u32; 3]>) -> String {
+        let mut text = CUBE_VERTICES.to_string();
+        for f in faces {
+            text += &format!("f {} {} {}\n", f[0], f[1], f[2]);
+        }
+        text
+    }
+
+    /// Points inside, outside, on and near faces, edges and corners of the ±0.1 cube, plus
+    /// a 13³ lattice over [-0.15, 0.15]³ (which includes the medial planes and diagonals).
+    fn probe_points() -> Vec<Vec3> {
+        let mut pts = vec![
+            Vec3::ZERO,
+            Vec3::new(0.05, 0.02, -0.03),
+            Vec3::new(0.099, 0.0, 0.0),
+            Vec3::new(0.101, 0.05, 0.0),
+            Vec3::new(0.1, 0.03, -0.02),
+            Vec3::new(0.0, -0.1, 0.0),
+            Vec3::new(0.095, 0.099, 0.0),
+            Vec3::new(0.105, 0.105, 0.0),
+            Vec3::new(0.1, 0.1, 0.05),
+            Vec3::new(-0.1, 0.05, 0.1001),
+            Vec3::new(0.099, 0.099, 0.099),
+            Vec3::new(0.1, 0.1, 0.1),
+            Vec3::new(0.11, 0.12, 0.13),
+            Vec3::new(-0.1000001, -0.1000001, -0.1000001),
+            Vec3::new(0.0999999, -0.0999999, 0.0999999),
+            Vec3::new(0.03, 0.03, 0.0),
+            Vec3::new(1.0, 2.0, 3.0),
+            Vec3::new(-0.3, 0.0, 0.05),
+        ];
+        for i in 0..13 {
+            for j in 0..13 {
+                for k in 0..13 {
+                    let c = |n: i32| -0.15 + 0.025 * n as f64;
+                    pts.push(Vec3::new(c(i), c(j), c(k)));
+                }
+            }
+        }
+        pts
+    }
+
+    #[test]
+    fn shipped_cube_has_the_cuboid_signed_distance() {
+        let mesh = load_obj(&cube_path(), 1.0).unwrap();
+        let cuboid = SharedShape::cuboid(0.1, 0.1, 0.1);
+        let poses = [
+            Pose::IDENTITY,
+            Pose::from_parts(
+                Vec3::new(0.3, -0.2, 0.1),
+                Rotation::from_axis_angle(Vec3::new(1.0, 2.0, -0.5).normalize(), 0.7),
+            ),
+        ];
+        let (mut inside, mut outside) = (0, 0);
+        for pose in &poses {
+            for p in probe_points() {
+                let x = pose.transform_point(p);
+                let (dm, dc) = (
+                    mesh.distance_to_point(pose, x, false),
+                    cuboid.distance_to_point(pose, x, false),
+                );
+                assert!((dm - dc).abs() <= 1e-12, "at {p:?}: mesh {dm}, cuboid {dc}");
+                if dc < -1e-12 {
+                    inside += 1;
+                } else if dc > 1e-12 {
+                    outside += 1;
+                }
+            }
+        }
+        assert!(inside > 500 && outside > 500, "{inside} inside, {outside} outside");
+    }
+
+    #[test]
+    fn shipped_cube_has_the_cuboid_mass_properties() {
+        let mesh = load_obj(&cube_path(), 1.0).unwrap();
+        let cuboid = SharedShape::cuboid(0.1, 0.1, 0.1);
+        let (mm, mc) = (mesh.mass_properties(1000.0), cuboid.mass_properties(1000.0));
+        let rel = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-9 * scale;
+        assert!(rel(mm.mass(), mc.mass(), mc.mass()), "{} vs {}", mm.mass(), mc.mass());
+        assert!((mc.mass() - 8.0).abs() < 1e-12);
+        // The centre of mass is zero for the cuboid: compare on the scale of the body.
+        assert!((mm.local_com - mc.local_com).length() <= 1e-9 * 0.1);
+        let (im, ic) = (mm.reconstruct_inertia_matrix(), mc.reconstruct_inertia_matrix());
+        let i0 = ic.x_axis.x;
+        assert!((i0 - 8.0 * 0.08 / 12.0).abs() < 1e-12);
+        for c in 0..3 {
+            for r in 0..3 {
+                let (a, b) = (im.col(c)[r], ic.col(c)[r]);
+                assert!(rel(a, b, i0), "inertia [{r}][{c}]: {a} vs {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn shipped_cube_is_outward_and_closed() {
+        let positions: Vec<Vec3> = CUBE_VERTICES
+            .lines()
+            .map(|l| {
+                let c: Vec<f64> =
+                    l.split_whitespace().skip(1).map(|x| x.parse().unwrap()).collect();
+                Vec3::new(c[0], c[1], c[2])
+            })
+            .collect();
+        let tris: Vec<[u32; 3]> = CUBE_FACES.iter().map(|f| f.map(|i| i - 1)).collect();
+        let closed = ClosedMesh::new(&positions, &tris).unwrap();
+        assert!(!closed.flipped);
+        // The shipped file is the same cube, outward as written.
+        let text = std::fs::read_to_string(cube_path()).unwrap();
+        let faces: Vec<[u32; 3]> = text
+            .lines()
+            .filter(|l| l.starts_with("f "))
+            .map(|l| {
+                let v: Vec<u32> =
+                    l.split_whitespace().skip(1).map(|x| x.parse().unwrap()).collect();
+                [v[0] - 1, v[1] - 1, v[2] - 1]
+            })
+            .collect();
+        let verts: Vec<Vec3> = text
+            .lines()
+            .filter(|l| l.starts_with("v "))
+            .map(|l| {
+                let c: Vec<f64> =
+                    l.split_whitespace().skip(1).map(|x| x.parse().unwrap()).collect();
+                Vec3::new(c[0], c[1], c[2])
+            })
+            .collect();
+        assert_eq!((verts.len(), faces.len()), (8, 12));
+        assert!(!ClosedMesh::new(&verts, &faces).unwrap().flipped);
+    }
+
+    #[test]
+    fn oriented_flag_is_what_makes_the_inside_negative() {
+        let mesh = load_obj(&cube_path(), 1.0).unwrap();
+        let tm = mesh.as_trimesh().unwrap();
+        let (v, i) = (tm.vertices().to_vec(), tm.indices().to_vec());
+        let plain = TriMesh::with_flags(v.clone(), i.clone(), TriMeshFlags::empty()).unwrap();
+        let oriented = TriMesh::with_flags(v, i, TriMeshFlags::ORIENTED).unwrap();
+        let p = Vec3::new(0.02, -0.01, 0.03);
+        let id = Pose::IDENTITY;
+        assert!((plain.distance_to_point(&id, p, false) - 0.07).abs() < 1e-12);
+        assert!((oriented.distance_to_point(&id, p, false) + 0.07).abs() < 1e-12);
+        assert!(oriented.contains_point(&id, p));
+    }
+
+    #[test]
+    fn scale_multiplies_the_vertices() {
+        let mesh = load_obj(&cube_path(), 2.5).unwrap();
+        let d = mesh.distance_to_point(&Pose::IDENTITY, Vec3::new(0.0, 0.3, 0.0), false);
+        assert!((d - 0.05).abs() < 1e-12, "{d}");
+        assert!(load_obj(&cube_path(), 0.0).unwrap_err().contains("scale"));
+    }
+
+    #[test]
+    fn open_mesh_is_rejected() {
+        let path = temp_obj("open", &cube_obj(CUBE_FACES[1..].iter().copied()));
+        let err = load_obj(&path, 1.0).unwrap_err();
+        assert!(err.contains("not closed"), "{err}");
+        assert!(err.contains("3 boundary edges"), "{err}");
+        assert!(err.contains(&path.display().to_string()), "{err}");
+        assert!(!err.contains('\n'));
+    }
+
+    #[test]
+    fn missing_file_is_rejected_naming_the_path() {
+        let path = std::env::temp_dir().join("diffluid-no-such-dir/no-such-mesh.obj");
+        let err = load_obj(&path, 1.0).unwrap_err();
+        assert!(err.contains(&path.display().to_string()), "{err}");
+        assert!(err.starts_with("cannot read mesh"), "{err}");
+    }
+
+    #[test]
+    fn inconsistent_orientation_is_rejected() {
+        let faces = CUBE_FACES
+            .iter()
+            .enumerate()
+            .map(|(n, f)| if n == 4 { [f[0], f[2], f[1]] } else { *f });
+        let path = temp_obj("inconsistent", &cube_obj(faces));
+        let err = load_obj(&path, 1.0).unwrap_err();
+        assert!(err.contains("inconsistent orientation"), "{err}");
+        assert!(err.contains("3 directed edges"), "{err}");
+    }
+
+    #[test]
+    fn inside_out_mesh_is_flipped() {
+        let faces = CUBE_FACES.iter().map(|f| [f[0], f[2], f[1]]);
+        let path = temp_obj("inside_out", &cube_obj(faces));
+        let mesh = load_obj(&path, 1.0).unwrap();
+        let cuboid = SharedShape::cuboid(0.1, 0.1, 0.1);
+        for p in probe_points() {
+            let (dm, dc) = (
+                mesh.distance_to_point(&Pose::IDENTITY, p, false),
+                cuboid.distance_to_point(&Pose::IDENTITY, p, false),
+            );
+            assert!((dm - dc).abs() <= 1e-12, "at {p:?}: {dm} vs {dc}");
+        }
+    }
+
+    #[test]
+    fn flat_empty_and_non_manifold_meshes_are_rejected() {
+        // Two copies of one triangle, wound oppositely: closed and consistent, no volume.
+        let flat = temp_obj("flat", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 3 2\n");
+        let err = load_obj(&flat, 1.0).unwrap_err();
+        assert!(err.contains("encloses no volume"), "{err}");
+
+        let empty = temp_obj("empty", "# nothing\nv 0 0 0\nv 1 0 0\nl 1 2\n");
+        let err = load_obj(&empty, 1.0).unwrap_err();
+        assert!(err.contains("no triangles"), "{err}");
+
+        // Two cubes sharing the edge from (0.1,0.1,-0.1) to (0.1,0.1,0.1).
+        let mut text = cube_obj(CUBE_FACES.iter().copied());
+        text += "v 0.3 0.1 -0.1\nv 0.3 0.3 -0.1\nv 0.1 0.3 -0.1\n\
+                 v 0.3 0.1 0.1\nv 0.3 0.3 0.1\nv 0.1 0.3 0.1\n";
+        // Second cube: corners 3, 9, 10, 11 (z = -0.1) and 7, 12, 13, 14 (z = 0.1), laid out
+        // like the first one's 1, 2, 3, 4 and 5, 6, 7, 8.
+        let map = [0, 3, 9, 10, 11, 7, 12, 13, 14];
+        for f in CUBE_FACES {
+            text += &format!(
+                "f {} {} {}\n",
+                map[f[0] as usize], map[f[1] as usize], map[f[2] as usize]
+            );
+        }
+        let touching = temp_obj("non_manifold", &text);
+        let err = load_obj(&touching, 1.0).unwrap_err();
+        assert!(err.contains("not closed"), "{err}");
+        assert!(err.contains("1 edge shared by more than two triangles"), "{err}");
+
+        let garbage = temp_obj("garbage", "v 0 0 zero\nf 1 2 3\n");
+        let err = load_obj(&garbage, 1.0).unwrap_err();
+        assert!(err.contains("not a valid OBJ"), "{err}");
+    }
+
+    #[test]
+    fn objects_sharing_vertices_are_stitched() {
+        // The cube split in two objects: tobj numbers each object's vertices apart.
+        let mut text = CUBE_VERTICES.to_string();
+        for (n, f) in CUBE_FACES.iter().enumerate() {
+            if n == 0 {
+                text += "o bottom\n";
+            } else if n == 2 {
+                text += "o rest\n";
+            }
+            text += &format!("f {} {} {}\n", f[0], f[1], f[2]);
+        }
+        let path = temp_obj("objects", &text);
+        let mesh = load_obj(&path, 1.0).unwrap();
+        assert_eq!(mesh.as_trimesh().unwrap().vertices().len(), 8);
+        let d = mesh.distance_to_point(&Pose::IDENTITY, Vec3::new(0.0, 0.0, -0.09), false);
+        assert!((d + 0.01).abs() < 1e-12, "{d}");
+    }
+
+    #[test]
+    fn surface_meshes_are_closed_outward_and_close_in_volume() {
+        let hull = SharedShape::convex_hull(&[
+            Vec3::ZERO,
+            Vec3::X,
+            Vec3::Y,
+            Vec3::Z,
+            Vec3::new(0.6, 0.6, 0.6),
+        ])
+        .unwrap();
+        let shapes = [
+            (SharedShape::cuboid(0.1, 0.2, 0.3), 1e-12),
+            (SharedShape::ball(0.2), 0.15),
+            (SharedShape::capsule_y(0.3, 0.1), 0.1),
+            (SharedShape::cylinder(0.3, 0.1), 0.05),
+            (hull, 1e-12),
+            (load_obj(&cube_path(), 1.0).unwrap(), 1e-12),
+        ];
+        for (shape, tol) in shapes {
+            let (v, t) = surface_mesh(&shape);
+            let closed = ClosedMesh::new(&v, &t).unwrap();
+            assert!(!closed.flipped);
+            let mesh = SharedShape::trimesh(closed.vertices, closed.triangles).unwrap();
+            let (vm, vs) = (mesh.mass_properties(1.0).mass(), shape.mass_properties(1.0).mass());
+            assert!((vm - vs).abs() <= tol * vs, "{:?}: {vm} vs {vs}", shape.shape_type());
+        }
+        let (v, t) = surface_mesh(&SharedShape::halfspace(Vec3::Y));
+        assert!(v.is_empty() && t.is_empty());
+    }
+}
