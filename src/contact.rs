@@ -9,6 +9,8 @@
 //! Rapier is configured so that, without contact, its step is our own stage-6 integrator:
 //! the mass properties are set explicitly from [`RigidBody`] (the colliders carry no mass),
 //! damping, gyroscopic forces, sleeping, the speed caps and (by default) CCD are all off.
+//! Soft CCD (rapier's speculative contacts out to each pair's motion over the step) is on:
+//! it only acts on a pair that would otherwise overlap at the end of the step.
 //! The linear part is then `x + Δt·v` up to rounding. Rapier turns the orientation with
 //! `normalise((1, h·ω/2)⊗q)` per solver substep (`h = Δt/4` with the default four substeps)
 //! instead of our single `normalise(q + Δt/2·[0, ω]⊗q)`; both are first-order accurate
@@ -83,9 +85,8 @@ impl ContactWorld {
         ];
         let walls_body = world.insert_body(RigidBodyBuilder::fixed());
         for (half, centre) in walls {
-            let wall = ColliderBuilder::cuboid(half.x, half.y, half.z)
-                .translation(centre)
-                .density(0.0);
+            let wall =
+                ColliderBuilder::cuboid(half.x, half.y, half.z).translation(centre).density(0.0);
             world.insert_collider(material(wall), Some(walls_body));
         }
 
@@ -108,6 +109,9 @@ impl ContactWorld {
                     .allow_fast_rotation(true)
                     .can_sleep(false)
                     .ccd_enabled(false)
+                    // Soft CCD: speculative contacts out to the relative motion over the
+                    // step (capped at the tank size), so a fast body stops at a surface
+                    // instead of sinking into it for a step. It leaves free flight alone.
                     .soft_ccd_prediction(t)
                     .linvel(b.v)
                     .angvel(b.w)
@@ -175,5 +179,9 @@ fn length_unit(domain: Vec3, bodies: &[RigidBody]) -> f64 {
         .fold(f64::INFINITY, f64::min);
     let side = domain.min_element();
     let unit = smallest.min(1.0);
-    if side > 0.0 { unit.min(side) } else { unit }
+    if side > 0.0 {
+        unit.min(side)
+    } else {
+        unit
+    }
 }

@@ -82,7 +82,7 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
     }
 
     let mut closed =
-        ClosedMesh::new(&positions, &triangles).map_err(|e| format!("mesh {name} {e}"))?;
+        ClosedMesh::new(&positions, &triangles).map_err(|e| format!("mesh {name} {e}"))?.outward();
     for v in &mut closed.vertices {
         *v *= scale;
     }
@@ -96,21 +96,22 @@ fn decimal<T: std::fmt::Display>(x: T) -> f64 {
     x.to_string().parse().unwrap_or(f64::NAN)
 }
 
-/// A validated closed, consistently and outward oriented triangle mesh.
+/// A validated closed, consistently oriented triangle mesh.
 #[derive(Debug)]
 struct ClosedMesh {
     /// Vertices, each referenced by some triangle, all distinct.
     vertices: Vec<Vec3>,
-    /// Triangles, counter-clockwise seen from outside.
+    /// Triangles, all wound the same way.
     triangles: Vec<[u32; 3]>,
-    /// True when the input faced inward and every triangle was reversed.
-    flipped: bool,
+    /// Signed enclosed volume: positive when the triangles are counter-clockwise seen from
+    /// outside, negative when the mesh is inside-out. Never close to zero.
+    volume: f64,
 }
 
 impl ClosedMesh {
-    /// Merges identical vertices, drops triangles with a repeated vertex, checks the
-    /// topology and orientation, and flips an inside-out mesh. The error completes a
-    /// sentence starting with the mesh's name ("is not closed: ...").
+    /// Merges identical vertices, drops triangles with a repeated vertex, and checks the
+    /// topology, the orientation and the volume. The error completes a sentence starting
+    /// with the mesh's name ("is not closed: ...").
     fn new(positions: &[Vec3], triangles: &[[u32; 3]]) -> Result<ClosedMesh, String> {
         if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
             return Err(format!("has a non-finite vertex (number {})", i + 1));
@@ -211,17 +212,20 @@ impl ClosedMesh {
             / 6.0;
         let extent = (hi - lo).max_element();
         if volume.abs() <= MIN_RELATIVE_VOLUME * extent.powi(3) {
-            return Err(format!(
-                "encloses no volume ({volume:.3e} m³ before scaling): it is flat or its shells cancel"
-            ));
+            return Err("encloses no volume: it is flat or its shells cancel out".into());
         }
-        let flipped = volume < 0.0;
-        if flipped {
-            for t in &mut tris {
+        Ok(ClosedMesh { vertices, triangles: tris, volume })
+    }
+
+    /// Reverses every triangle of an inside-out mesh, so that all face outward.
+    fn outward(mut self) -> ClosedMesh {
+        if self.volume < 0.0 {
+            for t in &mut self.triangles {
                 t.swap(1, 2);
             }
+            self.volume = -self.volume;
         }
-        Ok(ClosedMesh { vertices, triangles: tris, flipped })
+        self
     }
 }
 
@@ -287,7 +291,7 @@ mod tests {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/meshes/cube.obj")
     }
 
-    /// A temporary OBJ file, removed (with its folder, once empty) when dropped.
+    /// A temporary OBJ file, removed with its folder when dropped.
     struct TempObj(PathBuf);
 
     impl Drop for TempObj {
@@ -308,7 +312,8 @@ mod tests {
 
     /// Writes `text` to a fresh temporary OBJ file named after the test.
     fn temp_obj(test: &str, text: &str) -> TempObj {
-        let dir = std::env::temp_dir().join(format!("diffluid-mesh-{}", std::process::id()));
+        // One folder per test: tests run in parallel and each removes its own.
+        let dir = std::env::temp_dir().join(format!("diffluid-mesh-{}-{test}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join(format!("{test}.obj"));
         std::fs::write(&path, text).unwrap();
@@ -438,7 +443,7 @@ mod tests {
             .collect();
         let tris: Vec<[u32; 3]> = CUBE_FACES.iter().map(|f| f.map(|i| i - 1)).collect();
         let closed = ClosedMesh::new(&positions, &tris).unwrap();
-        assert!(!closed.flipped);
+        assert!((closed.volume - 0.008).abs() < 1e-15, "{}", closed.volume);
         // The shipped file is the same cube, outward as written.
         let text = std::fs::read_to_string(cube_path()).unwrap();
         let faces: Vec<[u32; 3]> = text
@@ -460,7 +465,7 @@ mod tests {
             })
             .collect();
         assert_eq!((verts.len(), faces.len()), (8, 12));
-        assert!(!ClosedMesh::new(&verts, &faces).unwrap().flipped);
+        assert!((ClosedMesh::new(&verts, &faces).unwrap().volume - 0.008).abs() < 1e-15);
     }
 
     #[test]
@@ -603,12 +608,29 @@ mod tests {
         ];
         for (shape, tol) in shapes {
             let (v, t) = surface_mesh(&shape);
-            let closed = ClosedMesh::new(&v, &t).unwrap();
-            assert!(!closed.flipped);
-            let mesh = SharedShape::trimesh(closed.vertices, closed.triangles).unwrap();
-            let (vm, vs) = (mesh.mass_properties(1.0).mass(), shape.mass_properties(1.0).mass());
-            assert!((vm - vs).abs() <= tol * vs, "{:?}: {vm} vs {vs}", shape.shape_type());
+            let vm = ClosedMesh::new(&v, &t).unwrap().volume;
+            let vs = shape.mass_properties(1.0).mass();
+            assert!(
+                vm > 0.0 && (vm - vs).abs() <= tol * vs,
+                "{:?}: {vm} vs {vs}",
+                shape.shape_type()
+            );
         }
+        // A compound: each part placed at its pose.
+        let at = |x: f64| Pose::from_parts(Vec3::new(x, 0.0, 0.0), Rotation::IDENTITY);
+        let compound = SharedShape::compound(vec![
+            (at(-1.0), SharedShape::cuboid(0.1, 0.1, 0.1)),
+            (at(1.0), SharedShape::ball(0.1)),
+        ]);
+        let (v, t) = surface_mesh(&compound);
+        let (nc, nb) = (
+            surface_mesh(&SharedShape::cuboid(0.1, 0.1, 0.1)).0.len(),
+            surface_mesh(&SharedShape::ball(0.1)).0.len(),
+        );
+        assert_eq!(v.len(), nc + nb);
+        assert!(v[..nc].iter().all(|p| (p.x + 1.0).abs() <= 0.1 + 1e-12));
+        assert!(v[nc..].iter().all(|p| (p.x - 1.0).abs() <= 0.1 + 1e-12));
+        assert!(t.iter().flatten().all(|&i| (i as usize) < v.len()));
         let (v, t) = surface_mesh(&SharedShape::halfspace(Vec3::Y));
         assert!(v.is_empty() && t.is_empty());
     }
