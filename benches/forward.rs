@@ -12,10 +12,7 @@ use std::time::Duration;
 /// Times `steps` steps of the built-in scene `name`, construction included.
 fn bench_scene(c: &mut Criterion, name: &str, steps: usize) {
     let scene = Scene::builtin(name).expect("built-in scene");
-    assert_eq!(
-        scene.time.steps, steps,
-        "{name} no longer has {steps} steps"
-    );
+    assert_eq!(scene.time.steps, steps, "{name} no longer has {steps} steps");
     let mut group = c.benchmark_group("forward");
     // One run takes around a second or more: every sample gets the same number of runs
     // rather than criterion's linearly growing counts.

@@ -29,10 +29,7 @@ mod tests {
     #[test]
     fn uniform_flow_is_preserved() {
         // A uniform velocity field is a steady solution of u·∇u = 0.
-        let grid = Grid {
-            n: [6, 5, 4],
-            dx: 0.2,
-        };
+        let grid = Grid { n: [6, 5, 4], dx: 0.2 };
         let mut u = Mac::zeros(&grid);
         for (a, val) in [0.3, -0.2, 0.1].iter().enumerate() {
             u.c[a].iter_mut().for_each(|x| *x = *val);

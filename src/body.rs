@@ -137,7 +137,8 @@ mod tests {
 
     #[test]
     fn cube_mass_properties() {
-        let b = RigidBody::new("c".into(), SharedShape::cuboid(0.1, 0.1, 0.1), Pose::IDENTITY, 2000.0);
+        let b =
+            RigidBody::new("c".into(), SharedShape::cuboid(0.1, 0.1, 0.1), Pose::IDENTITY, 2000.0);
         assert!((b.mass - 16.0).abs() < 1e-12);
         // I = m (a² + a²)/12 with a = 0.2.
         let i = 16.0 * (0.04 + 0.04) / 12.0;

@@ -58,11 +58,7 @@ where
     }
     let bnorm = dot(&r, &r).sqrt();
     if bnorm == 0.0 || n == 0 {
-        return CgStats {
-            iterations: 0,
-            relative_residual: 0.0,
-            converged: true,
-        };
+        return CgStats { iterations: 0, relative_residual: 0.0, converged: true };
     }
     let target = s.tolerance * bnorm;
     let mut z = vec![0.0; n];
@@ -84,20 +80,14 @@ where
                 break 'restart;
             }
             let alpha = rho / dq;
-            x.par_iter_mut()
-                .zip(d.par_iter())
-                .for_each(|(xi, di)| *xi += alpha * di);
-            r.par_iter_mut()
-                .zip(q.par_iter())
-                .for_each(|(ri, qi)| *ri -= alpha * qi);
+            x.par_iter_mut().zip(d.par_iter()).for_each(|(xi, di)| *xi += alpha * di);
+            r.par_iter_mut().zip(q.par_iter()).for_each(|(ri, qi)| *ri -= alpha * qi);
             if dot(&r, &r).sqrt() <= target {
                 // Confirm with the true residual.
                 apply(x, &mut q);
-                r.par_iter_mut()
-                    .zip(b.par_iter().zip(q.par_iter()))
-                    .for_each(|(ri, (bi, qi))| {
-                        *ri = bi - qi;
-                    });
+                r.par_iter_mut().zip(b.par_iter().zip(q.par_iter())).for_each(|(ri, (bi, qi))| {
+                    *ri = bi - qi;
+                });
                 if s.project_constant {
                     remove_mean(&mut r);
                 }
@@ -113,9 +103,7 @@ where
             let rho_new = dot(&r, &z);
             let beta = rho_new / rho;
             rho = rho_new;
-            d.par_iter_mut()
-                .zip(z.par_iter())
-                .for_each(|(di, zi)| *di = zi + beta * *di);
+            d.par_iter_mut().zip(z.par_iter()).for_each(|(di, zi)| *di = zi + beta * *di);
         }
         break;
     }
@@ -128,9 +116,5 @@ where
         remove_mean(&mut res);
     }
     let rel = dot(&res, &res).sqrt() / bnorm;
-    CgStats {
-        iterations: it,
-        relative_residual: rel,
-        converged: rel <= s.tolerance,
-    }
+    CgStats { iterations: it, relative_residual: rel, converged: rel <= s.tolerance }
 }

@@ -9,13 +9,15 @@
 //! Rapier is configured so that, without contact, its step is our own stage-6 integrator:
 //! the mass properties are set explicitly from [`RigidBody`] (the colliders carry no mass),
 //! damping, gyroscopic forces, sleeping, the speed caps and (by default) CCD are all off.
-//! Soft CCD (rapier's speculative contacts out to each pair's motion over the step) is on:
-//! it only acts on a pair that would otherwise overlap at the end of the step.
 //! The linear part is then `x + Δt·v` up to rounding. Rapier turns the orientation with
 //! `normalise((1, h·ω/2)⊗q)` per solver substep (`h = Δt/4` with the default four substeps)
 //! instead of our single `normalise(q + Δt/2·[0, ω]⊗q)`; both are first-order accurate
 //! in `Δt` and differ by about `(|ω|Δt)³/12·(1 − 1/16)` radians per step (≈ 1e-8 rad at
 //! `|ω| = 1`, `Δt = 0.005`; see `tests/contact.rs`).
+//!
+//! Soft CCD (rapier's speculative contacts out to each pair's motion over the step) is on:
+//! it only acts on a pair that would otherwise overlap at the end of the step, so a fast body
+//! stops at a wall instead of sinking into it for a step, and free flight is untouched.
 //!
 //! The tank `[0, domain]` is closed by six fixed thick cuboids just outside it; their inner
 //! faces are the planes `x = 0`, `x = domain.x`, `y = 0` (floor), `y = domain.y` (ceiling),

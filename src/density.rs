@@ -57,35 +57,21 @@ pub fn correct(
     let dens = surface::particle_density(particles, &bins, grid, ppc);
     // Unit Δt and density: the "velocity" update below is then a displacement in metres
     // whose volume flux out of each cell equals the right-hand side.
-    let params = PressureParams {
-        dt: 1.0,
-        density: 1.0,
-        theta_min: solver.theta_min,
-    };
+    let params = PressureParams { dt: 1.0, density: 1.0, theta_min: solver.theta_min };
     let sys = PressureSystem::build(grid, &phi, g.weights, params);
     let vol = grid.dx.powi(3);
     // Densities within 1e-6 of full are full: round-off in the deposit must not start a solve.
     let b: Vec<f64> = sys
         .cell_of_row
         .iter()
-        .map(|&c| {
-            if dens[c as usize] > 1.0 + 1e-6 {
-                (dens[c as usize] - 1.0) * vol
-            } else {
-                0.0
-            }
-        })
+        .map(|&c| if dens[c as usize] > 1.0 + 1e-6 { (dens[c as usize] - 1.0) * vol } else { 0.0 })
         .collect();
     let excess_volume: f64 = b.iter().sum();
     if excess_volume == 0.0 {
         return Ok(DensityStats::default());
     }
-    let (q, stats) = sys.solve(
-        &b,
-        solver.preconditioner,
-        solver.tolerance.max(1e-6),
-        solver.max_iterations,
-    );
+    let (q, stats) =
+        sys.solve(&b, solver.preconditioner, solver.tolerance.max(1e-6), solver.max_iterations);
     if !stats.converged {
         return Err(Error::NotConverged {
             step,
@@ -114,8 +100,5 @@ pub fn correct(
         }
         *x = y.clamp(Vec3::splat(margin), size - Vec3::splat(margin));
     });
-    Ok(DensityStats {
-        excess_volume,
-        cg_iterations: stats.iterations,
-    })
+    Ok(DensityStats { excess_volume, cg_iterations: stats.iterations })
 }

@@ -40,11 +40,8 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
     for _ in 0..layers {
         let (src, mask) = (field.to_vec(), valid.to_vec());
         let slab = lat.slab();
-        field
-            .par_chunks_mut(slab)
-            .zip(valid.par_chunks_mut(slab))
-            .enumerate()
-            .for_each(|(k, (fc, vc))| {
+        field.par_chunks_mut(slab).zip(valid.par_chunks_mut(slab)).enumerate().for_each(
+            |(k, (fc, vc))| {
                 let mut nb = [0usize; 6];
                 for l in 0..slab {
                     let idx = k * slab + l;
@@ -57,16 +54,14 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
                         vc[l] = 1;
                     }
                 }
-            });
+            },
+        );
     }
-    field
-        .par_iter_mut()
-        .zip(valid.par_iter())
-        .for_each(|(f, v)| {
-            if *v == 0 {
-                *f = 0.0;
-            }
-        });
+    field.par_iter_mut().zip(valid.par_iter()).for_each(|(f, v)| {
+        if *v == 0 {
+            *f = 0.0;
+        }
+    });
 }
 
 /// Extrapolates all three components and then sets every face closed to the fluid
@@ -80,14 +75,11 @@ pub fn correct_velocity(
 ) {
     for a in 0..3 {
         extrapolate(&mut u.c[a], &mut valid[a], &grid.faces(a), layers);
-        u.c[a]
-            .par_iter_mut()
-            .zip(weights[a].par_iter())
-            .for_each(|(x, w)| {
-                if *w <= 0.0 {
-                    *x = 0.0;
-                }
-            });
+        u.c[a].par_iter_mut().zip(weights[a].par_iter()).for_each(|(x, w)| {
+            if *w <= 0.0 {
+                *x = 0.0;
+            }
+        });
     }
 }
 
@@ -97,11 +89,7 @@ mod tests {
 
     #[test]
     fn extrapolation_spreads_one_layer_per_pass_and_keeps_valid_values() {
-        let lat = Lattice {
-            n: [6, 1, 1],
-            off: [0.0; 3],
-            dx: 1.0,
-        };
+        let lat = Lattice { n: [6, 1, 1], off: [0.0; 3], dx: 1.0 };
         let mut f = vec![0.0, 2.0, 9.0, 9.0, 9.0, 9.0];
         let mut v = vec![0, 1, 0, 0, 0, 0];
         extrapolate(&mut f, &mut v, &lat, 2);

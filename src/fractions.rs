@@ -34,9 +34,7 @@ pub fn triangle_fraction_inside(a: f64, b: f64, c: f64) -> f64 {
 #[inline]
 pub fn square_fraction_inside(corners: [f64; 4]) -> f64 {
     let m = 0.25 * (corners[0] + corners[1] + corners[2] + corners[3]);
-    (0..4)
-        .map(|e| triangle_fraction_inside(m, corners[e], corners[(e + 1) % 4]))
-        .sum::<f64>()
+    (0..4).map(|e| triangle_fraction_inside(m, corners[e], corners[(e + 1) % 4])).sum::<f64>()
         * 0.25
 }
 
@@ -147,7 +145,11 @@ pub struct BodyFaces {
 
 /// Solid fractions of one body on the faces near it, from its signed distance at the
 /// nodes of its bounding box grown by one cell. `sdf` evaluates the body's signed distance.
-pub fn body_faces(grid: &Grid, bounds: (crate::math::Vec3, crate::math::Vec3), sdf: impl Fn(crate::math::Vec3) -> f64 + Sync) -> BodyFaces {
+pub fn body_faces(
+    grid: &Grid,
+    bounds: (crate::math::Vec3, crate::math::Vec3),
+    sdf: impl Fn(crate::math::Vec3) -> f64 + Sync,
+) -> BodyFaces {
     let nodes = grid.nodes();
     let (lo, hi) = bounds;
     let lo = lo.to_array();
@@ -159,7 +161,9 @@ pub fn body_faces(grid: &Grid, bounds: (crate::math::Vec3, crate::math::Vec3), s
         (n0.min(grid.n[a]), n1)
     });
     let ext = range.map(|(a, b)| b - a + 1);
-    let local = |i: usize, j: usize, k: usize| (i - range[0].0) + ext[0] * ((j - range[1].0) + ext[1] * (k - range[2].0));
+    let local = |i: usize, j: usize, k: usize| {
+        (i - range[0].0) + ext[0] * ((j - range[1].0) + ext[1] * (k - range[2].0))
+    };
     let mut phi = vec![0.0; ext[0] * ext[1] * ext[2]];
     {
         use rayon::prelude::*;
@@ -191,7 +195,12 @@ pub fn body_faces(grid: &Grid, bounds: (crate::math::Vec3, crate::math::Vec3), s
                         p[c] += dc;
                         phi[local(p[0], p[1], p[2])]
                     };
-                    let beta = square_fraction_inside([corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)]);
+                    let beta = square_fraction_inside([
+                        corner(0, 0),
+                        corner(1, 0),
+                        corner(1, 1),
+                        corner(0, 1),
+                    ]);
                     if beta > 0.0 {
                         out.faces[axis].push((lat.index(i, j, k), beta));
                     }
@@ -207,7 +216,11 @@ pub fn body_faces(grid: &Grid, bounds: (crate::math::Vec3, crate::math::Vec3), s
 /// − face, and `r_f` from the centre of mass to the face centre. `J·p` is then the pressure
 /// force and torque on the body (−∇p integrated over the solid part of each face), and
 /// `(Jᵀ·[v; ω])_i` the volume flux the body's motion pushes out of cell i. Sorted by cell.
-pub fn body_jacobian(grid: &Grid, faces: &BodyFaces, com: crate::math::Vec3) -> Vec<(usize, [f64; 6])> {
+pub fn body_jacobian(
+    grid: &Grid,
+    faces: &BodyFaces,
+    com: crate::math::Vec3,
+) -> Vec<(usize, [f64; 6])> {
     let area = grid.dx * grid.dx;
     let mut acc: std::collections::BTreeMap<usize, [f64; 6]> = Default::default();
     for axis in 0..3 {

@@ -28,11 +28,7 @@ pub struct Grid {
 impl Grid {
     /// Lattice of cell centres (pressure, liquid signed distance).
     pub fn cells(&self) -> Lattice {
-        Lattice {
-            n: self.n,
-            off: [0.5; 3],
-            dx: self.dx,
-        }
+        Lattice { n: self.n, off: [0.5; 3], dx: self.dx }
     }
 
     /// Lattice of the faces normal to `axis` (velocity component `axis`).
@@ -41,20 +37,12 @@ impl Grid {
         n[axis] += 1;
         let mut off = [0.5; 3];
         off[axis] = 0.0;
-        Lattice {
-            n,
-            off,
-            dx: self.dx,
-        }
+        Lattice { n, off, dx: self.dx }
     }
 
     /// Lattice of cell corners (solid signed distance samples).
     pub fn nodes(&self) -> Lattice {
-        Lattice {
-            n: [self.n[0] + 1, self.n[1] + 1, self.n[2] + 1],
-            off: [0.0; 3],
-            dx: self.dx,
-        }
+        Lattice { n: [self.n[0] + 1, self.n[1] + 1, self.n[2] + 1], off: [0.0; 3], dx: self.dx }
     }
 
     /// Number of cells.
@@ -177,11 +165,7 @@ impl Lattice {
             t[a] = gc - i0 as f64;
             live[a] = if inside { 1.0 / self.dx } else { 0.0 };
         }
-        let mut st = Stencil {
-            idx: [0; 8],
-            w: [0.0; 8],
-            dw: [Vec3::ZERO; 8],
-        };
+        let mut st = Stencil { idx: [0; 8], w: [0.0; 8], dw: [Vec3::ZERO; 8] };
         for c in 0..8 {
             let bit = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
             let mut f = [0.0; 3];
@@ -200,11 +184,7 @@ impl Lattice {
             }
             st.idx[c] = self.index(ii[0], ii[1], ii[2]);
             st.w[c] = f[0] * f[1] * f[2];
-            st.dw[c] = Vec3::new(
-                df[0] * f[1] * f[2],
-                f[0] * df[1] * f[2],
-                f[0] * f[1] * df[2],
-            );
+            st.dw[c] = Vec3::new(df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]);
         }
         st
     }
@@ -276,9 +256,7 @@ pub struct Mac {
 impl Mac {
     /// The zero field on `grid`.
     pub fn zeros(grid: &Grid) -> Self {
-        Mac {
-            c: [0, 1, 2].map(|a| vec![0.0; grid.faces(a).len()]),
-        }
+        Mac { c: [0, 1, 2].map(|a| vec![0.0; grid.faces(a).len()]) }
     }
 
     /// Velocity at `x`, each component interpolated on its own face lattice.
@@ -289,10 +267,7 @@ impl Mac {
 
     /// Largest |component| over all faces (a cheap bound used in reports).
     pub fn max_abs(&self) -> f64 {
-        self.c
-            .iter()
-            .flat_map(|c| c.iter())
-            .fold(0.0f64, |m, &x| m.max(x.abs()))
+        self.c.iter().flat_map(|c| c.iter()).fold(0.0f64, |m, &x| m.max(x.abs()))
     }
 
     /// True when every component is finite.
@@ -322,10 +297,7 @@ mod tests {
     use super::*;
 
     fn grid() -> Grid {
-        Grid {
-            n: [5, 4, 3],
-            dx: 0.25,
-        }
+        Grid { n: [5, 4, 3], dx: 0.25 }
     }
 
     #[test]
@@ -350,19 +322,14 @@ mod tests {
     fn sample_gradient_matches_central_differences() {
         let g = grid();
         let lat = g.cells();
-        let f: Vec<f64> = (0..lat.len())
-            .map(|i| ((i * 37) % 11) as f64 * 0.3)
-            .collect();
+        let f: Vec<f64> = (0..lat.len()).map(|i| ((i * 37) % 11) as f64 * 0.3).collect();
         let x = Vec3::new(0.52, 0.33, 0.41);
         let (_, grad) = lat.sample_grad(&f, x);
         let h = 1e-6;
         for a in 0..3 {
             let e = crate::math::unit(a) * h;
             let fd = (lat.sample(&f, x + e) - lat.sample(&f, x - e)) / (2.0 * h);
-            assert!(
-                (fd - crate::math::comp(grad, a)).abs() < 1e-7,
-                "axis {a}: {fd} vs {grad}"
-            );
+            assert!((fd - crate::math::comp(grad, a)).abs() < 1e-7, "axis {a}: {fd} vs {grad}");
         }
     }
 
@@ -371,11 +338,8 @@ mod tests {
         let g = grid();
         let lat = g.faces(2);
         let f: Vec<f64> = (0..lat.len()).map(|i| ((i * 31) % 7) as f64).collect();
-        for x in [
-            Vec3::new(0.3, 0.2, 0.1),
-            Vec3::new(-1.0, 0.5, 9.0),
-            Vec3::new(1.24, 0.99, 0.74),
-        ] {
+        for x in [Vec3::new(0.3, 0.2, 0.1), Vec3::new(-1.0, 0.5, 9.0), Vec3::new(1.24, 0.99, 0.74)]
+        {
             let (v, _) = lat.sample_grad(&f, x);
             assert!((lat.sample(&f, x) - v).abs() < 1e-13);
         }

@@ -47,10 +47,7 @@ fn load_scene(arg: Option<&Path>) -> Result<Scene, Error> {
         None => Ok(Scene::embedded_default()),
         Some(p) if !p.exists() && p.extension().is_none() => {
             let name = p.to_string_lossy();
-            if diffluid::scene::BUILTIN_SCENES
-                .iter()
-                .any(|(n, _)| *n == name)
-            {
+            if diffluid::scene::BUILTIN_SCENES.iter().any(|(n, _)| *n == name) {
                 Scene::builtin(&name)
             } else {
                 Scene::from_file(p)
@@ -83,9 +80,7 @@ fn run(args: RunArgs) -> Result<(), Error> {
         }
         scene.time.steps = n;
     }
-    let out = args
-        .out
-        .unwrap_or_else(|| PathBuf::from("out").join(&scene.name));
+    let out = args.out.unwrap_or_else(|| PathBuf::from("out").join(&scene.name));
     let steps = scene.time.steps;
     let every = scene.output.every;
     let write_particles = scene.output.particles;
@@ -93,10 +88,16 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let initial_volume = sim.liquid_volume();
     let frame = |sim: &Simulation, n: usize| -> Result<(), Error> {
         if write_particles && n % every == 0 {
-            write_ply_points(
-                &out.join("particles").join(format!("{n:04}.ply")),
-                &sim.particles,
-            )?;
+            write_ply_points(&out.join("particles").join(format!("{n:04}.ply")), &sim.particles)?;
+        }
+        if n % every == 0 {
+            for b in &sim.bodies {
+                let (verts, tris) = diffluid::mesh::surface_mesh(&b.shape);
+                let pose = b.pose();
+                let world: Vec<_> = verts.iter().map(|v| pose.transform_point(*v)).collect();
+                let path = out.join("bodies").join(format!("{}_{n:04}.ply", b.name));
+                diffluid::output::write_ply_mesh(&path, &world, &tris)?;
+            }
         }
         Ok(())
     };
@@ -109,16 +110,24 @@ fn run(args: RunArgs) -> Result<(), Error> {
                 "{step},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
                 step as f64 * sim.scene().time.dt,
                 b.name,
-                x.x, x.y, x.z, q.w, q.x, q.y, q.z, v.x, v.y, v.z, w.x, w.y, w.z
+                x.x,
+                x.y,
+                x.z,
+                q.w,
+                q.x,
+                q.y,
+                q.z,
+                v.x,
+                v.y,
+                v.z,
+                w.x,
+                w.y,
+                w.z
             ));
         }
     };
     body_rows(&sim, 0);
-    let bar = if args.quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(steps as u64)
-    };
+    let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(steps as u64) };
     bar.set_style(
         ProgressStyle::with_template(
             "{spinner} {msg} [{bar:30}] step {pos}/{len} ({elapsed} < {eta})",

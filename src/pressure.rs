@@ -74,7 +74,11 @@ pub struct BodyCoupling {
 
 impl BodyCoupling {
     /// Keeps the J columns of cells that are unknowns.
-    pub fn new(row_of_cell: &[u32], jac: &[(usize, [f64; 6])], dt_minv: [[f64; 6]; 6]) -> BodyCoupling {
+    pub fn new(
+        row_of_cell: &[u32],
+        jac: &[(usize, [f64; 6])],
+        dt_minv: [[f64; 6]; 6],
+    ) -> BodyCoupling {
         let (rows, j) = jac
             .iter()
             .filter(|(c, _)| row_of_cell[*c] != NONE)
@@ -298,11 +302,7 @@ impl PressureSystem {
         max_iterations: usize,
     ) -> (Vec<f64>, CgStats) {
         let mut p = vec![0.0; self.len()];
-        let settings = CgSettings {
-            tolerance,
-            max_iterations,
-            project_constant: !self.has_air,
-        };
+        let settings = CgSettings { tolerance, max_iterations, project_constant: !self.has_air };
         let apply = |x: &[f64], y: &mut [f64]| self.apply(x, y);
         let stats = match preconditioner {
             Preconditioner::Mic0 => {
@@ -315,13 +315,9 @@ impl PressureSystem {
                     &settings,
                 )
             }
-            Preconditioner::None => pcg(
-                apply,
-                |r: &[f64], z: &mut [f64]| z.copy_from_slice(r),
-                b,
-                &mut p,
-                &settings,
-            ),
+            Preconditioner::None => {
+                pcg(apply, |r: &[f64], z: &mut [f64]| z.copy_from_slice(r), b, &mut p, &settings)
+            }
         };
         (p, stats)
     }
@@ -342,11 +338,8 @@ impl PressureSystem {
         for a in 0..3 {
             let lat = grid.faces(a);
             let w = &weights[a];
-            u.c[a]
-                .par_iter_mut()
-                .zip(valid[a].par_iter_mut())
-                .enumerate()
-                .for_each(|(f, (uf, vf))| {
+            u.c[a].par_iter_mut().zip(valid[a].par_iter_mut()).enumerate().for_each(
+                |(f, (uf, vf))| {
                     if w[f] <= 0.0 {
                         return;
                     }
@@ -361,7 +354,8 @@ impl PressureSystem {
                     };
                     *uf -= k * grad;
                     *vf = 1;
-                });
+                },
+            );
         }
         valid
     }
@@ -382,10 +376,7 @@ mod tests {
 
     /// A small tank with a free surface and a partly blocked face.
     fn system() -> PressureSystem {
-        let grid = Grid {
-            n: [5, 6, 4],
-            dx: 0.1,
-        };
+        let grid = Grid { n: [5, 6, 4], dx: 0.1 };
         let cells = grid.cells();
         let mut phi = vec![0.0; cells.len()];
         cells.fill_par(&mut phi, |_, j, _| (j as f64 + 0.5) * 0.1 - 0.33);
@@ -407,11 +398,7 @@ mod tests {
             &grid,
             &phi,
             &weights,
-            PressureParams {
-                dt: 0.01,
-                density: 1000.0,
-                theta_min: 0.01,
-            },
+            PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
         )
     }
 

@@ -1,10 +1,10 @@
 //! Scene files: TOML read with serde (an unknown key is an error), validated into values a
 //! simulation can trust, with errors that name the key and, where there is one, the line.
 
+use crate::body::RigidBody;
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::math::{v3, Arr3};
-use crate::body::RigidBody;
 use crate::shape::{AxisAngle, Placed, ShapeSpec, Solid};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -224,10 +224,7 @@ pub struct Output {
 
 impl Default for Output {
     fn default() -> Self {
-        Output {
-            particles: true,
-            every: 1,
-        }
+        Output { particles: true, every: 1 }
     }
 }
 
@@ -289,10 +286,7 @@ struct Problem {
 }
 
 fn problem(key: impl Into<String>, message: impl Into<String>) -> Problem {
-    Problem {
-        key: key.into(),
-        message: message.into(),
-    }
+    Problem { key: key.into(), message: message.into() }
 }
 
 fn check_positive(key: &str, x: f64) -> std::result::Result<(), Problem> {
@@ -314,10 +308,8 @@ fn check_finite(key: &str, xs: &[f64]) -> std::result::Result<(), Problem> {
 impl Scene {
     /// Reads and validates a scene file.
     pub fn from_file(path: &Path) -> Result<Scene> {
-        let text = std::fs::read_to_string(path).map_err(|source| Error::ReadScene {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| Error::ReadScene { path: path.to_path_buf(), source })?;
         let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
         Scene::from_toml_in(&text, &path.display().to_string(), base)
     }
@@ -332,14 +324,16 @@ impl Scene {
     /// Parses and validates a scene from TOML text; `origin` names it in errors. Relative
     /// mesh paths start from `assets/scenes/`.
     pub fn from_toml(text: &str, origin: &str) -> Result<Scene> {
-        Scene::from_toml_in(text, origin, Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes"))
+        Scene::from_toml_in(
+            text,
+            origin,
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes"),
+        )
     }
 
     fn parse(text: &str, origin: &str) -> Result<Scene> {
         toml::from_str(text).map_err(|e| {
-            let line = e
-                .span()
-                .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
+            let line = e.span().map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             let msg = e.message().trim().replace('\n', " ");
             Error::ParseScene {
                 origin: origin.to_string(),
@@ -353,9 +347,7 @@ impl Scene {
 
     fn validated(self, text: &str, origin: &str) -> Result<Scene> {
         self.validate().map_err(|p| {
-            let at = locate(text, &p.key)
-                .map(|l| format!("line {l}: "))
-                .unwrap_or_default();
+            let at = locate(text, &p.key).map(|l| format!("line {l}: ")).unwrap_or_default();
             Error::InvalidScene {
                 origin: origin.to_string(),
                 message: format!("{at}{}: {}", p.key, p.message),
@@ -366,13 +358,12 @@ impl Scene {
 
     /// A scene shipped with diffluid, by name (`dam_break`, `still_water`, ...).
     pub fn builtin(name: &str) -> Result<Scene> {
-        let text = BUILTIN_SCENES
-            .iter()
-            .find(|(n, _)| *n == name)
-            .map(|(_, t)| *t)
-            .ok_or_else(|| Error::InvalidScene {
-                origin: "<builtin>".into(),
-                message: format!("no built-in scene named {name:?}"),
+        let text =
+            BUILTIN_SCENES.iter().find(|(n, _)| *n == name).map(|(_, t)| *t).ok_or_else(|| {
+                Error::InvalidScene {
+                    origin: "<builtin>".into(),
+                    message: format!("no built-in scene named {name:?}"),
+                }
             })?;
         Scene::from_toml(text, &format!("<builtin {name}>"))
     }
@@ -392,14 +383,8 @@ impl Scene {
 
     /// The grid the domain is cut into.
     pub fn grid(&self) -> Grid {
-        let n = self
-            .domain
-            .size
-            .map(|s| (s / self.domain.dx).round() as usize);
-        Grid {
-            n,
-            dx: self.domain.dx,
-        }
+        let n = self.domain.size.map(|s| (s / self.domain.dx).round() as usize);
+        Grid { n, dx: self.domain.dx }
     }
 
     /// Folder relative mesh paths start from.
@@ -495,10 +480,7 @@ impl Scene {
         }
         let cells: f64 = d.size.iter().map(|s| (s / d.dx).round()).product();
         if cells > 512.0f64.powi(3) {
-            return Err(problem(
-                "domain",
-                format!("{cells} cells is more than 512³; raise dx"),
-            ));
+            return Err(problem("domain", format!("{cells} cells is more than 512³; raise dx")));
         }
         check_positive("time.dt", self.time.dt)?;
         if self.time.steps == 0 {
@@ -525,8 +507,7 @@ impl Scene {
             }
         }
         for (i, o) in self.obstacle.iter().enumerate() {
-            o.build(&self.base())
-                .map_err(|m| problem(format!("obstacle[{i}]"), m))?;
+            o.build(&self.base()).map_err(|m| problem(format!("obstacle[{i}]"), m))?;
         }
         let s = &self.solver;
         if !(s.tolerance.is_finite() && s.tolerance > 0.0 && s.tolerance < 1.0) {
@@ -559,10 +540,16 @@ impl Scene {
         }
         let c = &self.contact;
         if !(c.friction.is_finite() && c.friction >= 0.0) {
-            return Err(problem("contact.friction", format!("must be a non-negative number, got {}", c.friction)));
+            return Err(problem(
+                "contact.friction",
+                format!("must be a non-negative number, got {}", c.friction),
+            ));
         }
         if !(c.restitution.is_finite() && (0.0..=1.0).contains(&c.restitution)) {
-            return Err(problem("contact.restitution", format!("must be in [0, 1], got {}", c.restitution)));
+            return Err(problem(
+                "contact.restitution",
+                format!("must be in [0, 1], got {}", c.restitution),
+            ));
         }
         if self.output.every == 0 {
             return Err(problem("output.every", "must be at least 1"));

@@ -100,9 +100,7 @@ pub struct Solid {
 
 impl std::fmt::Debug for Solid {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Solid")
-            .field("pose", &self.pose)
-            .finish_non_exhaustive()
+        f.debug_struct("Solid").field("pose", &self.pose).finish_non_exhaustive()
     }
 }
 
@@ -144,9 +142,7 @@ impl ShapeSpec {
                 let (lo, hi) = (v3(*min), v3(*max));
                 let half = (hi - lo) * 0.5;
                 if half.min_element() <= 0.0 {
-                    return Err(format!(
-                        "box max {max:?} must exceed min {min:?} on every axis"
-                    ));
+                    return Err(format!("box max {max:?} must exceed min {min:?} on every axis"));
                 }
                 Ok((SharedShape::cuboid(half.x, half.y, half.z), (lo + hi) * 0.5))
             }
@@ -160,18 +156,12 @@ impl ShapeSpec {
                 positive("ball radius", *radius)?;
                 Ok((SharedShape::ball(*radius), Vec3::ZERO))
             }
-            ShapeSpec::Capsule {
-                half_height,
-                radius,
-            } => {
+            ShapeSpec::Capsule { half_height, radius } => {
                 positive("capsule half_height", *half_height)?;
                 positive("capsule radius", *radius)?;
                 Ok((SharedShape::capsule_y(*half_height, *radius), Vec3::ZERO))
             }
-            ShapeSpec::Cylinder {
-                half_height,
-                radius,
-            } => {
+            ShapeSpec::Cylinder { half_height, radius } => {
                 positive("cylinder half_height", *half_height)?;
                 positive("cylinder radius", *radius)?;
                 Ok((SharedShape::cylinder(*half_height, *radius), Vec3::ZERO))
@@ -220,10 +210,7 @@ impl Placed {
                 if !all_finite(&aa.axis) || !aa.degrees.is_finite() || axis.length() < 1e-12 {
                     return Err("axis_angle needs a finite non-zero axis and finite degrees".into());
                 }
-                Ok(Rotation::from_axis_angle(
-                    axis.normalize(),
-                    aa.degrees.to_radians(),
-                ))
+                Ok(Rotation::from_axis_angle(axis.normalize(), aa.degrees.to_radians()))
             }
             (None, None) => Ok(Rotation::IDENTITY),
         }
@@ -248,10 +235,7 @@ mod tests {
     #[test]
     fn box_sdf_is_negative_inside_and_exact_outside() {
         let p = Placed {
-            shape: ShapeSpec::Box {
-                min: [0.0, 0.0, 0.0],
-                max: [1.0, 2.0, 1.0],
-            },
+            shape: ShapeSpec::Box { min: [0.0, 0.0, 0.0], max: [1.0, 2.0, 1.0] },
             position: [0.0; 3],
             quaternion: None,
             axis_angle: None,
@@ -267,12 +251,7 @@ mod tests {
         let nan = ShapeSpec::Cuboid { half_extents: [1.0, f64::NAN, 1.0] };
         assert!(nan.build(Path::new(".")).is_err());
         let flat = ShapeSpec::ConvexHull {
-            points: vec![
-                [0.0, 0.0, 0.0],
-                [1.0, 0.0, 0.0],
-                [0.0, 1.0, 0.0],
-                [1.0, 1.0, 0.0],
-            ],
+            points: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]],
         };
         assert!(flat.build(Path::new(".")).is_err());
     }

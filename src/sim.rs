@@ -16,6 +16,9 @@
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
 use crate::advect::advect;
+use crate::body::RigidBody;
+#[cfg(feature = "contact")]
+use crate::contact::ContactWorld;
 use crate::density::{self, DensityInputs};
 use crate::error::{Error, Result};
 use crate::extrapolate::correct_velocity;
@@ -23,12 +26,9 @@ use crate::forces::add_gravity;
 use crate::fractions;
 use crate::grid::{Grid, Mac};
 use crate::math::Vec3;
+use crate::pressure::BodyCoupling;
 use crate::pressure::{PressureParams, PressureSystem};
 use crate::scene::Scene;
-use crate::body::RigidBody;
-#[cfg(feature = "contact")]
-use crate::contact::ContactWorld;
-use crate::pressure::BodyCoupling;
 use crate::surface::{self, Bins};
 use serde::Serialize;
 use std::time::Instant;
@@ -153,11 +153,7 @@ impl Simulation {
             particles,
             pressure: vec![0.0; grid.num_cells()],
             phi: vec![0.0; grid.num_cells()],
-            statics: StaticGeometry {
-                node_sdf,
-                weights,
-                centre_in_solid,
-            },
+            statics: StaticGeometry { node_sdf, weights, centre_in_solid },
             radius,
             grid,
             scene,
@@ -297,13 +293,15 @@ impl Simulation {
         let params =
             PressureParams { dt, density: self.scene.fluid.density, theta_min: solver.theta_min };
         let mut sys = PressureSystem::build(&grid, &phi, &geo.weights, params);
-        let dynamic: Vec<usize> = (0..self.bodies.len()).filter(|&i| self.bodies[i].dynamic).collect();
+        let dynamic: Vec<usize> =
+            (0..self.bodies.len()).filter(|&i| self.bodies[i].dynamic).collect();
         for &i in &dynamic {
             let b = &self.bodies[i];
             let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], b.x);
             sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(b, dt)));
         }
-        let vel: Vec<[f64; 6]> = dynamic.iter().map(|&i| generalized_velocity(&self.bodies[i])).collect();
+        let vel: Vec<[f64; 6]> =
+            dynamic.iter().map(|&i| generalized_velocity(&self.bodies[i])).collect();
         let b = sys.rhs(&u, &geo.weights, &vel);
         let (p, stats) =
             sys.solve(&b, solver.preconditioner, solver.tolerance, solver.max_iterations);
@@ -334,7 +332,8 @@ impl Simulation {
             coupling.add_jt(&generalized_velocity(&self.bodies[i]), &mut flux);
         }
         let max_divergence = flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / grid.dx.powi(3);
-        let kinetic_energy = kinetic_energy(&u, &valid, &geo.weights, self.scene.fluid.density, grid.dx);
+        let kinetic_energy =
+            kinetic_energy(&u, &valid, &geo.weights, self.scene.fluid.density, grid.dx);
         lap(&mut times.pressure);
 
         // 5. Velocity correction: extrapolate, zero in static solids, rigid velocity in bodies.
@@ -435,17 +434,19 @@ impl Simulation {
 
     /// Cells that are liquid in the last step's φ_L.
     pub fn liquid_cells(&self) -> impl Iterator<Item = usize> + '_ {
-        self.phi
-            .iter()
-            .enumerate()
-            .filter(|(_, p)| **p < 0.0)
-            .map(|(c, _)| c)
+        self.phi.iter().enumerate().filter(|(_, p)| **p < 0.0).map(|(c, _)| c)
     }
 }
 
 /// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated. Sequential on purpose: the
 /// sum is cheap and its order fixed.
-fn kinetic_energy(u: &Mac, valid: &[Vec<u8>; 3], weights: &[Vec<f64>; 3], rho: f64, dx: f64) -> f64 {
+fn kinetic_energy(
+    u: &Mac,
+    valid: &[Vec<u8>; 3],
+    weights: &[Vec<f64>; 3],
+    rho: f64,
+    dx: f64,
+) -> f64 {
     let mut e = 0.0;
     for a in 0..3 {
         for (f, &uf) in u.c[a].iter().enumerate() {

@@ -321,15 +321,9 @@ mod tests {
     #[test]
     fn seeded_box_has_exact_volume_and_flat_surface() {
         use crate::shape::{Placed, ShapeSpec};
-        let grid = Grid {
-            n: [8, 8, 8],
-            dx: 0.125,
-        };
+        let grid = Grid { n: [8, 8, 8], dx: 0.125 };
         let region = Placed {
-            shape: ShapeSpec::Box {
-                min: [0.0, 0.0, 0.0],
-                max: [1.0, 0.5, 1.0],
-            },
+            shape: ShapeSpec::Box { min: [0.0, 0.0, 0.0], max: [1.0, 0.5, 1.0] },
             position: [0.0; 3],
             quaternion: None,
             axis_angle: None,

@@ -25,10 +25,7 @@ fn broken(from: &str, to: &str) -> String {
         "{from:?} should occur exactly once in dam_break.toml; the test no longer matches the scene"
     );
     let text = valid.replacen(from, to, 1);
-    assert_ne!(
-        text, valid,
-        "replacing {from:?} by {to:?} did not change the scene"
-    );
+    assert_ne!(text, valid, "replacing {from:?} by {to:?} did not change the scene");
     text
 }
 
@@ -40,11 +37,7 @@ fn line_of(text: &str, start: &str) -> usize {
         .filter(|(_, l)| l.trim().starts_with(start))
         .map(|(n, _)| n + 1)
         .collect();
-    assert_eq!(
-        hits.len(),
-        1,
-        "expected one line starting with {start:?}, found lines {hits:?}"
-    );
+    assert_eq!(hits.len(), 1, "expected one line starting with {start:?}, found lines {hits:?}");
     hits[0]
 }
 
@@ -114,28 +107,13 @@ fn assert_refused(output: &Output, out: &Path, needles: &[&str]) -> String {
         output.status
     );
     let lines: Vec<&str> = stderr.lines().collect();
-    assert_eq!(
-        lines.len(),
-        1,
-        "stderr should be exactly one line, got {}:\n{stderr}",
-        lines.len()
-    );
+    assert_eq!(lines.len(), 1, "stderr should be exactly one line, got {}:\n{stderr}", lines.len());
     let line = lines[0];
-    assert!(
-        line.starts_with("error:"),
-        "stderr should start with \"error:\", got: {line}"
-    );
+    assert!(line.starts_with("error:"), "stderr should start with \"error:\", got: {line}");
     for needle in needles {
-        assert!(
-            line.contains(needle),
-            "stderr should mention {needle:?}, got: {line}"
-        );
+        assert!(line.contains(needle), "stderr should mention {needle:?}, got: {line}");
     }
-    assert!(
-        !out.exists(),
-        "a refused run should write nothing, but {} exists",
-        out.display()
-    );
+    assert!(!out.exists(), "a refused run should write nothing, but {} exists", out.display());
     line.to_string()
 }
 
@@ -179,11 +157,7 @@ fn negative_dx() {
     let text = broken("dx = 0.1\n", "dx = -0.1\n");
     let line = at_line(line_of(&text, "dx ="));
     let output = run(&dir.scene(&text), &dir.out(), &[]);
-    assert_refused(
-        &output,
-        &dir.out(),
-        &["domain.dx", "positive", "-0.1", &line],
-    );
+    assert_refused(&output, &dir.out(), &["domain.dx", "positive", "-0.1", &line]);
 }
 
 #[test]
@@ -201,11 +175,7 @@ fn negative_dt() {
     let text = broken("dt = 0.05\n", "dt = -0.05\n");
     let line = at_line(line_of(&text, "dt ="));
     let output = run(&dir.scene(&text), &dir.out(), &[]);
-    assert_refused(
-        &output,
-        &dir.out(),
-        &["time.dt", "positive", "-0.05", &line],
-    );
+    assert_refused(&output, &dir.out(), &["time.dt", "positive", "-0.05", &line]);
 }
 
 #[test]
@@ -216,11 +186,7 @@ fn liquid_region_outside_domain() {
     // The error names `liquid[0]`, which is located at its [[liquid]] header.
     let line = at_line(line_of(&text, "[[liquid]]"));
     let output = run(&dir.scene(&text), &dir.out(), &[]);
-    assert_refused(
-        &output,
-        &dir.out(),
-        &["liquid[0]", "outside the domain", &line],
-    );
+    assert_refused(&output, &dir.out(), &["liquid[0]", "outside the domain", &line]);
 }
 
 #[test]
@@ -285,11 +251,7 @@ fn particles_per_cell_not_a_cube() {
     let text = broken("particles_per_cell = 8\n", "particles_per_cell = 5\n");
     let line = at_line(line_of(&text, "particles_per_cell ="));
     let output = run(&dir.scene(&text), &dir.out(), &[]);
-    assert_refused(
-        &output,
-        &dir.out(),
-        &["solver.particles_per_cell", "got 5", &line],
-    );
+    assert_refused(&output, &dir.out(), &["solver.particles_per_cell", "got 5", &line]);
 }
 
 /// Positive control: the unmodified scene runs, so the failures above are due to the edits.
@@ -299,11 +261,7 @@ fn valid_scene_runs_and_writes_outputs() {
     let scene = dir.scene(&dam_break_text());
     let output = run(&scene, &dir.out(), &["--steps", "2"]);
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        output.status.success(),
-        "the valid scene failed ({}): {stderr}",
-        output.status
-    );
+    assert!(output.status.success(), "the valid scene failed ({}): {stderr}", output.status);
     assert!(
         stderr.trim().is_empty(),
         "a quiet successful run should print nothing on stderr: {stderr}"
@@ -314,9 +272,5 @@ fn valid_scene_runs_and_writes_outputs() {
     assert!(ply.is_file(), "{} was not written", ply.display());
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&summary).unwrap()).unwrap();
-    assert_eq!(
-        json["steps"].as_array().map(Vec::len),
-        Some(2),
-        "summary.json: {json}"
-    );
+    assert_eq!(json["steps"].as_array().map(Vec::len), Some(2), "summary.json: {json}");
 }

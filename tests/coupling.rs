@@ -9,13 +9,24 @@
 //! - Light bodies: the monolithic solve treats the body's mass implicitly, so even a body
 //!   100× lighter than the liquid stays stable (partitioned coupling fails here).
 
+#![allow(clippy::too_many_arguments, clippy::needless_range_loop)]
+
 use diffluid::fractions::{body_faces, body_jacobian, face_weights, node_sdf};
 use diffluid::grid::Grid;
 use diffluid::pressure::{BodyCoupling, PressureParams, PressureSystem};
 use diffluid::sim::dt_minv;
 use diffluid::{Scene, Simulation};
 
-fn tank_scene(size: f64, dx: f64, depth: f64, half: [f64; 3], centre: [f64; 3], density: f64, dt: f64, steps: usize) -> Scene {
+fn tank_scene(
+    size: f64,
+    dx: f64,
+    depth: f64,
+    half: [f64; 3],
+    centre: [f64; 3],
+    density: f64,
+    dt: f64,
+    steps: usize,
+) -> Scene {
     let text = format!(
         r#"
 name = "tank"
@@ -57,7 +68,12 @@ fn coupled_operator_is_symmetric() {
     let cells = grid.cells();
     let mut phi = vec![0.0; cells.len()];
     cells.fill_par(&mut phi, |i, j, k| cells.position(i, j, k).y - 0.4);
-    let mut sys = PressureSystem::build(&grid, &phi, &weights, PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 });
+    let mut sys = PressureSystem::build(
+        &grid,
+        &phi,
+        &weights,
+        PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
+    );
     let jac = body_jacobian(&grid, &faces, body.x);
     sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&body, 0.01)));
     assert!(sys.bodies[0].rows.len() > 20);
@@ -105,7 +121,10 @@ fn archimedes_draft_matches_density_ratio() {
     for ratio in [0.25, 0.5, 0.75] {
         let (draft, expected) = settled_draft(ratio);
         let err = (draft - expected).abs() / expected;
-        eprintln!("density ratio {ratio}: draft {draft:.4} m, expected {expected:.4} m ({:.2}%)", 100.0 * err);
+        eprintln!(
+            "density ratio {ratio}: draft {draft:.4} m, expected {expected:.4} m ({:.2}%)",
+            100.0 * err
+        );
         assert!(err < 0.05, "ratio {ratio}: draft {draft:.4} vs {expected:.4}");
     }
 }

@@ -46,8 +46,5 @@ fn dam_break_keeps_volume_and_the_front_advances_to_the_wall() {
     }
     let reached = reached.expect("the front reaches the −x wall within 2.5 s");
     eprintln!("front reached the wall at step {reached}");
-    assert!(
-        reached >= 10,
-        "the front cannot cross 3.6 m in {reached} steps of 0.05 s"
-    );
+    assert!(reached >= 10, "the front cannot cross 3.6 m in {reached} steps of 0.05 s");
 }

@@ -5,10 +5,7 @@
 use diffluid::{Scene, Simulation};
 
 fn run(threads: usize) -> Simulation {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
     pool.install(|| {
         let mut sim = Simulation::new(Scene::builtin("dam_break").unwrap()).unwrap();
         for _ in 0..15 {
@@ -22,10 +19,7 @@ fn run(threads: usize) -> Simulation {
 fn one_and_two_threads_agree_bit_for_bit() {
     let (a, b) = (run(1), run(2));
     for axis in 0..3 {
-        let same = a.u.c[axis]
-            .iter()
-            .zip(&b.u.c[axis])
-            .all(|(x, y)| x.to_bits() == y.to_bits());
+        let same = a.u.c[axis].iter().zip(&b.u.c[axis]).all(|(x, y)| x.to_bits() == y.to_bits());
         assert!(same, "velocity component {axis} differs");
     }
     assert!(a
@@ -33,13 +27,6 @@ fn one_and_two_threads_agree_bit_for_bit() {
         .iter()
         .zip(&b.particles)
         .all(|(p, q)| p.to_array().map(f64::to_bits) == q.to_array().map(f64::to_bits)));
-    assert!(a
-        .pressure()
-        .iter()
-        .zip(b.pressure())
-        .all(|(x, y)| x.to_bits() == y.to_bits()));
-    assert!(
-        a.u.max_abs() > 1.0,
-        "the flow must be under way for the comparison to mean something"
-    );
+    assert!(a.pressure().iter().zip(b.pressure()).all(|(x, y)| x.to_bits() == y.to_bits()));
+    assert!(a.u.max_abs() > 1.0, "the flow must be under way for the comparison to mean something");
 }

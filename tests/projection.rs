@@ -30,34 +30,19 @@ fn rough_field(grid: &Grid) -> Mac {
 
 #[test]
 fn projection_leaves_divergence_at_solver_tolerance() {
-    let grid = Grid {
-        n: [18, 14, 12],
-        dx: 0.05,
-    };
+    let grid = Grid { n: [18, 14, 12], dx: 0.05 };
     let obstacle = Placed {
-        shape: ShapeSpec::Cuboid {
-            half_extents: [0.12, 0.08, 0.1],
-        },
+        shape: ShapeSpec::Cuboid { half_extents: [0.12, 0.08, 0.1] },
         position: [0.45, 0.2, 0.3],
         quaternion: None,
-        axis_angle: Some(AxisAngle {
-            axis: [0.3, 1.0, 0.2],
-            degrees: 33.0,
-        }),
+        axis_angle: Some(AxisAngle { axis: [0.3, 1.0, 0.2], degrees: 33.0 }),
     }
     .build(std::path::Path::new("."))
     .unwrap();
     let sdf = node_sdf(&grid, &[obstacle]);
     let weights = face_weights(&grid, &sdf);
-    let partial = weights
-        .iter()
-        .flatten()
-        .filter(|w| **w > 0.0 && **w < 1.0)
-        .count();
-    assert!(
-        partial > 50,
-        "the obstacle must cut faces partially ({partial})"
-    );
+    let partial = weights.iter().flatten().filter(|w| **w > 0.0 && **w < 1.0).count();
+    assert!(partial > 50, "the obstacle must cut faces partially ({partial})");
     // A wavy free surface: φ_L < 0 below y = 0.45 + 0.05 sin(...).
     let cells = grid.cells();
     let mut phi = vec![0.0; cells.len()];
@@ -65,21 +50,14 @@ fn projection_leaves_divergence_at_solver_tolerance() {
         let p = cells.position(i, j, k);
         p.y - (0.45 + 0.05 * (7.0 * p.x).sin() * (5.0 * p.z).cos())
     });
-    let params = PressureParams {
-        dt: 0.01,
-        density: 1000.0,
-        theta_min: 0.01,
-    };
+    let params = PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 };
     let sys = PressureSystem::build(&grid, &phi, &weights, params);
     assert!(sys.has_air && sys.len() > 1000);
     let mut u = rough_field(&grid);
     let b = sys.rhs(&u, &weights, &[]);
     let tol = 1e-8;
     let (p, stats) = sys.solve(&b, Preconditioner::Mic0, tol, 1000);
-    assert!(
-        stats.converged && stats.relative_residual <= tol,
-        "{stats:?}"
-    );
+    assert!(stats.converged && stats.relative_residual <= tol, "{stats:?}");
     sys.update_velocity(&p, &mut u, &weights, &phi);
     let flux = sys.fluid_flux(&u, &weights);
     let rel_div = dot(&flux, &flux).sqrt() / dot(&b, &b).sqrt();
@@ -92,12 +70,6 @@ fn projection_leaves_divergence_at_solver_tolerance() {
     let max_div = flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / vol;
     let bound = tol * dot(&b, &b).sqrt() / vol;
     let before = b.iter().fold(0.0f64, |m, f| m.max(f.abs())) / vol;
-    assert!(
-        max_div <= bound,
-        "max divergence {max_div:e} 1/s above {bound:e}"
-    );
-    assert!(
-        max_div < 1e-7 * before,
-        "divergence fell only from {before:e} to {max_div:e}"
-    );
+    assert!(max_div <= bound, "max divergence {max_div:e} 1/s above {bound:e}");
+    assert!(max_div < 1e-7 * before, "divergence fell only from {before:e} to {max_div:e}");
 }

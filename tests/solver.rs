@@ -17,10 +17,7 @@ use nalgebra::{DMatrix, DVector};
 
 /// A tank with a ball obstacle (partial weights) and a sloped free surface at height `level`.
 fn system(n: [usize; 3], level: f64) -> (PressureSystem, [Vec<f64>; 3]) {
-    let grid = Grid {
-        n,
-        dx: 1.0 / n[0] as f64,
-    };
+    let grid = Grid { n, dx: 1.0 / n[0] as f64 };
     let ball = Placed {
         shape: ShapeSpec::Ball { radius: 0.17 },
         position: [0.5, 0.3, 0.45],
@@ -40,11 +37,7 @@ fn system(n: [usize; 3], level: f64) -> (PressureSystem, [Vec<f64>; 3]) {
         &grid,
         &phi,
         &weights,
-        PressureParams {
-            dt: 0.01,
-            density: 1000.0,
-            theta_min: 0.01,
-        },
+        PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
     );
     (sys, weights)
 }
@@ -89,19 +82,12 @@ fn pcg_matches_a_direct_solve() {
     assert!(sys.has_air);
     let a = dense(&sys);
     let b = rhs(&sys, &weights);
-    let direct = a
-        .clone()
-        .cholesky()
-        .expect("SPD with air")
-        .solve(&DVector::from_column_slice(&b));
+    let direct = a.clone().cholesky().expect("SPD with air").solve(&DVector::from_column_slice(&b));
     for pre in [Preconditioner::Mic0, Preconditioner::None] {
         let (p, stats) = sys.solve(&b, pre, 1e-12, 5000);
         assert!(stats.converged, "{pre:?}: {stats:?}");
         let err = (DVector::from_column_slice(&p) - &direct).norm() / direct.norm();
-        assert!(
-            err < 1e-9,
-            "{pre:?}: relative error {err:e} against Cholesky"
-        );
+        assert!(err < 1e-9, "{pre:?}: relative error {err:e} against Cholesky");
     }
 }
 
@@ -132,25 +118,16 @@ fn closed_tank_without_air_solves_up_to_a_constant() {
     assert!(!sys.has_air);
     let a = dense(&sys);
     let ones = DVector::from_element(sys.len(), 1.0);
-    assert!(
-        (&a * &ones).amax() < 1e-12 * a.amax(),
-        "constant must be in the null space"
-    );
+    assert!((&a * &ones).amax() < 1e-12 * a.amax(), "constant must be in the null space");
     let b = rhs(&sys, &weights);
     let (p, stats) = sys.solve(&b, Preconditioner::Mic0, 1e-10, 2000);
     assert!(stats.converged, "{stats:?}");
     let pv = DVector::from_column_slice(&p);
-    assert!(
-        pv.sum().abs() < 1e-9 * pv.amax() * sys.len() as f64,
-        "solution has zero mean"
-    );
+    assert!(pv.sum().abs() < 1e-9 * pv.amax() * sys.len() as f64, "solution has zero mean");
     // Compare with the pseudo-inverse solution (zero mean) on the projected right-hand side.
     let mean = b.iter().sum::<f64>() / b.len() as f64;
     let bp = DVector::from_iterator(b.len(), b.iter().map(|x| x - mean));
-    let reference = (&a + &ones * ones.transpose() * a.amax())
-        .lu()
-        .solve(&bp)
-        .unwrap();
+    let reference = (&a + &ones * ones.transpose() * a.amax()).lu().solve(&bp).unwrap();
     let err = (&pv - &reference).norm() / reference.norm();
     assert!(err < 1e-7, "relative error {err:e}");
 }
@@ -161,12 +138,7 @@ fn failure_to_converge_is_an_error() {
     scene.solver.max_iterations = 2;
     let mut sim = Simulation::new(scene).unwrap();
     match sim.step() {
-        Err(Error::NotConverged {
-            step,
-            iterations,
-            residual,
-            ..
-        }) => {
+        Err(Error::NotConverged { step, iterations, residual, .. }) => {
             assert_eq!((step, iterations), (1, 2));
             assert!(residual > 1e-8);
         }

@@ -22,12 +22,7 @@ fn still_water_stays_still_with_hydrostatic_pressure() {
     let v0 = sim.liquid_volume();
     for _ in 0..steps {
         let r = sim.step().unwrap();
-        assert!(
-            r.max_speed < 1e-3,
-            "step {}: max speed {} m/s",
-            r.step,
-            r.max_speed
-        );
+        assert!(r.max_speed < 1e-3, "step {}: max speed {} m/s", r.step, r.max_speed);
     }
     let grid = *sim.grid();
     let cells = grid.cells();
