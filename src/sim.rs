@@ -137,8 +137,9 @@ impl Simulation {
     pub fn new(scene: Scene) -> Result<Simulation> {
         scene.check()?;
         let grid = scene.grid();
-        let node_sdf = fractions::node_sdf(&grid, &scene.obstacles());
-        let weights = fractions::face_weights(&grid, &node_sdf);
+        let obstacles = scene.obstacles();
+        let node_sdf = fractions::node_sdf(&grid, &obstacles);
+        let weights = fractions::face_weights(&grid, &obstacles);
         let centre_in_solid = fractions::cell_centre_in_solid(&grid, &node_sdf);
         let ppc = scene.solver.particles_per_cell;
         let particles = surface::seed(&grid, &scene.liquid_regions(), ppc, &node_sdf);
@@ -215,10 +216,10 @@ impl Simulation {
         let mut body_faces = Vec::with_capacity(self.bodies.len());
         let cells = grid.cells();
         for b in &self.bodies {
-            let faces = fractions::body_faces(grid, b.bounds(), |p| b.sdf(p));
+            let faces = fractions::body_faces(grid, b.bounds(), |p| b.sdf(p), Some(b.volume()));
             for a in 0..3 {
                 for &(f, beta) in &faces.faces[a] {
-                    weights[a][f] = (weights[a][f] - beta).clamp(0.0, 1.0);
+                    weights[a][f] = fractions::snap((weights[a][f] - beta).clamp(0.0, 1.0));
                 }
             }
             let (lo, hi) = b.bounds();

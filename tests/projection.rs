@@ -9,7 +9,7 @@
 //! correspondingly small. (2) fails if the velocity update and the operator disagree on a
 //! single face weight, θ or sign.
 
-use diffluid::fractions::{face_weights, node_sdf};
+use diffluid::fractions::face_weights;
 use diffluid::grid::{dot, Grid, Mac};
 use diffluid::pressure::{PressureParams, PressureSystem};
 use diffluid::scene::Preconditioner;
@@ -39,8 +39,7 @@ fn projection_leaves_divergence_at_solver_tolerance() {
     }
     .build(std::path::Path::new("."))
     .unwrap();
-    let sdf = node_sdf(&grid, &[obstacle]);
-    let weights = face_weights(&grid, &sdf);
+    let weights = face_weights(&grid, &[obstacle]);
     let partial = weights.iter().flatten().filter(|w| **w > 0.0 && **w < 1.0).count();
     assert!(partial > 50, "the obstacle must cut faces partially ({partial})");
     // A wavy free surface: φ_L < 0 below y = 0.45 + 0.05 sin(...).

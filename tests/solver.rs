@@ -7,7 +7,7 @@
 //! and semi-definite with the constant pressure as null space in a closed, full tank
 //! (pressure is then defined up to a constant).
 
-use diffluid::fractions::{face_weights, node_sdf};
+use diffluid::fractions::face_weights;
 use diffluid::grid::{Grid, Mac};
 use diffluid::pressure::{PressureParams, PressureSystem};
 use diffluid::scene::Preconditioner;
@@ -26,7 +26,7 @@ fn system(n: [usize; 3], level: f64) -> (PressureSystem, [Vec<f64>; 3]) {
     }
     .build(std::path::Path::new("."))
     .unwrap();
-    let weights = face_weights(&grid, &node_sdf(&grid, &[ball]));
+    let weights = face_weights(&grid, &[ball]);
     let cells = grid.cells();
     let mut phi = vec![0.0; cells.len()];
     cells.fill_par(&mut phi, |i, j, k| {
