@@ -411,8 +411,9 @@ pub fn body_faces(
             let partial: f64 = faces.iter().map(|(_, b)| b * (1.0 - b)).sum();
             if partial > 0.0 {
                 let lambda = ((v / cell - sum) / partial).clamp(-1.0, 1.0);
+                // Snapped fractions (0 or 1) are not touched, so the sum is exact.
                 for (_, b) in faces.iter_mut() {
-                    *b = snap(*b + lambda * *b * (1.0 - *b));
+                    *b += lambda * *b * (1.0 - *b);
                 }
             }
         }

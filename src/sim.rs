@@ -219,7 +219,9 @@ impl Simulation {
             let faces = fractions::body_faces(grid, b.bounds(), |p| b.sdf(p), Some(b.volume()));
             for a in 0..3 {
                 for &(f, beta) in &faces.faces[a] {
-                    weights[a][f] = fractions::snap((weights[a][f] - beta).clamp(0.0, 1.0));
+                    // β is already snapped to 0 or 1 where it is within round-off of
+                    // them, so w + β = 1 holds exactly on every face a body alone covers.
+                    weights[a][f] = (weights[a][f] - beta).clamp(0.0, 1.0);
                 }
             }
             let (lo, hi) = b.bounds();
