@@ -31,6 +31,9 @@ pub enum Error {
         /// What is wrong, naming the key.
         message: String,
     },
+    /// A command-line argument out of range.
+    #[error("{0}")]
+    Usage(String),
     /// The pressure solve did not reach its tolerance.
     #[error(
         "pressure solve did not converge at step {step}: relative residual {residual:.3e} after \

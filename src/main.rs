@@ -73,10 +73,7 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let mut scene = load_scene(args.scene.as_deref())?;
     if let Some(n) = args.steps {
         if n == 0 {
-            return Err(Error::InvalidScene {
-                origin: "--steps".into(),
-                message: "must be at least 1".into(),
-            });
+            return Err(Error::Usage("--steps must be at least 1".into()));
         }
         scene.time.steps = n;
     }
@@ -138,8 +135,16 @@ fn run(args: RunArgs) -> Result<(), Error> {
     bar.set_message(sim.scene().name.clone());
     let start = Instant::now();
     let mut reports = Vec::with_capacity(steps);
+    let mut failure = None;
     for _ in 0..steps {
-        let r = sim.step()?;
+        // A failed step still leaves the summary and body tracks of every step before it.
+        let r = match sim.step() {
+            Ok(r) => r,
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
+        };
         frame(&sim, r.step)?;
         body_rows(&sim, r.step);
         bar.set_message(format!("{} cg {:>3} it", sim.scene().name, r.cg_iterations));
@@ -165,6 +170,9 @@ fn run(args: RunArgs) -> Result<(), Error> {
             steps: &reports,
         },
     )?;
+    if let Some(e) = failure {
+        return Err(e);
+    }
     let last = reports.last().expect("at least one step");
     println!(
         "{}: {} steps in {:.3} s ({} particles, {} liquid cells); final volume {:.4} m³ (start {:.4}), \

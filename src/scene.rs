@@ -279,6 +279,11 @@ fn locate(src: &str, path: &str) -> Option<usize> {
     Some(start + 1)
 }
 
+/// Bounds for messages, without floating-point noise (3.5999999999999996 → 3.6).
+fn round6(a: [f64; 3]) -> [f64; 3] {
+    a.map(|x| (x * 1e6).round() / 1e6)
+}
+
 /// A validation failure: the key it concerns and what is wrong.
 struct Problem {
     key: String,
@@ -338,7 +343,15 @@ impl Scene {
             Error::ParseScene {
                 origin: origin.to_string(),
                 message: match line {
-                    Some(l) => format!("line {l}: {msg}"),
+                    Some(l) => {
+                        // Name the table when the error points at its header ("missing field").
+                        let header = text.lines().nth(l - 1).map(str::trim).unwrap_or("");
+                        if header.starts_with('[') && header.ends_with(']') {
+                            format!("line {l}: in {header}: {msg}")
+                        } else {
+                            format!("line {l}: {msg}")
+                        }
+                    }
                     None => msg,
                 },
             }
@@ -453,8 +466,8 @@ impl Scene {
                 format!(
                     "body spans {:?}..{:?}: it must start inside the tank [0, 0, 0]..{:?} \
                      without touching a wall",
-                    lo.to_array(),
-                    hi.to_array(),
+                    round6(lo.to_array()),
+                    round6(hi.to_array()),
                     self.domain.size
                 ),
             ));
@@ -499,8 +512,8 @@ impl Scene {
                     &key,
                     format!(
                         "liquid region spans {:?}..{:?}, outside the domain [0, 0, 0]..{:?}",
-                        lo.to_array(),
-                        hi.to_array(),
+                        round6(lo.to_array()),
+                        round6(hi.to_array()),
                         d.size
                     ),
                 ));
