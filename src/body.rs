@@ -131,6 +131,42 @@ pub fn quat_step(q: Rotation, w: Vec3, dt: f64) -> Rotation {
     raw.normalize()
 }
 
+/// Adjoint of [`quat_step`]: given ∂L/∂q' (as a 4-vector in a quaternion), returns
+/// (∂L/∂q, ∂L/∂ω). With r = q + Δt/2·[0, ω]⊗q and q' = r/|r|:
+/// r̄ = (q̄' − q'·(q'·q̄'))/|r|, q̄ = r̄ + Δt/2·L([0, ω])ᵀ r̄ = r̄ − Δt/2·[0, ω]⊗r̄, and
+/// ω̄ = Δt/2·vec(r̄ ⊗ q*), using L(p)ᵀ = L(p*) and R(q)ᵀ = R(q*) for the left and right
+/// multiplication matrices.
+pub fn quat_step_adjoint(q: Rotation, w: Vec3, dt: f64, qbar_out: Rotation) -> (Rotation, Vec3) {
+    let wq = Rotation::from_xyzw(w.x, w.y, w.z, 0.0) * q;
+    let r = Rotation::from_xyzw(
+        q.x + 0.5 * dt * wq.x,
+        q.y + 0.5 * dt * wq.y,
+        q.z + 0.5 * dt * wq.z,
+        q.w + 0.5 * dt * wq.w,
+    );
+    let len = r.length();
+    let qn = r * (1.0 / len);
+    let proj = qn.dot(qbar_out);
+    let rbar = (qbar_out - qn * proj) * (1.0 / len);
+    let wr = Rotation::from_xyzw(w.x, w.y, w.z, 0.0) * rbar;
+    let qbar = rbar - wr * (0.5 * dt);
+    let t = rbar * q.conjugate();
+    (qbar, Vec3::new(t.x, t.y, t.z) * (0.5 * dt))
+}
+
+/// The world-frame tangent of an orientation: δq = ½·[0, δθ]⊗q. Returns ∂L/∂θ from an
+/// adjoint ∂L/∂q in the quaternion embedding (the transpose of that map).
+pub fn quat_tangent_gradient(q: Rotation, qbar: Rotation) -> Vec3 {
+    let t = qbar * q.conjugate();
+    Vec3::new(t.x, t.y, t.z) * 0.5
+}
+
+/// The adjoint in the quaternion embedding whose tangent part is `g` = ∂L/∂θ (the inverse
+/// of [`quat_tangent_gradient`] on the tangent space): 2·[0, g]⊗q.
+pub fn quat_from_tangent_gradient(q: Rotation, g: Vec3) -> Rotation {
+    (Rotation::from_xyzw(g.x, g.y, g.z, 0.0) * q) * 2.0
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -143,6 +179,38 @@ mod tests {
         // I = m (a² + a²)/12 with a = 0.2.
         let i = 16.0 * (0.04 + 0.04) / 12.0;
         assert!((b.world_inertia().x_axis.x - i).abs() < 1e-12);
+    }
+
+    #[test]
+    fn quaternion_step_adjoint_matches_central_differences() {
+        let q = Rotation::from_axis_angle(Vec3::new(0.3, -0.5, 0.8).normalize(), 0.7);
+        let w = Vec3::new(1.1, -0.4, 2.3);
+        let dt = 0.05;
+        let qbar_out = Rotation::from_xyzw(0.3, -1.2, 0.5, 0.8);
+        let (qbar, wbar) = quat_step_adjoint(q, w, dt, qbar_out);
+        let f = |q: Rotation, w: Vec3| quat_step(q, w, dt).dot(qbar_out);
+        let eps = 1e-6;
+        for d in 0..3 {
+            let e = crate::math::unit(d) * eps;
+            let fd = (f(q, w + e) - f(q, w - e)) / (2.0 * eps);
+            assert!((fd - crate::math::comp(wbar, d)).abs() < 1e-9, "ω[{d}]: {fd} vs {wbar}");
+        }
+        for d in 0..4 {
+            let mut a = [0.0; 4];
+            a[d] = eps;
+            let e = Rotation::from_xyzw(a[0], a[1], a[2], a[3]);
+            let fd = (f(q + e, w) - f(q - e, w)) / (2.0 * eps);
+            let an = qbar.to_array()[d];
+            assert!((fd - an).abs() < 1e-9, "q[{d}]: {fd} vs {an}");
+        }
+    }
+
+    #[test]
+    fn tangent_gradient_round_trips() {
+        let q = Rotation::from_axis_angle(Vec3::new(1.0, 2.0, -1.0).normalize(), 1.3);
+        let g = Vec3::new(0.4, -0.7, 1.9);
+        let back = quat_tangent_gradient(q, quat_from_tangent_gradient(q, g));
+        assert!((back - g).length() < 1e-12);
     }
 
     #[test]

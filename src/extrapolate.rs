@@ -83,9 +83,101 @@ pub fn correct_velocity(
     }
 }
 
+/// The masks of the extrapolation layers: `masks[l]` is the valid mask before layer `l`
+/// (`masks[0]` is the projection's), and `masks[layers]` the final one.
+fn layer_masks(valid0: &[u8], lat: &Lattice, layers: usize) -> Vec<Vec<u8>> {
+    let mut masks = vec![valid0.to_vec()];
+    let mut nb = [0usize; 6];
+    for l in 0..layers {
+        let prev = &masks[l];
+        let mut next = prev.clone();
+        for idx in 0..prev.len() {
+            if prev[idx] == 0 && valid_neighbours(lat, prev, idx, &mut nb) > 0 {
+                next[idx] = 1;
+            }
+        }
+        masks.push(next);
+    }
+    masks
+}
+
+/// Transpose of [`extrapolate`] for the projection's mask `valid0`: takes the adjoint of
+/// the extrapolated field and returns (in place) the adjoint of the field before it.
+pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers: usize) {
+    let masks = layer_masks(valid0, lat, layers);
+    // Faces left invalid were set to zero: nothing flows back from them.
+    for (a, v) in adj.iter_mut().zip(&masks[layers]) {
+        if *v == 0 {
+            *a = 0.0;
+        }
+    }
+    let mut nb = [0usize; 6];
+    for l in (0..layers).rev() {
+        let (before, after) = (&masks[l], &masks[l + 1]);
+        for idx in 0..adj.len() {
+            if before[idx] == 0 && after[idx] != 0 {
+                // Set in layer l to the mean of its valid neighbours; its old value unused.
+                let a = std::mem::take(&mut adj[idx]);
+                let n = valid_neighbours(lat, before, idx, &mut nb);
+                for &m in &nb[..n] {
+                    adj[m] += a / n as f64;
+                }
+            }
+        }
+    }
+}
+
+/// Transpose of [`correct_velocity`] (without the rigid faces, which the caller handles
+/// first): zero on closed faces, then the extrapolation's transpose.
+pub fn correct_velocity_adjoint(
+    adj: &mut Mac,
+    valid0: &[Vec<u8>; 3],
+    weights: &[Vec<f64>; 3],
+    grid: &Grid,
+    layers: usize,
+) {
+    for a in 0..3 {
+        for (x, w) in adj.c[a].iter_mut().zip(&weights[a]) {
+            if *w <= 0.0 {
+                *x = 0.0;
+            }
+        }
+        extrapolate_adjoint(&mut adj.c[a], &valid0[a], &grid.faces(a), layers);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn adjoint_is_the_transpose() {
+        // C is linear for fixed masks: ⟨C x, y⟩ = ⟨x, Cᵀ y⟩.
+        let grid = Grid { n: [6, 5, 4], dx: 0.1 };
+        let mut weights = [0, 1, 2].map(|a| vec![1.0; grid.faces(a).len()]);
+        weights[1][7] = 0.0;
+        weights[0][20] = 0.0;
+        let valid = [0, 1, 2].map(|a| {
+            (0..grid.faces(a).len()).map(|f| u8::from((f * 37 + a) % 5 == 0)).collect::<Vec<u8>>()
+        });
+        let val = |s: usize| {
+            let mut m = Mac::zeros(&grid);
+            for a in 0..3 {
+                for (f, x) in m.c[a].iter_mut().enumerate() {
+                    *x = ((f * 7919 + a * 13 + s) % 97) as f64 / 48.0 - 1.0;
+                }
+            }
+            m
+        };
+        let (x, y) = (val(1), val(2));
+        let mut cx = x.clone();
+        let mut v = valid.clone();
+        correct_velocity(&mut cx, &mut v, &weights, &grid, 3);
+        let mut cty = y.clone();
+        correct_velocity_adjoint(&mut cty, &valid, &weights, &grid, 3);
+        let (l, r) = (cx.dot(&y), x.dot(&cty));
+        assert!((l - r).abs() <= 1e-12 * l.abs().max(r.abs()), "{l} vs {r}");
+    }
 
     #[test]
     fn extrapolation_spreads_one_layer_per_pass_and_keeps_valid_values() {

@@ -196,6 +196,12 @@ pub struct Solver {
     /// projection, see `density.rs`). Default true: without it the dam break loses about
     /// 10% of its volume to particles bunching at the floor.
     pub density_correction: bool,
+    /// Hold the free surface fixed: the marker particles do not move and the liquid signed
+    /// distance keeps its initial value (extended into the solids where they are now). The
+    /// backward pass always holds the surface fixed (as the paper does); with this switch the
+    /// forward pass is exactly the map the adjoint differentiates, which gradient checks need.
+    /// It also skips all particle work. Default false.
+    pub freeze_surface: bool,
 }
 
 impl Default for Solver {
@@ -208,6 +214,7 @@ impl Default for Solver {
             particles_per_cell: 8,
             theta_min: 0.01,
             density_correction: true,
+            freeze_surface: false,
         }
     }
 }

@@ -129,6 +129,10 @@ pub struct Simulation {
     pub bodies: Vec<RigidBody>,
     pressure: Vec<f64>,
     phi: Vec<f64>,
+    /// φ_L of the initial particles, when the surface is frozen.
+    frozen_phi: Option<Vec<f64>>,
+    /// Liquid volume of the frozen particles.
+    frozen_volume: f64,
     step: usize,
 }
 
@@ -148,7 +152,16 @@ impl Simulation {
         let mut particles = particles;
         let margin = 1e-3 * grid.dx;
         particles.retain(|x| bodies.iter().all(|b| b.sdf(*x) > margin));
+        let (frozen_phi, frozen_volume) = if scene.solver.freeze_surface {
+            let bins = Bins::new(&particles, &grid);
+            let vol = surface::liquid_volume(&particles, &bins, &grid, ppc);
+            (Some(surface::liquid_sdf(&particles, &bins, &grid, radius)), vol)
+        } else {
+            (None, 0.0)
+        };
         Ok(Simulation {
+            frozen_phi,
+            frozen_volume,
             bodies,
             u: Mac::zeros(&grid),
             particles,
@@ -199,6 +212,9 @@ impl Simulation {
 
     /// Liquid volume of the current particles, m³.
     pub fn liquid_volume(&self) -> f64 {
+        if self.frozen_phi.is_some() {
+            return self.frozen_volume;
+        }
         let bins = Bins::new(&self.particles, &self.grid);
         surface::liquid_volume(
             &self.particles,
@@ -258,9 +274,12 @@ impl Simulation {
         lap(&mut times.geometry);
 
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
-        surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
-        surface::push_out_of_bodies(&mut self.particles, &self.bodies, 1e-3 * grid.dx);
-        if self.scene.solver.density_correction {
+        let frozen = self.frozen_phi.is_some();
+        if !frozen {
+            surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
+            surface::push_out_of_bodies(&mut self.particles, &self.bodies, 1e-3 * grid.dx);
+        }
+        if !frozen && self.scene.solver.density_correction {
             let inputs = DensityInputs {
                 grid: &grid,
                 weights: &geo.weights,
@@ -285,9 +304,16 @@ impl Simulation {
         }
         lap(&mut times.forces);
 
-        // 3. Where the liquid is now.
-        let bins = Bins::new(&self.particles, &grid);
-        let mut phi = surface::liquid_sdf(&self.particles, &bins, &grid, self.radius);
+        // 3. Where the liquid is now (with a frozen surface: where it was at the start).
+        let mut phi = match &self.frozen_phi {
+            Some(phi) => phi.clone(),
+            None => surface::liquid_sdf(
+                &self.particles,
+                &Bins::new(&self.particles, &grid),
+                &grid,
+                self.radius,
+            ),
+        };
         surface::extend_into_solids(&mut phi, &grid, &geo.centre_in_solid);
         lap(&mut times.surface);
 
@@ -377,12 +403,7 @@ impl Simulation {
             cg_iterations: stats.iterations,
             cg_relative_residual: stats.relative_residual,
             max_divergence,
-            liquid_volume: surface::liquid_volume(
-                &self.particles,
-                &bins,
-                &grid,
-                solver.particles_per_cell,
-            ),
+            liquid_volume: self.liquid_volume(),
             max_speed: self.max_liquid_speed(&sys),
             kinetic_energy,
             bodies: forces,
