@@ -31,6 +31,29 @@ pub struct Stencil {
     pub nbr: Vec<[u32; 6]>,
 }
 
+/// The pressure gradient across one face in terms of the rows beside it (see
+/// [`PressureSystem::face_gradient`]).
+#[derive(Clone, Copy, Debug)]
+pub struct FaceGradient {
+    /// Row on the − side ([`NONE`] in air).
+    pub rm: u32,
+    /// Its coefficient.
+    pub cm: f64,
+    /// Row on the + side ([`NONE`] in air).
+    pub rp: u32,
+    /// Its coefficient.
+    pub cp: f64,
+}
+
+impl FaceGradient {
+    /// `cp·p[rp] − cm·p[rm]`.
+    #[inline]
+    pub fn apply(&self, p: &[f64]) -> f64 {
+        let at = |r: u32, c: f64| if c != 0.0 { c * p[r as usize] } else { 0.0 };
+        at(self.rp, self.cp) - at(self.rm, self.cm)
+    }
+}
+
 /// Everything the pressure stage needs besides the velocities.
 #[derive(Clone, Copy, Debug)]
 pub struct PressureParams {
@@ -333,31 +356,142 @@ impl PressureSystem {
     ) -> [Vec<u8>; 3] {
         let grid = &self.grid;
         let k = self.params.dt / (self.params.density * grid.dx);
-        let tmin = self.params.theta_min;
         let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
         for a in 0..3 {
-            let lat = grid.faces(a);
-            let w = &weights[a];
             u.c[a].par_iter_mut().zip(valid[a].par_iter_mut()).enumerate().for_each(
                 |(f, (uf, vf))| {
-                    if w[f] <= 0.0 {
-                        return;
+                    if let Some(g) = self.face_gradient(a, f, weights, phi) {
+                        *uf -= k * g.apply(p);
+                        *vf = 1;
                     }
-                    let (m, pl) = grid.face_cells(a, lat.ijk(f));
-                    let (Some(m), Some(pl)) = (m, pl) else { return };
-                    let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[pl]);
-                    let grad = match (rm != NONE, rp != NONE) {
-                        (true, true) => p[rp as usize] - p[rm as usize],
-                        (true, false) => -p[rm as usize] / ghost_theta(phi[m], phi[pl], tmin),
-                        (false, true) => p[rp as usize] / ghost_theta(phi[pl], phi[m], tmin),
-                        (false, false) => return,
-                    };
-                    *uf -= k * grad;
-                    *vf = 1;
                 },
             );
         }
         valid
+    }
+
+    /// The pressure gradient across face `f` of `axis` as `cp·p[rp] − cm·p[rm]` (scaled by
+    /// 1/dx elsewhere), when the velocity update acts on the face: an open face next to a
+    /// liquid cell. A side in air has no row (p = 0 there) and the other side's coefficient
+    /// carries the ghost-fluid 1/θ.
+    #[inline]
+    pub fn face_gradient(
+        &self,
+        axis: usize,
+        f: usize,
+        weights: &[Vec<f64>; 3],
+        phi: &[f64],
+    ) -> Option<FaceGradient> {
+        if weights[axis][f] <= 0.0 {
+            return None;
+        }
+        let grid = &self.grid;
+        let (m, pl) = grid.face_cells(axis, grid.faces(axis).ijk(f));
+        let (m, pl) = (m?, pl?);
+        let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[pl]);
+        let tmin = self.params.theta_min;
+        match (rm != NONE, rp != NONE) {
+            (true, true) => Some(FaceGradient { rm, cm: 1.0, rp, cp: 1.0 }),
+            (true, false) => {
+                Some(FaceGradient { rm, cm: 1.0 / ghost_theta(phi[m], phi[pl], tmin), rp, cp: 0.0 })
+            }
+            (false, true) => {
+                Some(FaceGradient { rm, cm: 0.0, rp, cp: 1.0 / ghost_theta(phi[pl], phi[m], tmin) })
+            }
+            (false, false) => None,
+        }
+    }
+
+    /// Adjoint of [`PressureSystem::update_velocity`] with respect to p: given the adjoint
+    /// of the updated face velocities, returns `−k·G̃ᵀ·adj` per row.
+    pub fn update_velocity_adjoint(
+        &self,
+        adj_u: &Mac,
+        weights: &[Vec<f64>; 3],
+        phi: &[f64],
+    ) -> Vec<f64> {
+        let k = self.params.dt / (self.params.density * self.grid.dx);
+        let mut out = vec![0.0; self.len()];
+        for a in 0..3 {
+            for (f, &adj) in adj_u.c[a].iter().enumerate() {
+                if adj == 0.0 {
+                    continue;
+                }
+                if let Some(g) = self.face_gradient(a, f, weights, phi) {
+                    if g.cp != 0.0 {
+                        out[g.rp as usize] -= k * g.cp * adj;
+                    }
+                    if g.cm != 0.0 {
+                        out[g.rm as usize] += k * g.cm * adj;
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// Transpose of [`PressureSystem::fluid_flux`]: the face adjoint `dx²·w_f·(s_m − s_p)`
+    /// from a row adjoint `s` (zero in air and solid).
+    pub fn fluid_flux_adjoint(&self, s: &[f64], weights: &[Vec<f64>; 3]) -> Mac {
+        let grid = &self.grid;
+        let area = grid.dx * grid.dx;
+        let mut out = Mac::zeros(grid);
+        for a in 0..3 {
+            let lat = grid.faces(a);
+            let w = &weights[a];
+            lat.fill_par(&mut out.c[a], |i, j, k| {
+                let f = lat.index(i, j, k);
+                if w[f] <= 0.0 {
+                    return 0.0;
+                }
+                let (m, p) = grid.face_cells(a, [i, j, k]);
+                let sv = |c: Option<usize>| match c.map(|c| self.row_of_cell[c]) {
+                    Some(r) if r != NONE => s[r as usize],
+                    _ => 0.0,
+                };
+                area * w[f] * (sv(m) - sv(p))
+            });
+        }
+        out
+    }
+
+    /// Adjoint of the whole projection (right-hand side, solve, velocity and body updates)
+    /// for fixed geometry (paper, eqs. 8–9, in this code's terms): from the adjoints of the
+    /// projected face velocities `adj_u` and of the bodies' `[v; ω]` after the solve, one more
+    /// solve with the same operator gives `s`, and the adjoints before the projection are
+    /// `adj_u − Fᵀ s` and `adj_v − J s`. Returns (adjoint of u, of each body's velocity, s).
+    pub fn projection_adjoint(
+        &self,
+        adj_u: &Mac,
+        adj_v: &[[f64; 6]],
+        weights: &[Vec<f64>; 3],
+        phi: &[f64],
+        preconditioner: Preconditioner,
+        tolerance: f64,
+        max_iterations: usize,
+    ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
+        let mut pbar = self.update_velocity_adjoint(adj_u, weights, phi);
+        for (b, av) in self.bodies.iter().zip(adj_v) {
+            b.add_jt(&b.dt_minv_times(av), &mut pbar);
+        }
+        let (s, stats) = self.solve(&pbar, preconditioner, tolerance, max_iterations);
+        let ft = self.fluid_flux_adjoint(&s, weights);
+        let mut u_hat = adj_u.clone();
+        for a in 0..3 {
+            for (x, y) in u_hat.c[a].iter_mut().zip(&ft.c[a]) {
+                *x -= y;
+            }
+        }
+        let v_hat = self
+            .bodies
+            .iter()
+            .zip(adj_v)
+            .map(|(b, av)| {
+                let js = b.force(&s);
+                std::array::from_fn(|d| av[d] - js[d])
+            })
+            .collect();
+        (u_hat, v_hat, s, stats)
     }
 
     /// Pressure on the whole cell grid (zero outside the liquid).
@@ -400,6 +534,70 @@ mod tests {
             &weights,
             PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
         )
+    }
+
+    #[test]
+    fn projection_adjoint_is_the_transpose() {
+        // For fixed geometry the projection is linear in (û, v̂):
+        // ⟨P(û, v̂), (ū, v̄)⟩ = ⟨(û, v̂), Pᵀ(ū, v̄)⟩, to the solver's tolerance.
+        let mut sys = system();
+        let grid = sys.grid;
+        let cells = grid.cells();
+        let mut phi = vec![0.0; cells.len()];
+        cells.fill_par(&mut phi, |_, j, _| (j as f64 + 0.5) * 0.1 - 0.33);
+        let mut weights = [0, 1, 2].map(|a| {
+            let lat = grid.faces(a);
+            let mut w = vec![1.0; lat.len()];
+            lat.fill_par(&mut w, |i, j, k| {
+                let f = [i, j, k];
+                if f[a] == 0 || f[a] == grid.n[a] {
+                    0.0
+                } else {
+                    1.0
+                }
+            });
+            w
+        });
+        weights[0][grid.faces(0).index(2, 1, 1)] = 0.3;
+        // A body touching a few rows, with an SPD Δt·M⁻¹.
+        let jac: Vec<(usize, [f64; 6])> = (0..6)
+            .map(|r| {
+                let c = sys.cell_of_row[r * 3] as usize;
+                (c, std::array::from_fn(|d| ((r * 7 + d * 3) % 5) as f64 * 0.01 - 0.02))
+            })
+            .collect();
+        let mut m = [[0.0; 6]; 6];
+        for d in 0..6 {
+            m[d][d] = 0.05 + 0.01 * d as f64;
+        }
+        m[3][4] = 0.004;
+        m[4][3] = 0.004;
+        sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, m));
+        let field = |seed: usize| {
+            let mut u = Mac::zeros(&grid);
+            for a in 0..3 {
+                for (f, x) in u.c[a].iter_mut().enumerate() {
+                    *x = ((f * 7919 + a * 131 + seed) % 97) as f64 / 48.0 - 1.0;
+                }
+            }
+            u
+        };
+        let (uh, ub) = (field(1), field(2));
+        let (vh, vb) = ([0.3, -0.2, 0.5, 0.1, 0.7, -0.4], [-0.6, 0.25, 0.1, 0.9, -0.3, 0.2]);
+        let tol = 1e-14;
+        // Forward.
+        let b = sys.rhs(&uh, &weights, &[vh]);
+        let (p, _) = sys.solve(&b, Preconditioner::Mic0, tol, 10_000);
+        let mut u1 = uh.clone();
+        sys.update_velocity(&p, &mut u1, &weights, &phi);
+        let dv = sys.bodies[0].dt_minv_times(&sys.bodies[0].force(&p));
+        let v1: [f64; 6] = std::array::from_fn(|d| vh[d] + dv[d]);
+        // Adjoint.
+        let (ua, va, _, _) =
+            sys.projection_adjoint(&ub, &[vb], &weights, &phi, Preconditioner::Mic0, tol, 10_000);
+        let lhs = u1.dot(&ub) + (0..6).map(|d| v1[d] * vb[d]).sum::<f64>();
+        let rhs = uh.dot(&ua) + (0..6).map(|d| vh[d] * va[0][d]).sum::<f64>();
+        assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");
     }
 
     #[test]
