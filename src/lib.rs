@@ -9,6 +9,7 @@
 // Loops over the three axes index several per-axis arrays at once; an index reads better.
 #![allow(clippy::needless_range_loop)]
 
+pub mod adjoint;
 pub mod advect;
 pub mod body;
 pub mod cg;

@@ -226,12 +226,17 @@ impl Simulation {
 
     /// Where the solids are now: static weights minus each body's face fractions.
     pub fn geometry(&self) -> Geometry {
+        self.geometry_of(&self.bodies)
+    }
+
+    /// Where the solids are with the bodies in the given states.
+    pub fn geometry_of(&self, bodies: &[RigidBody]) -> Geometry {
         let grid = &self.grid;
         let mut weights = self.statics.weights.clone();
         let mut centre_in_solid = self.statics.centre_in_solid.clone();
-        let mut body_faces = Vec::with_capacity(self.bodies.len());
+        let mut body_faces = Vec::with_capacity(bodies.len());
         let cells = grid.cells();
-        for b in &self.bodies {
+        for b in bodies {
             let faces = fractions::body_faces(grid, b.bounds(), |p| b.sdf(p), Some(b.volume()));
             for a in 0..3 {
                 for &(f, beta) in &faces.faces[a] {
@@ -259,6 +264,32 @@ impl Simulation {
 
     /// Advances one step.
     pub fn step(&mut self) -> Result<StepReport> {
+        self.step_inner(None)
+    }
+
+    /// Advances one step and records on `tape` what the backward pass needs.
+    pub fn step_taped(&mut self, tape: &mut crate::adjoint::Tape) -> Result<StepReport> {
+        self.step_inner(Some(tape))
+    }
+
+    /// The liquid signed distance from the particles (before extension into solids): the
+    /// frozen one, or the current particles'.
+    pub(crate) fn particle_phi(&self) -> Vec<f64> {
+        match &self.frozen_phi {
+            Some(phi) => phi.clone(),
+            None => surface::liquid_sdf(
+                &self.particles,
+                &Bins::new(&self.particles, &self.grid),
+                &self.grid,
+                self.radius,
+            ),
+        }
+    }
+
+    fn step_inner(&mut self, mut tape: Option<&mut crate::adjoint::Tape>) -> Result<StepReport> {
+        let u_start = tape.as_ref().map(|_| self.u.clone());
+        let bodies_start: Vec<crate::adjoint::BodyState> =
+            self.bodies.iter().map(crate::adjoint::BodyState::of).collect();
         let dt = self.scene.time.dt;
         let grid = self.grid;
         let mut times = StageSeconds::default();
@@ -305,15 +336,8 @@ impl Simulation {
         lap(&mut times.forces);
 
         // 3. Where the liquid is now (with a frozen surface: where it was at the start).
-        let mut phi = match &self.frozen_phi {
-            Some(phi) => phi.clone(),
-            None => surface::liquid_sdf(
-                &self.particles,
-                &Bins::new(&self.particles, &grid),
-                &grid,
-                self.radius,
-            ),
-        };
+        let particle_phi = self.particle_phi();
+        let mut phi = particle_phi.clone();
         surface::extend_into_solids(&mut phi, &grid, &geo.centre_in_solid);
         lap(&mut times.surface);
 
@@ -379,6 +403,16 @@ impl Simulation {
             }
         }
         lap(&mut times.correct_velocity);
+
+        if let Some(t) = tape.as_deref_mut() {
+            t.steps.push(crate::adjoint::StepRecord {
+                u: u_start.expect("cloned when taping"),
+                bodies: bodies_start,
+                v_after: self.bodies.iter().map(generalized_velocity).collect(),
+                p: p.clone(),
+                phi: if self.frozen_phi.is_some() { Vec::new() } else { particle_phi },
+            });
+        }
 
         // 6. Rigid integration (or contact).
         self.move_bodies(dt)?;

@@ -1,0 +1,361 @@
+//! The backward pass (the paper's Algorithm 3): the tape the forward pass records, the
+//! adjoint state, losses, and the reverse pipeline that walks the stored steps stage by
+//! stage, each stage the exact transpose of its forward linearisation:
+//!
+//! 6ᵀ rigid integration (quaternion product and normalisation), 5ᵀ velocity correction
+//! (rigid faces, closed faces, extrapolation layers), 4ᵀ projection (one more solve with the
+//! same operator), 2ᵀ gravity (identity), 1ᵀ advection ((W + ∂W/∂u·u)ᵀ).
+//!
+//! The liquid surface (particles, φ_L) is held fixed in the backward pass, as in the paper;
+//! with `solver.freeze_surface` the forward pass holds it fixed too, and the gradient is then
+//! the exact gradient of the forward map. [`GradientMode::Full`] carries the dependence of
+//! the geometry on the body poses (face fractions, J, the world inertia, the rigid velocity
+//! set inside bodies); [`GradientMode::Paper`] drops it, as the paper does.
+
+use crate::advect::advect_adjoint;
+use crate::body::{quat_step_adjoint, quat_tangent_gradient, RigidBody};
+use crate::error::{Error, Result};
+use crate::extrapolate::correct_velocity_adjoint;
+use crate::fractions;
+use crate::grid::Mac;
+use crate::math::{Rotation, Vec3};
+use crate::pressure::{BodyCoupling, PressureParams, PressureSystem};
+use crate::sim::{dt_minv, Simulation};
+use crate::surface;
+
+/// A body's state at the start of a step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BodyState {
+    /// Centre of mass.
+    pub x: Vec3,
+    /// Orientation.
+    pub q: Rotation,
+    /// Linear velocity.
+    pub v: Vec3,
+    /// Angular velocity (world).
+    pub w: Vec3,
+}
+
+impl BodyState {
+    /// The state of a body.
+    pub fn of(b: &RigidBody) -> BodyState {
+        BodyState { x: b.x, q: b.q, v: b.v, w: b.w }
+    }
+
+    fn apply(&self, b: &mut RigidBody) {
+        b.x = self.x;
+        b.q = self.q;
+        b.v = self.v;
+        b.w = self.w;
+    }
+}
+
+/// What one forward step leaves for the backward pass: only what cannot be recomputed
+/// cheaply. The geometry, the pressure operator and its masks are rebuilt from the body
+/// states; the pressure needs a solve, so it is stored.
+#[derive(Clone, Debug)]
+pub struct StepRecord {
+    /// Fluid velocity at the start of the step (advection's input).
+    pub u: Mac,
+    /// Bodies at the start of the step.
+    pub bodies: Vec<BodyState>,
+    /// Each body's [v; ω] after the pressure solve (the rigid integration's input).
+    pub v_after: Vec<[f64; 6]>,
+    /// Pressure per liquid cell.
+    pub p: Vec<f64>,
+    /// Particle φ_L of the step (empty when the surface is frozen: the initial one).
+    pub phi: Vec<f64>,
+}
+
+/// The recorded forward pass.
+#[derive(Clone, Debug, Default)]
+pub struct Tape {
+    /// One record per step.
+    pub steps: Vec<StepRecord>,
+}
+
+impl Tape {
+    /// Bytes stored per step (mean over the tape).
+    pub fn bytes_per_step(&self) -> usize {
+        if self.steps.is_empty() {
+            return 0;
+        }
+        let total: usize = self
+            .steps
+            .iter()
+            .map(|s| {
+                8 * (s.u.c.iter().map(Vec::len).sum::<usize>() + s.p.len() + s.phi.len())
+                    + s.bodies.len() * std::mem::size_of::<BodyState>()
+                    + s.v_after.len() * 48
+            })
+            .sum();
+        total / self.steps.len()
+    }
+}
+
+/// The adjoint of one body's state: ∂L/∂x, ∂L/∂q (in the quaternion embedding), ∂L/∂v,
+/// ∂L/∂ω.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BodyAdjoint {
+    /// ∂L/∂x.
+    pub x: Vec3,
+    /// ∂L/∂q as a 4-vector.
+    pub q: Rotation,
+    /// ∂L/∂v.
+    pub v: Vec3,
+    /// ∂L/∂ω.
+    pub w: Vec3,
+}
+
+impl BodyAdjoint {
+    /// Zero.
+    pub fn zero() -> BodyAdjoint {
+        BodyAdjoint {
+            x: Vec3::ZERO,
+            q: Rotation::from_xyzw(0.0, 0.0, 0.0, 0.0),
+            v: Vec3::ZERO,
+            w: Vec3::ZERO,
+        }
+    }
+}
+
+/// ∂L/∂(state): fluid velocity and bodies.
+#[derive(Clone, Debug)]
+pub struct AdjointState {
+    /// ∂L/∂u.
+    pub u: Mac,
+    /// Per body.
+    pub bodies: Vec<BodyAdjoint>,
+}
+
+/// The gradient of a loss with respect to the initial state.
+#[derive(Clone, Debug)]
+pub struct Gradient {
+    /// ∂L/∂u₀ on every face.
+    pub u: Mac,
+    /// Per body: ∂L/∂v₀, ∂L/∂ω₀, ∂L/∂x₀ and ∂L/∂θ₀ (orientation, in the world-frame tangent
+    /// space q → exp(θ)·q).
+    pub bodies: Vec<BodyGradient>,
+}
+
+/// One body's initial-state gradient.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BodyGradient {
+    /// ∂L/∂v₀.
+    pub v: Vec3,
+    /// ∂L/∂ω₀.
+    pub w: Vec3,
+    /// ∂L/∂x₀.
+    pub x: Vec3,
+    /// ∂L/∂θ₀.
+    pub q: Vec3,
+}
+
+/// Which gradient to compute.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GradientMode {
+    /// Everything, including how the geometry depends on body poses.
+    Full,
+    /// The paper's approximation: J, the face weights, M_S and the rigid face velocities are
+    /// taken as independent of the body pose within a step.
+    Paper,
+}
+
+/// A loss on the final state.
+pub trait Loss {
+    /// L(final state).
+    fn value(&self, sim: &Simulation) -> f64;
+    /// ∂L/∂(final state).
+    fn gradient(&self, sim: &Simulation) -> AdjointState;
+}
+
+/// Weighted squared distances of one body's final position, orientation and velocity to
+/// targets: `wₓ·|x − x*|² + w_q·(1 − (q·q*)²) + w_v·|v − v*|²` (the orientation term is
+/// zero at q = ±q*).
+#[derive(Clone, Debug, PartialEq)]
+pub struct BodyTargetLoss {
+    /// Which body.
+    pub body: usize,
+    /// Target position and weight.
+    pub position: Option<(Vec3, f64)>,
+    /// Target orientation and weight.
+    pub orientation: Option<(Rotation, f64)>,
+    /// Target velocity and weight.
+    pub velocity: Option<(Vec3, f64)>,
+}
+
+impl Loss for BodyTargetLoss {
+    fn value(&self, sim: &Simulation) -> f64 {
+        let b = &sim.bodies[self.body];
+        let mut l = 0.0;
+        if let Some((t, w)) = self.position {
+            l += w * (b.x - t).length_squared();
+        }
+        if let Some((t, w)) = self.orientation {
+            l += w * (1.0 - b.q.dot(t).powi(2));
+        }
+        if let Some((t, w)) = self.velocity {
+            l += w * (b.v - t).length_squared();
+        }
+        l
+    }
+
+    fn gradient(&self, sim: &Simulation) -> AdjointState {
+        let mut bodies = vec![BodyAdjoint::zero(); sim.bodies.len()];
+        let b = &sim.bodies[self.body];
+        let g = &mut bodies[self.body];
+        if let Some((t, w)) = self.position {
+            g.x = 2.0 * w * (b.x - t);
+        }
+        if let Some((t, w)) = self.orientation {
+            g.q = t * (-2.0 * w * b.q.dot(t));
+        }
+        if let Some((t, w)) = self.velocity {
+            g.v = 2.0 * w * (b.v - t);
+        }
+        AdjointState { u: Mac::zeros(sim.grid()), bodies }
+    }
+}
+
+/// Runs the backward pass over `tape`, which `initial` (the simulation as it was before
+/// the taped steps) recorded, from the adjoint of the final state.
+pub fn backward(
+    initial: &Simulation,
+    tape: &Tape,
+    final_adjoint: AdjointState,
+    mode: GradientMode,
+) -> Result<Gradient> {
+    let scene = initial.scene();
+    if scene.contact.enabled && !initial.bodies.is_empty() {
+        return Err(Error::InvalidScene {
+            origin: scene.name.clone(),
+            message: "gradients through rapier contact are not available: set [contact] \
+                      enabled = false for the backward pass"
+                .into(),
+        });
+    }
+    let grid = *initial.grid();
+    let dt = scene.time.dt;
+    let solver = &scene.solver;
+    let params = PressureParams { dt, density: scene.fluid.density, theta_min: solver.theta_min };
+    let frozen_phi = initial.particle_phi();
+    let mut bodies: Vec<RigidBody> = initial.bodies.clone();
+    let mut adj = final_adjoint;
+
+    for (t, rec) in tape.steps.iter().enumerate().rev() {
+        // Rebuild the step's geometry and operator from the recorded body states.
+        for (b, s) in bodies.iter_mut().zip(&rec.bodies) {
+            s.apply(b);
+        }
+        let geo = initial.geometry_of(&bodies);
+        let mut phi = if rec.phi.is_empty() { frozen_phi.clone() } else { rec.phi.clone() };
+        surface::extend_into_solids(&mut phi, &grid, &geo.centre_in_solid);
+        let mut sys = PressureSystem::build(&grid, &phi, &geo.weights, params);
+        let dynamic: Vec<usize> = (0..bodies.len()).filter(|&i| bodies[i].dynamic).collect();
+        for &i in &dynamic {
+            let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], bodies[i].x);
+            sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&bodies[i], dt)));
+        }
+        let valid0: [Vec<u8>; 3] = [0, 1, 2].map(|a| {
+            (0..grid.faces(a).len())
+                .map(|f| u8::from(sys.face_gradient(a, f, &geo.weights, &phi).is_some()))
+                .collect()
+        });
+
+        // 6ᵀ: rigid integration. The body's velocity after the step is v' itself.
+        let mut vbar: Vec<[f64; 6]> = vec![[0.0; 6]; bodies.len()];
+        let mut new_bodies = vec![BodyAdjoint::zero(); bodies.len()];
+        for (i, b) in bodies.iter().enumerate() {
+            let a = &adj.bodies[i];
+            if !b.dynamic {
+                new_bodies[i].x = a.x;
+                new_bodies[i].q = a.q;
+                continue;
+            }
+            let va = rec.v_after[i];
+            let w_after = Vec3::new(va[3], va[4], va[5]);
+            let (qbar, wbar) = quat_step_adjoint(rec.bodies[i].q, w_after, dt, a.q);
+            new_bodies[i].x = a.x;
+            new_bodies[i].q = qbar;
+            let vb = a.v + dt * a.x;
+            let wb = a.w + wbar;
+            vbar[i] = [vb.x, vb.y, vb.z, wb.x, wb.y, wb.z];
+        }
+
+        // 5ᵀ: rigid faces (the last body to write a face owns it), closed faces, layers.
+        let mut ubar = std::mem::replace(&mut adj.u, Mac::zeros(&grid));
+        let mut claimed = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
+        for i in (0..bodies.len()).rev() {
+            let b = &bodies[i];
+            let va = rec.v_after[i];
+            let w_after = Vec3::new(va[3], va[4], va[5]);
+            for a in 0..3 {
+                let lat = grid.faces(a);
+                let e = crate::math::unit(a);
+                for &(f, _) in &geo.body_faces[i].faces[a] {
+                    if geo.weights[a][f] > 0.0 || claimed[a][f] {
+                        continue;
+                    }
+                    claimed[a][f] = true;
+                    let g = std::mem::take(&mut ubar.c[a][f]);
+                    if !b.dynamic || g == 0.0 {
+                        continue;
+                    }
+                    let [ii, jj, kk] = lat.ijk(f);
+                    let r = lat.position(ii, jj, kk) - b.x;
+                    let tv = r.cross(e);
+                    for d in 0..3 {
+                        vbar[i][d] += g * crate::math::comp(e, d);
+                        vbar[i][3 + d] += g * crate::math::comp(tv, d);
+                    }
+                    if mode == GradientMode::Full {
+                        // ∂/∂x of e·(ω × (p_f − x)) = (ω × e)·δx.
+                        new_bodies[i].x += g * w_after.cross(e);
+                    }
+                }
+            }
+        }
+        correct_velocity_adjoint(
+            &mut ubar,
+            &valid0,
+            &geo.weights,
+            &grid,
+            solver.extrapolation_layers,
+        );
+
+        // 4ᵀ: projection.
+        let adj_v: Vec<[f64; 6]> = dynamic.iter().map(|&i| vbar[i]).collect();
+        let (uhat, vhat, _s, stats) = sys.projection_adjoint(
+            &ubar,
+            &adj_v,
+            &geo.weights,
+            &phi,
+            solver.preconditioner,
+            solver.tolerance,
+            solver.max_iterations,
+        );
+        if !stats.converged {
+            return Err(Error::NotConverged {
+                step: t + 1,
+                iterations: stats.iterations,
+                residual: stats.relative_residual,
+                tolerance: solver.tolerance,
+            });
+        }
+        for (k, &i) in dynamic.iter().enumerate() {
+            new_bodies[i].v = Vec3::new(vhat[k][0], vhat[k][1], vhat[k][2]);
+            new_bodies[i].w = Vec3::new(vhat[k][3], vhat[k][4], vhat[k][5]);
+        }
+
+        // 2ᵀ: gravity is the identity. 1ᵀ: advection.
+        let u0 = advect_adjoint(&rec.u, &uhat, &grid, dt);
+        adj = AdjointState { u: u0, bodies: new_bodies };
+    }
+    let bodies_grad = adj
+        .bodies
+        .iter()
+        .zip(&initial.bodies)
+        .map(|(a, b)| BodyGradient { v: a.v, w: a.w, x: a.x, q: quat_tangent_gradient(b.q, a.q) })
+        .collect();
+    Ok(Gradient { u: adj.u, bodies: bodies_grad })
+}
