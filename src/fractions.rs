@@ -16,6 +16,7 @@
 //! The fluid weight of a face is `1 - fraction`; faces on the domain boundary are walls
 //! and have weight 0.
 
+use crate::dual::Scalar;
 use crate::grid::{Grid, Lattice};
 use crate::shape::Solid;
 
@@ -61,42 +62,45 @@ pub fn face_corner_nodes(nodes: &Lattice, axis: usize, f: [usize; 3]) -> [usize;
 
 /// Fraction of a tetrahedron's volume where the linear interpolant of its vertex values is
 /// negative. It depends on the values only (affine invariance), so their order is free.
+/// Generic over [`Scalar`] so it also gives derivatives (see `dual.rs`).
 #[inline]
-pub fn tet_fraction_inside(v: [f64; 4]) -> f64 {
+pub fn tet_fraction_inside<T: Scalar>(v: [T; 4]) -> T {
     let mut v = v;
-    v.sort_by(|x, y| x.total_cmp(y));
+    v.sort_by(|x, y| x.val().total_cmp(&y.val()));
     let [a, b, c, d] = v;
-    if d < 0.0 {
-        1.0
-    } else if a >= 0.0 {
-        0.0
-    } else if b >= 0.0 {
+    let one = T::cst(1.0);
+    if d.val() < 0.0 {
+        one
+    } else if a.val() >= 0.0 {
+        T::cst(0.0)
+    } else if b.val() >= 0.0 {
         // One vertex inside: a corner tetrahedron.
         a * a * a / ((a - b) * (a - c) * (a - d))
-    } else if c < 0.0 {
+    } else if c.val() < 0.0 {
         // One vertex outside.
-        1.0 - d * d * d / ((d - a) * (d - b) * (d - c))
+        one - d * d * d / ((d - a) * (d - b) * (d - c))
     } else {
         // Two inside (a, b), two outside (c, d): a wedge. In the unit simplex with a at the
         // origin and b, c, d on the axes e1, e2, e3, the wedge has vertices v0, v1 and the
         // four edge crossings; split it into three tetrahedra (volumes relative to 1/6).
+        let z = T::cst(0.0);
         let s = a / (a - c);
         let t = a / (a - d);
         let u = b / (b - c);
         let w = b / (b - d);
-        let p02 = [0.0, s, 0.0];
-        let p03 = [0.0, 0.0, t];
-        let p12 = [1.0 - u, u, 0.0];
-        let p13 = [1.0 - w, 0.0, w];
-        let v1 = [1.0, 0.0, 0.0];
-        let det = |o: [f64; 3], x: [f64; 3], y: [f64; 3], z: [f64; 3]| {
-            let e = |p: [f64; 3]| [p[0] - o[0], p[1] - o[1], p[2] - o[2]];
-            let (x, y, z) = (e(x), e(y), e(z));
-            (x[0] * (y[1] * z[2] - y[2] * z[1]) - x[1] * (y[0] * z[2] - y[2] * z[0])
-                + x[2] * (y[0] * z[1] - y[1] * z[0]))
+        let p02 = [z, s, z];
+        let p03 = [z, z, t];
+        let p12 = [one - u, u, z];
+        let p13 = [one - w, z, w];
+        let v1 = [one, z, z];
+        let det = |o: [T; 3], x: [T; 3], y: [T; 3], q: [T; 3]| {
+            let e = |p: [T; 3]| [p[0] - o[0], p[1] - o[1], p[2] - o[2]];
+            let (x, y, q) = (e(x), e(y), e(q));
+            (x[0] * (y[1] * q[2] - y[2] * q[1]) - x[1] * (y[0] * q[2] - y[2] * q[0])
+                + x[2] * (y[0] * q[1] - y[1] * q[0]))
                 .abs()
         };
-        det([0.0; 3], p02, p03, v1) + det(p02, p03, v1, p13) + det(p02, v1, p12, p13)
+        det([z; 3], p02, p03, v1) + det(p02, p03, v1, p13) + det(p02, v1, p12, p13)
     }
 }
 
@@ -107,22 +111,26 @@ pub fn tet_fraction_inside(v: [f64; 4]) -> f64 {
 /// body gets mirror-symmetric fractions (a 6-tetrahedron Kuhn split favours one diagonal and
 /// gave a symmetric floating box a spurious torque).
 #[inline]
-pub fn box_fraction_inside(c: [f64; 8]) -> f64 {
-    let centre = c.iter().sum::<f64>() / 8.0;
-    let mut sum = 0.0;
+pub fn box_fraction_inside<T: Scalar>(c: [T; 8]) -> T {
+    let mut centre = T::cst(0.0);
+    for x in c {
+        centre = centre + x;
+    }
+    let centre = centre / T::cst(8.0);
+    let mut sum = T::cst(0.0);
     for axis in 0..3 {
         let (b, d) = ((axis + 1) % 3, (axis + 2) % 3);
         for side in 0..2 {
             // The face's corners in cyclic order.
             let corner = |u: usize, v: usize| c[(side << axis) | (u << b) | (v << d)];
             let ring = [corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)];
-            let fc = 0.25 * (ring[0] + ring[1] + ring[2] + ring[3]);
+            let fc = (ring[0] + ring[1] + ring[2] + ring[3]) * T::cst(0.25);
             for e in 0..4 {
-                sum += tet_fraction_inside([centre, fc, ring[e], ring[(e + 1) % 4]]);
+                sum = sum + tet_fraction_inside([centre, fc, ring[e], ring[(e + 1) % 4]]);
             }
         }
     }
-    sum / 24.0
+    sum / T::cst(24.0)
 }
 
 /// The sample lattice of face control-volume corners for `axis`: cell-centre coordinates
@@ -169,25 +177,38 @@ pub fn cv_fine_lattice(grid: &Grid, axis: usize) -> Lattice {
 /// Solid fraction of the control volume of interior face `f` of `axis`, from the signed
 /// distance on the refined lattice (`at` takes refined lattice coordinates).
 #[inline]
-pub fn cv_fraction(axis: usize, f: [usize; 3], at: impl Fn([usize; 3]) -> f64) -> f64 {
+pub fn cv_fraction<T: Scalar>(axis: usize, f: [usize; 3], at: impl Fn([usize; 3]) -> T) -> T {
     let r = SUBSAMPLE;
     let base = cv_corners(axis, f)[0].map(|x| x * r);
-    let mut sum = 0.0;
+    let mut sum = T::cst(0.0);
     for sk in 0..r {
         for sj in 0..r {
             for si in 0..r {
-                let c: [f64; 8] = std::array::from_fn(|b| {
+                let c: [T; 8] = std::array::from_fn(|b| {
                     at([
                         base[0] + si + (b & 1),
                         base[1] + sj + ((b >> 1) & 1),
                         base[2] + sk + ((b >> 2) & 1),
                     ])
                 });
-                sum += box_fraction_inside(c);
+                sum = sum + box_fraction_inside(c);
             }
         }
     }
-    snap(sum / (r * r * r) as f64)
+    snap_t(sum / T::cst((r * r * r) as f64))
+}
+
+/// [`snap`] for any scalar: a snapped fraction is a constant (no derivative).
+#[inline]
+pub fn snap_t<T: Scalar>(f: T) -> T {
+    let v = f.val();
+    if v < 1e-6 {
+        T::cst(0.0)
+    } else if v > 1.0 - 1e-6 {
+        T::cst(1.0)
+    } else {
+        f
+    }
 }
 
 /// Fractions within 1e-6 of 0 or 1 are 0 or 1. Whether a face is open decides whether its

@@ -16,6 +16,7 @@ pub mod cg;
 #[cfg(feature = "contact")]
 pub mod contact;
 pub mod density;
+pub mod dual;
 pub mod error;
 pub mod extrapolate;
 pub mod forces;
