@@ -217,6 +217,142 @@ impl Loss for BodyTargetLoss {
     }
 }
 
+/// What the geometric part of the projection adjoint reads.
+struct GeometryInputs<'a> {
+    sys: &'a PressureSystem,
+    weights: &'a [Vec<f64>; 3],
+    phi: &'a [f64],
+    static_weights: &'a [Vec<f64>; 3],
+    u_hat: &'a Mac,
+    p: &'a [f64],
+    s: &'a [f64],
+    dt: f64,
+}
+
+/// ∂L/∂[δx; δθ] of one body through the projection's geometry, for fixed velocities: with
+/// the adjoint solve's s and the adjoint V′ of the body's velocity after the solve,
+/// `dL = sᵀ(δb − δA·p) + V′·(δMi·J p + Mi·δJ p)` where b = −F(w)·û − Jᵀ v̂,
+/// A = S(w) + Jᵀ Mi J and Mi = Δt·M⁻¹. δw = −δβ on faces the clamp leaves alone, δJ comes
+/// from δβ and from the torque arms (δr = −δx), δMi from the rotation of the inertia.
+fn geometry_gradient(
+    g: &GeometryInputs<'_>,
+    body: &RigidBody,
+    coupling: usize,
+    v_hat: &[f64; 6],
+    adj_v: &[f64; 6],
+) -> [f64; 6] {
+    let sys = g.sys;
+    let grid = sys.grid;
+    let area = grid.dx * grid.dx;
+    let scale = sys.params.dt * grid.dx / sys.params.density;
+    let faces = fractions::body_faces_generic(
+        &grid,
+        body.bounds(),
+        |p| body.sdf_pose_dual(p),
+        Some(body.volume()),
+    );
+    let row_val = |c: Option<usize>, x: &[f64]| match c.map(|c| sys.row_of_cell[c]) {
+        Some(r) if r != crate::grid::NONE => x[r as usize],
+        _ => 0.0,
+    };
+    let bc = &sys.bodies[coupling];
+    let (js, jp) = (bc.force(g.s), bc.force(g.p));
+    let mi = bc.dt_minv;
+    let mi_jp = bc.dt_minv_times(&jp);
+    let mut out = [0.0; 6];
+    // δJ·x for x = s and x = p, per direction: [direction][component].
+    let mut djs = [[0.0; 6]; 6];
+    let mut djp = [[0.0; 6]; 6];
+    for axis in 0..3 {
+        let lat = grid.faces(axis);
+        let e = crate::math::unit(axis);
+        for (f, beta) in &faces[axis] {
+            let f = *f;
+            let ijk = lat.ijk(f);
+            let (m, pl) = grid.face_cells(axis, ijk);
+            // Fluid weight: w = clamp(w_static − β): its derivative is −δβ inside the clamp.
+            let raw = g.static_weights[axis][f] - beta.v;
+            if raw > 0.0 && raw < 1.0 && g.weights[axis][f] > 0.0 {
+                let uh = g.u_hat.c[axis][f];
+                let flux = area * uh * (row_val(m, g.s) - row_val(pl, g.s));
+                let stencil = match sys.face_gradient(axis, f, g.weights, g.phi) {
+                    Some(fg) => {
+                        // θ·(g·s)(g·p), with g carrying 1/θ on a ghost-fluid face.
+                        let theta = if fg.cp == 0.0 {
+                            1.0 / fg.cm
+                        } else if fg.cm == 0.0 {
+                            1.0 / fg.cp
+                        } else {
+                            1.0
+                        };
+                        scale * theta * fg.apply(g.s) * fg.apply(g.p)
+                    }
+                    None => 0.0,
+                };
+                // sᵀδb ∋ −sᵀ δF û = −Σ dx²·δw·û·(s_m − s_p), δw = −δβ; −sᵀ δS p likewise.
+                for k in 0..6 {
+                    out[k] += beta.d[k] * (flux + stencil);
+                }
+            }
+            // δJ columns on the two cells beside the face.
+            let r = lat.position(ijk[0], ijk[1], ijk[2]) - body.x;
+            let t = r.cross(e);
+            let col = [e.x, e.y, e.z, t.x, t.y, t.z];
+            let (sm, sp) = (row_val(m, g.s), row_val(pl, g.s));
+            let (pm, pp) = (row_val(m, g.p), row_val(pl, g.p));
+            let (ns, np) = (area * (sm - sp), area * (pm - pp));
+            for k in 0..6 {
+                for c in 0..6 {
+                    djs[k][c] += ns * beta.d[k] * col[c];
+                    djp[k][c] += np * beta.d[k] * col[c];
+                }
+                if k < 3 {
+                    // δr = −e_k: δ(r × e) = −e_k × e.
+                    let dt_ = -crate::math::unit(k).cross(e);
+                    for c in 0..3 {
+                        djs[k][3 + c] += ns * beta.v * crate::math::comp(dt_, c);
+                        djp[k][3 + c] += np * beta.v * crate::math::comp(dt_, c);
+                    }
+                }
+            }
+        }
+    }
+    let dot6 = |a: &[f64; 6], b: &[f64; 6]| (0..6).map(|i| a[i] * b[i]).sum::<f64>();
+    let mv = |m: &[[f64; 6]; 6], x: &[f64; 6]| -> [f64; 6] {
+        std::array::from_fn(|r| (0..6).map(|c| m[r][c] * x[c]).sum())
+    };
+    // δMi for the rotation directions: Δt·([e]×·I⁻¹ − I⁻¹·[e]×) on the angular block.
+    let inv = body.world_inertia().inverse();
+    let inv_a: [[f64; 3]; 3] =
+        std::array::from_fn(|r| std::array::from_fn(|c| inv.col(c).to_array()[r]));
+    for k in 0..6 {
+        let mut dmi = [[0.0; 6]; 6];
+        if k >= 3 {
+            let ax = crate::math::unit(k - 3);
+            let cross = |v: [f64; 3]| {
+                let w = ax.cross(Vec3::new(v[0], v[1], v[2]));
+                [w.x, w.y, w.z]
+            };
+            // [e]× I⁻¹: columns of I⁻¹ crossed; I⁻¹ [e]×: I⁻¹ applied to e × unit columns.
+            for c in 0..3 {
+                let colc = [inv_a[0][c], inv_a[1][c], inv_a[2][c]];
+                let left = cross(colc);
+                let ec = ax.cross(crate::math::unit(c));
+                for r in 0..3 {
+                    let right = (0..3).map(|q| inv_a[r][q] * crate::math::comp(ec, q)).sum::<f64>();
+                    dmi[3 + r][3 + c] = g.dt * (left[r] - right);
+                }
+            }
+        }
+        let dmi_jp = mv(&dmi, &jp);
+        let mi_djp = mv(&mi, &djp[k]);
+        let lhs = -dot6(&djs[k], v_hat)
+            - (dot6(&djs[k], &mi_jp) + dot6(&js, &dmi_jp) + dot6(&js, &mi_djp));
+        out[k] += lhs + dot6(adj_v, &dmi_jp) + dot6(adj_v, &mi_djp);
+    }
+    out
+}
+
 /// Runs the backward pass over `tape`, which `initial` (the simulation as it was before
 /// the taped steps) recorded, from the adjoint of the final state.
 pub fn backward(
@@ -345,6 +481,36 @@ pub fn backward(
         for (k, &i) in dynamic.iter().enumerate() {
             new_bodies[i].v = Vec3::new(vhat[k][0], vhat[k][1], vhat[k][2]);
             new_bodies[i].w = Vec3::new(vhat[k][3], vhat[k][4], vhat[k][5]);
+        }
+        if mode == GradientMode::Full && !dynamic.is_empty() {
+            let mut u_hat = crate::advect::advect(&rec.u, &grid, dt);
+            crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
+            let g = crate::math::v3(scene.fluid.gravity);
+            let geo_in = GeometryInputs {
+                sys: &sys,
+                weights: &geo.weights,
+                phi: &phi,
+                static_weights: &initial.statics().weights,
+                u_hat: &u_hat,
+                p: &rec.p,
+                s: &_s,
+                dt,
+            };
+            for (k, &i) in dynamic.iter().enumerate() {
+                let b = &bodies[i];
+                let vh =
+                    [b.v.x + dt * g.x, b.v.y + dt * g.y, b.v.z + dt * g.z, b.w.x, b.w.y, b.w.z];
+                let gr = geometry_gradient(&geo_in, b, k, &vh, &adj_v[k]);
+                new_bodies[i].x += Vec3::new(gr[0], gr[1], gr[2]);
+                let gq =
+                    crate::body::quat_from_tangent_gradient(b.q, Vec3::new(gr[3], gr[4], gr[5]));
+                new_bodies[i].q = Rotation::from_xyzw(
+                    new_bodies[i].q.x + gq.x,
+                    new_bodies[i].q.y + gq.y,
+                    new_bodies[i].q.z + gq.z,
+                    new_bodies[i].q.w + gq.w,
+                );
+            }
         }
 
         // 2ᵀ: gravity is the identity. 1ᵀ: advection.

@@ -90,6 +90,24 @@ impl RigidBody {
         self.shape.distance_to_point(&self.pose(), p, false)
     }
 
+    /// Signed distance at `p` with its derivative along the six pose directions
+    /// [δx (3); δθ (3)], the body translated by δx and turned by δθ (world frame) about its
+    /// centre of mass: ∂φ/∂x = −n, ∂φ/∂θ = −(p − x) × n, with n the unit gradient of the
+    /// distance (from the closest surface point).
+    pub fn sdf_pose_dual(&self, p: Vec3) -> crate::dual::Dual<6> {
+        let proj = self.shape.project_point(&self.pose(), p, false);
+        let diff = p - proj.point;
+        let len = diff.length();
+        let phi = if proj.is_inside { -len } else { len };
+        if len < 1e-12 {
+            // On the surface: the derivative is a subgradient; take none.
+            return crate::dual::Dual::new(phi, [0.0; 6]);
+        }
+        let n = if proj.is_inside { -diff / len } else { diff / len };
+        let t = (p - self.x).cross(n);
+        crate::dual::Dual::new(phi, [-n.x, -n.y, -n.z, -t.x, -t.y, -t.z])
+    }
+
     /// World inertia tensor R·I·Rᵀ about the centre of mass.
     pub fn world_inertia(&self) -> Mat3 {
         let r = Mat3::from_quat(self.q);
@@ -170,6 +188,43 @@ pub fn quat_from_tangent_gradient(q: Rotation, g: Vec3) -> Rotation {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pose_derivative_of_the_distance_matches_central_differences() {
+        let mut b = RigidBody::new(
+            "c".into(),
+            SharedShape::cuboid(0.2, 0.1, 0.15),
+            Pose::from_parts(
+                Vec3::new(0.5, 0.4, 0.3),
+                Rotation::from_axis_angle(Vec3::new(1.0, 2.0, 0.5).normalize(), 0.6),
+            ),
+            1000.0,
+        );
+        let eps = 1e-7;
+        for p in
+            [Vec3::new(0.55, 0.47, 0.31), Vec3::new(0.9, 0.2, 0.3), Vec3::new(0.45, 0.38, 0.33)]
+        {
+            let d = b.sdf_pose_dual(p);
+            assert!((d.v - b.sdf(p)).abs() < 1e-14);
+            for k in 0..6 {
+                let e = crate::math::unit(k % 3) * eps;
+                let (x0, q0) = (b.x, b.q);
+                let mut f = |sgn: f64| {
+                    if k < 3 {
+                        b.x = x0 + sgn * e;
+                    } else {
+                        b.q = (Rotation::from_scaled_axis(sgn * e) * q0).normalize();
+                    }
+                    let v = b.sdf(p);
+                    b.x = x0;
+                    b.q = q0;
+                    v
+                };
+                let fd = (f(1.0) - f(-1.0)) / (2.0 * eps);
+                assert!((fd - d.d[k]).abs() < 1e-6, "point {p}, direction {k}: {fd} vs {}", d.d[k]);
+            }
+        }
+    }
 
     #[test]
     fn cube_mass_properties() {

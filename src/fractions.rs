@@ -377,11 +377,22 @@ pub fn body_faces(
     sdf: impl Fn(crate::math::Vec3) -> f64 + Sync,
     volume: Option<f64>,
 ) -> BodyFaces {
+    BodyFaces { faces: body_faces_generic(grid, bounds, sdf, volume) }
+}
+
+/// [`body_faces`] for any scalar: with `sdf` returning a `Dual<N>` (the distance and its
+/// derivative along N pose directions), the fractions come with their derivatives.
+pub fn body_faces_generic<T: Scalar + Send + Sync>(
+    grid: &Grid,
+    bounds: (crate::math::Vec3, crate::math::Vec3),
+    sdf: impl Fn(crate::math::Vec3) -> T + Sync,
+    volume: Option<f64>,
+) -> [Vec<(usize, T)>; 3] {
     use rayon::prelude::*;
     let (lo, hi) = (bounds.0.to_array(), bounds.1.to_array());
     let cell_lo = |d: usize| ((lo[d] / grid.dx).floor() - 1.0).max(0.0) as usize;
     let cell_hi = |d: usize| (((hi[d] / grid.dx).ceil() + 1.0).max(0.0) as usize).min(grid.n[d]);
-    let mut out = BodyFaces::default();
+    let mut out: [Vec<(usize, T)>; 3] = Default::default();
     for axis in 0..3 {
         // Faces [flo, fhi) per axis: interior along `axis`, any cell across it.
         let mut flo = [0usize; 3];
@@ -404,7 +415,7 @@ pub fn body_faces(
         let slo: [usize; 3] = [0, 1, 2].map(|d| r * if d == axis { flo[d] - 1 } else { flo[d] });
         let ext: [usize; 3] = [0, 1, 2].map(|d| r * (fhi[d] - flo[d]) + 1);
         let cv = cv_fine_lattice(grid, axis);
-        let mut block = vec![0.0; ext[0] * ext[1] * ext[2]];
+        let mut block = vec![T::cst(0.0); ext[0] * ext[1] * ext[2]];
         block.par_iter_mut().enumerate().for_each(|(l, v)| {
             let i = l % ext[0] + slo[0];
             let j = (l / ext[0]) % ext[1] + slo[1];
@@ -419,22 +430,29 @@ pub fn body_faces(
             for j in flo[1]..fhi[1] {
                 for i in flo[0]..fhi[0] {
                     let beta = cv_fraction(axis, [i, j, k], at);
-                    if beta > 0.0 {
-                        out.faces[axis].push((lat.index(i, j, k), beta));
+                    if beta.val() > 0.0 {
+                        out[axis].push((lat.index(i, j, k), beta));
                     }
                 }
             }
         }
         if let Some(v) = volume {
             let cell = grid.dx.powi(3);
-            let faces = &mut out.faces[axis];
-            let sum: f64 = faces.iter().map(|(_, b)| b).sum();
-            let partial: f64 = faces.iter().map(|(_, b)| b * (1.0 - b)).sum();
-            if partial > 0.0 {
-                let lambda = ((v / cell - sum) / partial).clamp(-1.0, 1.0);
+            let faces = &mut out[axis];
+            let one = T::cst(1.0);
+            let mut sum = T::cst(0.0);
+            let mut partial = T::cst(0.0);
+            for (_, b) in faces.iter() {
+                sum = sum + *b;
+                partial = partial + *b * (one - *b);
+            }
+            if partial.val() > 0.0 {
+                let raw = (T::cst(v / cell) - sum) / partial;
+                let lambda =
+                    if raw.val().abs() > 1.0 { T::cst(raw.val().clamp(-1.0, 1.0)) } else { raw };
                 // Snapped fractions (0 or 1) are not touched, so the sum is exact.
                 for (_, b) in faces.iter_mut() {
-                    *b += lambda * *b * (1.0 - *b);
+                    *b = *b + lambda * *b * (one - *b);
                 }
             }
         }
