@@ -461,15 +461,8 @@ pub fn backward(
 
         // 4ᵀ: projection.
         let adj_v: Vec<[f64; 6]> = dynamic.iter().map(|&i| vbar[i]).collect();
-        let (uhat, vhat, _s, stats) = sys.projection_adjoint(
-            &ubar,
-            &adj_v,
-            &geo.weights,
-            &phi,
-            solver.preconditioner,
-            solver.tolerance,
-            solver.max_iterations,
-        );
+        let (uhat, vhat, _s, stats) =
+            sys.projection_adjoint(&ubar, &adj_v, &geo.weights, &phi, solver);
         if !stats.converged {
             return Err(Error::NotConverged {
                 step: t + 1,

@@ -466,15 +466,14 @@ impl PressureSystem {
         adj_v: &[[f64; 6]],
         weights: &[Vec<f64>; 3],
         phi: &[f64],
-        preconditioner: Preconditioner,
-        tolerance: f64,
-        max_iterations: usize,
+        solver: &crate::scene::Solver,
     ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
         let mut pbar = self.update_velocity_adjoint(adj_u, weights, phi);
         for (b, av) in self.bodies.iter().zip(adj_v) {
             b.add_jt(&b.dt_minv_times(av), &mut pbar);
         }
-        let (s, stats) = self.solve(&pbar, preconditioner, tolerance, max_iterations);
+        let (s, stats) =
+            self.solve(&pbar, solver.preconditioner, solver.tolerance, solver.max_iterations);
         let ft = self.fluid_flux_adjoint(&s, weights);
         let mut u_hat = adj_u.clone();
         for a in 0..3 {
@@ -593,8 +592,9 @@ mod tests {
         let dv = sys.bodies[0].dt_minv_times(&sys.bodies[0].force(&p));
         let v1: [f64; 6] = std::array::from_fn(|d| vh[d] + dv[d]);
         // Adjoint.
-        let (ua, va, _, _) =
-            sys.projection_adjoint(&ub, &[vb], &weights, &phi, Preconditioner::Mic0, tol, 10_000);
+        let settings =
+            crate::scene::Solver { tolerance: tol, max_iterations: 10_000, ..Default::default() };
+        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &weights, &phi, &settings);
         let lhs = u1.dot(&ub) + (0..6).map(|d| v1[d] * vb[d]).sum::<f64>();
         let rhs = uh.dot(&ua) + (0..6).map(|d| vh[d] * va[0][d]).sum::<f64>();
         assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");

@@ -404,7 +404,7 @@ impl Simulation {
         }
         lap(&mut times.correct_velocity);
 
-        if let Some(t) = tape.as_deref_mut() {
+        if let Some(t) = tape.take() {
             t.steps.push(crate::adjoint::StepRecord {
                 u: u_start.expect("cloned when taping"),
                 bodies: bodies_start,
