@@ -237,6 +237,7 @@ struct GeometryInputs<'a> {
 fn geometry_gradient(
     g: &GeometryInputs<'_>,
     body: &RigidBody,
+    faces: &[Vec<(usize, crate::dual::Dual<6>)>; 3],
     coupling: usize,
     v_hat: &[f64; 6],
     adj_v: &[f64; 6],
@@ -245,12 +246,6 @@ fn geometry_gradient(
     let grid = sys.grid;
     let area = grid.dx * grid.dx;
     let scale = sys.params.dt * grid.dx / sys.params.density;
-    let faces = fractions::body_faces_generic(
-        &grid,
-        body.bounds(),
-        |p| body.sdf_pose_dual(p),
-        Some(body.volume()),
-    );
     let row_val = |c: Option<usize>, x: &[f64]| match c.map(|c| sys.row_of_cell[c]) {
         Some(r) if r != crate::grid::NONE => x[r as usize],
         _ => 0.0,
@@ -266,7 +261,7 @@ fn geometry_gradient(
     for axis in 0..3 {
         let lat = grid.faces(axis);
         let e = crate::math::unit(axis);
-        for (f, beta) in &faces[axis] {
+        for (f, beta) in faces[axis].iter() {
             let f = *f;
             let ijk = lat.ijk(f);
             let (m, pl) = grid.face_cells(axis, ijk);
@@ -354,13 +349,36 @@ fn geometry_gradient(
 }
 
 /// Runs the backward pass over `tape`, which `initial` (the simulation as it was before
-/// the taped steps) recorded, from the adjoint of the final state.
+/// the taped steps) recorded, from the adjoint of the final state, and returns the gradient
+/// with respect to `initial`'s state.
 pub fn backward(
     initial: &Simulation,
     tape: &Tape,
     final_adjoint: AdjointState,
     mode: GradientMode,
 ) -> Result<Gradient> {
+    let adj = backward_adjoint(initial, tape, final_adjoint, mode)?;
+    Ok(to_gradient(initial, adj))
+}
+
+/// The initial-state gradient of an adjoint state (orientations into the tangent space).
+fn to_gradient(initial: &Simulation, adj: AdjointState) -> Gradient {
+    let bodies = adj
+        .bodies
+        .iter()
+        .zip(&initial.bodies)
+        .map(|(a, b)| BodyGradient { v: a.v, w: a.w, x: a.x, q: quat_tangent_gradient(b.q, a.q) })
+        .collect();
+    Gradient { u: adj.u, bodies }
+}
+
+/// [`backward`] without the final conversion: the adjoint of `initial`'s state.
+pub fn backward_adjoint(
+    initial: &Simulation,
+    tape: &Tape,
+    final_adjoint: AdjointState,
+    mode: GradientMode,
+) -> Result<AdjointState> {
     let scene = initial.scene();
     if scene.contact.enabled && !initial.bodies.is_empty() {
         return Err(Error::InvalidScene {
@@ -418,46 +436,77 @@ pub fn backward(
             vbar[i] = [vb.x, vb.y, vb.z, wb.x, wb.y, wb.z];
         }
 
-        // 5ᵀ: rigid faces (the last body to write a face owns it), closed faces, layers.
+        // Recompute the step's intermediate fields: û (advected, with gravity) and the
+        // corrected field before the bodies' velocities are set.
+        let mut u_hat = crate::advect::advect(&rec.u, &grid, dt);
+        crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
+        let mut u_corr = u_hat.clone();
+        sys.update_velocity(&rec.p, &mut u_corr, &geo.weights, &phi);
+        let mut valid0 = valid0;
+        crate::extrapolate::mark_body_faces(&mut valid0, &geo.body_faces);
+        // The fractions' derivatives along each body's pose (full gradient only).
+        let dual_faces: Vec<_> = if mode == GradientMode::Full {
+            bodies
+                .iter()
+                .map(|b| {
+                    fractions::body_faces_generic(
+                        &grid,
+                        b.bounds(),
+                        |p| b.sdf_pose_dual(p),
+                        Some(b.volume()),
+                    )
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let mut pose_grad = vec![[0.0f64; 6]; bodies.len()];
+
+        // 5ᵀ: walls and static solids, extrapolation layers, then the bodies' velocities on
+        // the faces they cover.
         let mut ubar = std::mem::replace(&mut adj.u, Mac::zeros(&grid));
-        let mut claimed = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
-        for i in (0..bodies.len()).rev() {
-            let b = &bodies[i];
-            let va = rec.v_after[i];
-            let w_after = Vec3::new(va[3], va[4], va[5]);
-            for a in 0..3 {
-                let lat = grid.faces(a);
-                let e = crate::math::unit(a);
-                for &(f, _) in &geo.body_faces[i].faces[a] {
-                    if geo.weights[a][f] > 0.0 || claimed[a][f] {
-                        continue;
-                    }
-                    claimed[a][f] = true;
-                    let g = std::mem::take(&mut ubar.c[a][f]);
-                    if !b.dynamic || g == 0.0 {
-                        continue;
-                    }
-                    let [ii, jj, kk] = lat.ijk(f);
-                    let r = lat.position(ii, jj, kk) - b.x;
-                    let tv = r.cross(e);
-                    for d in 0..3 {
-                        vbar[i][d] += g * crate::math::comp(e, d);
-                        vbar[i][3 + d] += g * crate::math::comp(tv, d);
-                    }
-                    if mode == GradientMode::Full {
-                        // ∂/∂x of e·(ω × (p_f − x)) = (ω × e)·δx.
-                        new_bodies[i].x += g * w_after.cross(e);
+        correct_velocity_adjoint(
+            &mut ubar,
+            &valid0,
+            &initial.statics().weights,
+            &grid,
+            solver.extrapolation_layers,
+        );
+        let mut after = bodies.clone();
+        for (b, va) in after.iter_mut().zip(&rec.v_after) {
+            b.v = Vec3::new(va[0], va[1], va[2]);
+            b.w = Vec3::new(va[3], va[4], va[5]);
+        }
+        let bva = crate::extrapolate::apply_body_velocities_adjoint(
+            &mut ubar,
+            &u_corr,
+            &after,
+            &geo.body_faces,
+            &geo.weights,
+            &grid,
+        );
+        for (i, r) in bva.iter().enumerate() {
+            if !bodies[i].dynamic {
+                continue;
+            }
+            for d in 0..6 {
+                vbar[i][d] += r.vel[d];
+            }
+            if mode == GradientMode::Full {
+                new_bodies[i].x += r.x;
+                // ∂L/∂β_f · ∂β_f/∂pose on the faces the body covers in part.
+                let lookup: std::collections::HashMap<(usize, usize), [f64; 6]> = (0..3)
+                    .flat_map(|a| dual_faces[i][a].iter().map(move |(f, b)| ((a, *f), b.d)))
+                    .collect();
+                for &(a, f, c) in &r.dbeta {
+                    if let Some(d) = lookup.get(&(a, f)) {
+                        for k in 0..6 {
+                            pose_grad[i][k] += c * d[k];
+                        }
                     }
                 }
             }
         }
-        correct_velocity_adjoint(
-            &mut ubar,
-            &valid0,
-            &geo.weights,
-            &grid,
-            solver.extrapolation_layers,
-        );
 
         // 4ᵀ: projection.
         let adj_v: Vec<[f64; 6]> = dynamic.iter().map(|&i| vbar[i]).collect();
@@ -475,9 +524,7 @@ pub fn backward(
             new_bodies[i].v = Vec3::new(vhat[k][0], vhat[k][1], vhat[k][2]);
             new_bodies[i].w = Vec3::new(vhat[k][3], vhat[k][4], vhat[k][5]);
         }
-        if mode == GradientMode::Full && !dynamic.is_empty() {
-            let mut u_hat = crate::advect::advect(&rec.u, &grid, dt);
-            crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
+        if mode == GradientMode::Full {
             let g = crate::math::v3(scene.fluid.gravity);
             let geo_in = GeometryInputs {
                 sys: &sys,
@@ -493,10 +540,18 @@ pub fn backward(
                 let b = &bodies[i];
                 let vh =
                     [b.v.x + dt * g.x, b.v.y + dt * g.y, b.v.z + dt * g.z, b.w.x, b.w.y, b.w.z];
-                let gr = geometry_gradient(&geo_in, b, k, &vh, &adj_v[k]);
+                let gr = geometry_gradient(&geo_in, b, &dual_faces[i], k, &vh, &adj_v[k]);
+                for d in 0..6 {
+                    pose_grad[i][d] += gr[d];
+                }
+            }
+            for &i in &dynamic {
+                let gr = pose_grad[i];
                 new_bodies[i].x += Vec3::new(gr[0], gr[1], gr[2]);
-                let gq =
-                    crate::body::quat_from_tangent_gradient(b.q, Vec3::new(gr[3], gr[4], gr[5]));
+                let gq = crate::body::quat_from_tangent_gradient(
+                    bodies[i].q,
+                    Vec3::new(gr[3], gr[4], gr[5]),
+                );
                 new_bodies[i].q = Rotation::from_xyzw(
                     new_bodies[i].q.x + gq.x,
                     new_bodies[i].q.y + gq.y,
@@ -510,11 +565,79 @@ pub fn backward(
         let u0 = advect_adjoint(&rec.u, &uhat, &grid, dt);
         adj = AdjointState { u: u0, bodies: new_bodies };
     }
-    let bodies_grad = adj
-        .bodies
-        .iter()
-        .zip(&initial.bodies)
-        .map(|(a, b)| BodyGradient { v: a.v, w: a.w, x: a.x, q: quat_tangent_gradient(b.q, a.q) })
-        .collect();
-    Ok(Gradient { u: adj.u, bodies: bodies_grad })
+    Ok(adj)
+}
+
+/// A loss and its gradient, with what they cost.
+#[derive(Clone, Debug)]
+pub struct GradientRun {
+    /// L at the final state.
+    pub loss: f64,
+    /// ∂L/∂(initial state).
+    pub gradient: Gradient,
+    /// The final state.
+    pub final_state: Simulation,
+    /// Tape bytes per step (of the segment held at once, with checkpointing).
+    pub tape_bytes_per_step: usize,
+    /// Wall time of the forward pass, s.
+    pub forward_seconds: f64,
+    /// Wall time of the backward pass (including re-running segments), s.
+    pub backward_seconds: f64,
+}
+
+/// Runs `steps` steps from `initial`, evaluates `loss` and its gradient with respect to the
+/// initial state. With `checkpoint_every = Some(k)`, the forward pass keeps a snapshot every
+/// k steps instead of the whole tape, and the backward pass re-runs one segment at a time
+/// (√N segments keep memory at O(√N) steps); the forward map is deterministic, so the
+/// gradient is bit-identical to the one without checkpoints.
+pub fn value_and_gradient(
+    initial: &Simulation,
+    steps: usize,
+    loss: &dyn Loss,
+    mode: GradientMode,
+    checkpoint_every: Option<usize>,
+) -> Result<GradientRun> {
+    let clock = std::time::Instant::now();
+    let seg = checkpoint_every.unwrap_or(steps).max(1);
+    let mut sim = initial.clone();
+    let mut snapshots = Vec::new();
+    let mut full_tape = Tape::default();
+    for n in 0..steps {
+        if checkpoint_every.is_some() {
+            if n % seg == 0 {
+                snapshots.push(sim.clone());
+            }
+            sim.step()?;
+        } else {
+            sim.step_taped(&mut full_tape)?;
+        }
+    }
+    let forward_seconds = clock.elapsed().as_secs_f64();
+    let clock = std::time::Instant::now();
+    let value = loss.value(&sim);
+    let mut adj = loss.gradient(&sim);
+    let mut bytes = full_tape.bytes_per_step();
+    if checkpoint_every.is_none() {
+        adj = backward_adjoint(initial, &full_tape, adj, mode)?;
+    } else {
+        for (k, snap) in snapshots.iter().enumerate().rev() {
+            let len = seg.min(steps - k * seg);
+            let mut s = snap.clone();
+            let mut tape = Tape::default();
+            for _ in 0..len {
+                s.step_taped(&mut tape)?;
+            }
+            bytes = bytes.max(tape.bytes_per_step());
+            adj = backward_adjoint(snap, &tape, adj, mode)?;
+        }
+    }
+    let gradient = to_gradient(initial, adj);
+    Ok(GradientRun {
+        loss: value,
+        gradient,
+        final_state: sim,
+        tape_bytes_per_step: bytes,
+        forward_seconds,
+        backward_seconds: clock.elapsed().as_secs_f64(),
+    })
 }

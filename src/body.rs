@@ -99,11 +99,23 @@ impl RigidBody {
         let diff = p - proj.point;
         let len = diff.length();
         let phi = if proj.is_inside { -len } else { len };
-        if len < 1e-12 {
-            // On the surface: the derivative is a subgradient; take none.
-            return crate::dual::Dual::new(phi, [0.0; 6]);
-        }
-        let n = if proj.is_inside { -diff / len } else { diff / len };
+        let n = if len > 1e-9 {
+            if proj.is_inside {
+                -diff / len
+            } else {
+                diff / len
+            }
+        } else {
+            // On the surface (a sample on a flat face of an axis-aligned box is common): the
+            // distance still moves as −n·δx, with n from a central difference across it.
+            let h = 1e-7 * (1.0 + p.length());
+            let g = Vec3::new(
+                self.sdf(p + Vec3::X * h) - self.sdf(p - Vec3::X * h),
+                self.sdf(p + Vec3::Y * h) - self.sdf(p - Vec3::Y * h),
+                self.sdf(p + Vec3::Z * h) - self.sdf(p - Vec3::Z * h),
+            );
+            g.normalize_or_zero()
+        };
         let t = (p - self.x).cross(n);
         crate::dual::Dual::new(phi, [-n.x, -n.y, -n.z, -t.x, -t.y, -t.z])
     }

@@ -64,8 +64,8 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
     });
 }
 
-/// Extrapolates all three components and then sets every face closed to the fluid
-/// (weight 0: static solid or tank wall) to the solid's velocity, zero.
+/// Extrapolates all three components and then sets every face `weights` closes (weight 0:
+/// static solid or tank wall) to the solid's velocity, zero.
 pub fn correct_velocity(
     u: &mut Mac,
     valid: &mut [Vec<u8>; 3],
@@ -144,6 +144,115 @@ pub fn correct_velocity_adjoint(
         }
         extrapolate_adjoint(&mut adj.c[a], &valid0[a], &grid.faces(a), layers);
     }
+}
+
+/// Gives faces that bodies cover the bodies' velocity: a face a body closes (w = 0) takes
+/// that body's rigid velocity e·(v + ω × (p_f − x)) (the last body wins a face two close);
+/// a face bodies cover in part stores the mixture w·u + Σ_b β_b·u_b. The mixture is
+/// continuous as w → 0 and as β → 0: a nearly closed face otherwise kept the full pressure
+/// update of its sliver of fluid, a velocity far from the body's, and jumped to the body's
+/// when it closed, which made the step discontinuous in the body's pose.
+pub fn apply_body_velocities(
+    u: &mut Mac,
+    bodies: &[crate::body::RigidBody],
+    faces: &[crate::fractions::BodyFaces],
+    weights: &[Vec<f64>; 3],
+    grid: &Grid,
+) {
+    let mut touched = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
+    for (b, bf) in bodies.iter().zip(faces) {
+        for a in 0..3 {
+            let lat = grid.faces(a);
+            for &(f, beta) in &bf.faces[a] {
+                let [i, j, k] = lat.ijk(f);
+                let ub = crate::math::comp(b.velocity_at(lat.position(i, j, k)), a);
+                if weights[a][f] <= 0.0 {
+                    u.c[a][f] = ub;
+                } else {
+                    if !touched[a][f] {
+                        u.c[a][f] *= weights[a][f];
+                        touched[a][f] = true;
+                    }
+                    u.c[a][f] += beta * ub;
+                }
+            }
+        }
+    }
+}
+
+/// Marks every face a body covers as known: the extrapolation reads the bodies' velocities
+/// there and never overwrites them. Whether a face next to a moving body is a source then
+/// does not depend on its fluid weight reaching exactly 0, which made the step jump.
+pub fn mark_body_faces(valid: &mut [Vec<u8>; 3], faces: &[crate::fractions::BodyFaces]) {
+    for bf in faces {
+        for a in 0..3 {
+            for &(f, _) in &bf.faces[a] {
+                valid[a][f] = 1;
+            }
+        }
+    }
+}
+
+/// What [`apply_body_velocities_adjoint`] returns for one body.
+#[derive(Clone, Debug, Default)]
+pub struct BodyVelocityAdjoint {
+    /// ∂L/∂[v; ω].
+    pub vel: [f64; 6],
+    /// ∂L/∂x through the torque arms p_f − x.
+    pub x: crate::math::Vec3,
+    /// (axis, face, ∂L/∂β_f) on the faces the body covers in part: `(u_b − u)·ū`.
+    pub dbeta: Vec<(usize, usize, f64)>,
+}
+
+/// Adjoint of [`apply_body_velocities`], in place on `ubar`: `u_old` is the field before
+/// (needed for ∂/∂β). Closed faces pass nothing back to the fluid.
+pub fn apply_body_velocities_adjoint(
+    ubar: &mut Mac,
+    u_old: &Mac,
+    bodies: &[crate::body::RigidBody],
+    faces: &[crate::fractions::BodyFaces],
+    weights: &[Vec<f64>; 3],
+    grid: &Grid,
+) -> Vec<BodyVelocityAdjoint> {
+    let mut out = vec![BodyVelocityAdjoint::default(); bodies.len()];
+    let mut claimed = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
+    let mut scaled = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
+    let incoming = ubar.clone();
+    for i in (0..bodies.len()).rev() {
+        let b = &bodies[i];
+        for a in 0..3 {
+            let lat = grid.faces(a);
+            let e = crate::math::unit(a);
+            for &(f, beta) in &faces[i].faces[a] {
+                let closed = weights[a][f] <= 0.0;
+                if closed && claimed[a][f] {
+                    continue;
+                }
+                let g = incoming.c[a][f];
+                let coef = if closed { 1.0 } else { beta };
+                let [ii, jj, kk] = lat.ijk(f);
+                let r = lat.position(ii, jj, kk) - b.x;
+                let t = r.cross(e);
+                for d in 0..3 {
+                    out[i].vel[d] += coef * g * crate::math::comp(e, d);
+                    out[i].vel[3 + d] += coef * g * crate::math::comp(t, d);
+                }
+                out[i].x += coef * g * b.w.cross(e);
+                if closed {
+                    claimed[a][f] = true;
+                    ubar.c[a][f] = 0.0;
+                } else {
+                    let ub = crate::math::comp(b.velocity_at(lat.position(ii, jj, kk)), a);
+                    out[i].dbeta.push((a, f, (ub - u_old.c[a][f]) * g));
+                    if !scaled[a][f] {
+                        ubar.c[a][f] = weights[a][f] * g;
+                        scaled[a][f] = true;
+                    }
+                }
+            }
+        }
+    }
+    out
 }
 
 #[cfg(test)]

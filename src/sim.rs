@@ -389,19 +389,23 @@ impl Simulation {
             kinetic_energy(&u, &valid, &geo.weights, self.scene.fluid.density, grid.dx);
         lap(&mut times.pressure);
 
-        // 5. Velocity correction: extrapolate, zero in static solids, rigid velocity in bodies.
-        correct_velocity(&mut u, &mut valid, &geo.weights, &grid, solver.extrapolation_layers);
-        for (b, faces) in self.bodies.iter().zip(&geo.body_faces) {
-            for a in 0..3 {
-                let lat = grid.faces(a);
-                for &(f, _) in &faces.faces[a] {
-                    if geo.weights[a][f] <= 0.0 {
-                        let [i, j, k] = lat.ijk(f);
-                        u.c[a][f] = crate::math::comp(b.velocity_at(lat.position(i, j, k)), a);
-                    }
-                }
-            }
-        }
+        // 5. Velocity correction: the bodies' velocity on the faces they cover (which then
+        // count as known), extrapolation into air, zero in static solids and walls.
+        crate::extrapolate::apply_body_velocities(
+            &mut u,
+            &self.bodies,
+            &geo.body_faces,
+            &geo.weights,
+            &grid,
+        );
+        crate::extrapolate::mark_body_faces(&mut valid, &geo.body_faces);
+        correct_velocity(
+            &mut u,
+            &mut valid,
+            &self.statics.weights,
+            &grid,
+            solver.extrapolation_layers,
+        );
         lap(&mut times.correct_velocity);
 
         if let Some(t) = tape.take() {

@@ -156,24 +156,105 @@ fn body_gradcheck(scene: &Scene, mode: GradientMode, eps: f64) -> Vec<(String, f
     out
 }
 
+fn check(name: &str, scene: &Scene) {
+    let rows = body_gradcheck(scene, GradientMode::Full, 1e-6);
+    let paper = body_gradcheck(scene, GradientMode::Paper, 1e-6);
+    let mut worst: f64 = 0.0;
+    for ((p, ad, fd), (_, pad, _)) in rows.iter().zip(&paper) {
+        let rel = (ad - fd).abs() / fd.abs().max(1e-8);
+        let prel = (pad - fd).abs() / fd.abs().max(1e-8);
+        eprintln!(
+            "{name} {p:6} adjoint {ad:+.8e} fd {fd:+.8e} rel {rel:.2e} | paper rel {prel:.2e}"
+        );
+        worst = worst.max(rel);
+    }
+    eprintln!("{name}: worst relative error {worst:.2e}");
+    // The issue asks for 1e-3; measured 3e-7 to 3e-5 (ε = 1e-6 central differences).
+    assert!(worst < 1e-4, "{name}: worst relative error {worst:e}");
+}
+
 #[test]
-fn body_gradient_matches_central_differences() {
+fn floating_box_gradient_matches_central_differences() {
+    let body = r#"
+[[body]]
+shape = { kind = "cuboid", half_extents = [0.15, 0.075, 0.12] }
+density = 500.0
+position = [0.41, 0.31, 0.38]
+axis_angle = { axis = [0.3, 1.0, 0.2], degrees = 20 }
+velocity = [0.2, -0.3, 0.1]
+angular_velocity = [0.5, -0.3, 0.8]
+"#;
+    check("floating box", &small_tank(body, 20));
+}
+
+#[test]
+fn block_drop_gradient_matches_central_differences() {
+    // A dense cube entering the water from above. A generic pose: with a face of the cube
+    // exactly on a grid plane (x = 0.42 + 0.08 = 0.50), faces change kind under any
+    // perturbation and the step jumps (by 2e-5 in this loss), which no derivative sees.
+    let body = r#"
+[[body]]
+shape = { kind = "cuboid", half_extents = [0.08, 0.08, 0.08] }
+density = 2000.0
+position = [0.4213, 0.4071, 0.3687]
+axis_angle = { axis = [0.2, 1.0, -0.3], degrees = 12 }
+velocity = [-0.3, -1.0, 0.3]
+angular_velocity = [0.0, 0.4, 0.0]
+"#;
+    check("block drop", &small_tank(body, 20));
+}
+
+#[test]
+fn ball_in_closed_tank_gradient_matches_central_differences() {
+    // A full tank: no air, the pressure's constant null space is projected out.
+    let text = r#"
+name = "closed"
+[domain]
+size = [0.8, 0.6, 0.8]
+dx = 0.05
+[time]
+dt = 0.01
+steps = 20
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = { kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.6, 0.8] }
+[[body]]
+shape = { kind = "ball", radius = 0.12 }
+density = 1500.0
+position = [0.38, 0.33, 0.41]
+velocity = [0.3, 0.1, -0.2]
+angular_velocity = [0.2, 0.0, 0.5]
+[solver]
+tolerance = 1e-10
+freeze_surface = true
+"#;
+    check("closed tank", &Scene::from_toml(text, "<test>").unwrap());
+}
+
+#[test]
+fn checkpointed_gradient_is_bit_identical() {
+    use diffluid::adjoint::value_and_gradient;
     let body = r#"
 [[body]]
 shape = { kind = "cuboid", half_extents = [0.1, 0.075, 0.1] }
 density = 600.0
 position = [0.41, 0.33, 0.38]
-axis_angle = { axis = [0.3, 1.0, 0.2], degrees = 20 }
 velocity = [0.2, -0.3, 0.1]
-angular_velocity = [0.5, -0.3, 0.8]
 "#;
-    let scene = small_tank(body, 5);
-    let rows = body_gradcheck(&scene, GradientMode::Full, 1e-6);
-    let mut worst: f64 = 0.0;
-    for (name, ad, fd) in &rows {
-        let rel = (ad - fd).abs() / fd.abs().max(1e-8);
-        eprintln!("{name:6} adjoint {ad:+.8e} fd {fd:+.8e} rel {rel:.2e}");
-        worst = worst.max(rel);
-    }
-    assert!(worst < 1e-3, "worst relative error {worst:e}");
+    let scene = small_tank(body, 10);
+    let sim = Simulation::new(scene).unwrap();
+    let loss = BodyTargetLoss {
+        body: 0,
+        position: Some((Vec3::new(0.3, 0.2, 0.4), 1.0)),
+        orientation: None,
+        velocity: None,
+    };
+    let plain = value_and_gradient(&sim, 10, &loss, GradientMode::Full, None).unwrap();
+    let ckpt = value_and_gradient(&sim, 10, &loss, GradientMode::Full, Some(3)).unwrap();
+    let (a, b) = (plain.gradient.bodies[0], ckpt.gradient.bodies[0]);
+    assert_eq!(a, b, "checkpointed gradient differs");
+    assert!(plain.gradient.u.c.iter().zip(&ckpt.gradient.u.c).all(|(x, y)| x == y));
+    assert!(a.v.length() > 0.0);
 }
