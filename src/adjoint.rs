@@ -184,6 +184,27 @@ pub struct BodyTargetLoss {
     pub velocity: Option<(Vec3, f64)>,
 }
 
+impl BodyTargetLoss {
+    /// The loss a scene's `[loss]` section describes (None when it has none).
+    pub fn from_scene(scene: &crate::scene::Scene) -> Option<BodyTargetLoss> {
+        let l = scene.loss.as_ref()?;
+        let body = (0..scene.body.len()).find(|&i| {
+            let n = &scene.body[i].name;
+            (if n.is_empty() { format!("body{i}") } else { n.clone() }) == l.body
+        })?;
+        let v3 = crate::math::v3;
+        Some(BodyTargetLoss {
+            body,
+            position: l.position.as_ref().map(|t| (v3(t.target), t.weight)),
+            orientation: l.orientation.as_ref().map(|t| {
+                let q = t.target;
+                (Rotation::from_xyzw(q[1], q[2], q[3], q[0]).normalize(), t.weight)
+            }),
+            velocity: l.velocity.as_ref().map(|t| (v3(t.target), t.weight)),
+        })
+    }
+}
+
 impl Loss for BodyTargetLoss {
     fn value(&self, sim: &Simulation) -> f64 {
         let b = &sim.bodies[self.body];
@@ -640,4 +661,86 @@ pub fn value_and_gradient(
         forward_seconds,
         backward_seconds: clock.elapsed().as_secs_f64(),
     })
+}
+
+/// One initial body parameter: v, ω, x or the orientation (as a world-frame rotation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BodyParam {
+    /// Linear velocity component.
+    V(usize),
+    /// Angular velocity component.
+    W(usize),
+    /// Position component.
+    X(usize),
+    /// Orientation: a rotation about world axis k.
+    Q(usize),
+}
+
+impl BodyParam {
+    /// All twelve, in order v, ω, x, q.
+    pub fn all() -> [BodyParam; 12] {
+        std::array::from_fn(|k| {
+            let d = k % 3;
+            match k / 3 {
+                0 => BodyParam::V(d),
+                1 => BodyParam::W(d),
+                2 => BodyParam::X(d),
+                _ => BodyParam::Q(d),
+            }
+        })
+    }
+
+    /// `v[0]`, `w[2]`, `q[1]`...
+    pub fn name(&self) -> String {
+        match self {
+            BodyParam::V(d) => format!("v[{d}]"),
+            BodyParam::W(d) => format!("w[{d}]"),
+            BodyParam::X(d) => format!("x[{d}]"),
+            BodyParam::Q(d) => format!("q[{d}]"),
+        }
+    }
+
+    /// The gradient's component for this parameter.
+    pub fn of(&self, g: &BodyGradient) -> f64 {
+        match *self {
+            BodyParam::V(d) => g.v.to_array()[d],
+            BodyParam::W(d) => g.w.to_array()[d],
+            BodyParam::X(d) => g.x.to_array()[d],
+            BodyParam::Q(d) => g.q.to_array()[d],
+        }
+    }
+
+    /// Moves body `b` of `sim` by `h` along this parameter.
+    pub fn perturb(&self, sim: &mut Simulation, b: usize, h: f64) {
+        let body = &mut sim.bodies[b];
+        match *self {
+            BodyParam::V(d) => body.v += h * crate::math::unit(d),
+            BodyParam::W(d) => body.w += h * crate::math::unit(d),
+            BodyParam::X(d) => body.x += h * crate::math::unit(d),
+            BodyParam::Q(d) => {
+                body.q = (Rotation::from_scaled_axis(h * crate::math::unit(d)) * body.q).normalize()
+            }
+        }
+    }
+}
+
+/// Central difference `(L(p + ε) − L(p − ε)) / 2ε` of a `steps`-step run from `initial`
+/// along one body parameter.
+pub fn central_difference(
+    initial: &Simulation,
+    steps: usize,
+    loss: &dyn Loss,
+    body: usize,
+    param: BodyParam,
+    eps: f64,
+) -> Result<f64> {
+    let at = |h: f64| -> Result<f64> {
+        let mut s = initial.clone();
+        param.perturb(&mut s, body, h);
+        for _ in 0..steps {
+            s.step()?;
+        }
+        Ok(loss.value(&s))
+    };
+    Ok((at(eps)? - at(-eps)?) / (2.0 * eps))
 }

@@ -19,6 +19,7 @@ pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("block_drop", include_str!("../assets/scenes/block_drop.toml")),
     ("dam_break_ball", include_str!("../assets/scenes/dam_break_ball.toml")),
     ("floating_box", include_str!("../assets/scenes/floating_box.toml")),
+    ("gradcheck_box", include_str!("../assets/scenes/gradcheck_box.toml")),
 ];
 
 /// A whole scene.
@@ -51,6 +52,9 @@ pub struct Scene {
     /// Rigid contact (body–wall, body–body), resolved after the fluid step.
     #[serde(default)]
     pub contact: Contact,
+    /// A loss on the final state (for gradients and optimisation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss: Option<LossSpec>,
     /// What to write out.
     #[serde(default)]
     pub output: Output,
@@ -110,6 +114,50 @@ impl BodySpec {
             axis_angle: self.axis_angle.clone(),
         }
     }
+}
+
+/// A weighted target for a 3-vector.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Target3 {
+    /// Target value.
+    pub target: Arr3,
+    /// Weight (≥ 0).
+    #[serde(default = "one_f")]
+    pub weight: f64,
+}
+
+/// A weighted target orientation, as a quaternion `[w, x, y, z]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TargetQ {
+    /// Target quaternion `[w, x, y, z]` (normalised on use).
+    pub target: [f64; 4],
+    /// Weight (≥ 0).
+    #[serde(default = "one_f")]
+    pub weight: f64,
+}
+
+fn one_f() -> f64 {
+    1.0
+}
+
+/// The loss on the final state: weighted squared distances of one body's position,
+/// orientation (1 − (q·q*)²) and velocity to targets.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LossSpec {
+    /// The body's name.
+    pub body: String,
+    /// Final position target.
+    #[serde(default)]
+    pub position: Option<Target3>,
+    /// Final orientation target.
+    #[serde(default)]
+    pub orientation: Option<TargetQ>,
+    /// Final velocity target.
+    #[serde(default)]
+    pub velocity: Option<Target3>,
 }
 
 /// Rigid contact settings.
@@ -557,6 +605,69 @@ impl Scene {
         }
         for (i, b) in self.body.iter().enumerate() {
             self.build_body(i, b)?;
+        }
+        if let Some(l) = &self.loss {
+            let names: Vec<String> = (0..self.body.len())
+                .map(|i| {
+                    if self.body[i].name.is_empty() {
+                        format!("body{i}")
+                    } else {
+                        self.body[i].name.clone()
+                    }
+                })
+                .collect();
+            if !names.contains(&l.body) {
+                return Err(problem(
+                    "loss.body",
+                    format!("no body named {:?} (bodies: {names:?})", l.body),
+                ));
+            }
+            let size = v3(self.domain.size);
+            if let Some(t) = &l.position {
+                check_finite("loss.position.target", &t.target)?;
+                let x = v3(t.target);
+                if x.min_element() < 0.0 || (x - size).max_element() > 0.0 {
+                    return Err(problem(
+                        "loss.position.target",
+                        format!(
+                            "target {:?} is outside the tank [0, 0, 0]..{:?}",
+                            t.target, self.domain.size
+                        ),
+                    ));
+                }
+            }
+            if let Some(t) = &l.velocity {
+                check_finite("loss.velocity.target", &t.target)?;
+            }
+            if let Some(t) = &l.orientation {
+                let n = t.target.iter().map(|x| x * x).sum::<f64>().sqrt();
+                if !(n.is_finite() && n > 1e-12) {
+                    return Err(problem(
+                        "loss.orientation.target",
+                        "must be a finite non-zero quaternion",
+                    ));
+                }
+            }
+            for (key, w) in [
+                ("loss.position.weight", l.position.as_ref().map(|t| t.weight)),
+                ("loss.orientation.weight", l.orientation.as_ref().map(|t| t.weight)),
+                ("loss.velocity.weight", l.velocity.as_ref().map(|t| t.weight)),
+            ] {
+                if let Some(w) = w {
+                    if !(w.is_finite() && w >= 0.0) {
+                        return Err(problem(
+                            key,
+                            format!("must be a non-negative number, got {w}"),
+                        ));
+                    }
+                }
+            }
+            if l.position.is_none() && l.orientation.is_none() && l.velocity.is_none() {
+                return Err(problem(
+                    "loss",
+                    "give at least one of position, orientation, velocity",
+                ));
+            }
         }
         let c = &self.contact;
         if !(c.friction.is_finite() && c.friction >= 0.0) {
