@@ -20,6 +20,7 @@ pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("dam_break_ball", include_str!("../assets/scenes/dam_break_ball.toml")),
     ("floating_box", include_str!("../assets/scenes/floating_box.toml")),
     ("gradcheck_box", include_str!("../assets/scenes/gradcheck_box.toml")),
+    ("recover_box", include_str!("../assets/scenes/recover_box.toml")),
 ];
 
 /// A whole scene.
@@ -52,6 +53,9 @@ pub struct Scene {
     /// Rigid contact (body–wall, body–body), resolved after the fluid step.
     #[serde(default)]
     pub contact: Contact,
+    /// What to optimise and how (for `diffluid optimize`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub optimize: Option<OptimizeSpec>,
     /// A loss on the final state (for gradients and optimisation).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub loss: Option<LossSpec>,
@@ -158,6 +162,58 @@ pub struct LossSpec {
     /// Final velocity target.
     #[serde(default)]
     pub velocity: Option<Target3>,
+}
+
+/// The optimiser.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum OptimizerSpec {
+    /// Plain gradient descent, p ← p − lr·g (the paper's).
+    Gd {
+        /// Learning rate.
+        learning_rate: f64,
+    },
+    /// Adam (Kingma & Ba 2015).
+    Adam {
+        /// Learning rate.
+        learning_rate: f64,
+        /// First-moment decay. Default 0.9.
+        #[serde(default = "beta1")]
+        beta1: f64,
+        /// Second-moment decay. Default 0.999.
+        #[serde(default = "beta2")]
+        beta2: f64,
+    },
+}
+
+fn beta1() -> f64 {
+    0.9
+}
+fn beta2() -> f64 {
+    0.999
+}
+
+/// What `diffluid optimize` does.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OptimizeSpec {
+    /// Initial parameters of the loss body to optimise: any of "v", "w", "x", "q".
+    pub params: Vec<String>,
+    /// The optimiser.
+    pub optimizer: OptimizerSpec,
+    /// Epochs (forward + backward + update each).
+    pub epochs: usize,
+    /// A gradient whose norm exceeds this stops the run (exploding). Default 1e6.
+    #[serde(default = "max_grad")]
+    pub max_gradient_norm: f64,
+    /// Recovery: the loss's position and velocity targets are the final state of a forward
+    /// run from this initial velocity of the loss body.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recover_velocity: Option<Arr3>,
+}
+
+fn max_grad() -> f64 {
+    1e6
 }
 
 /// Rigid contact settings.
@@ -667,6 +723,48 @@ impl Scene {
                     "loss",
                     "give at least one of position, orientation, velocity",
                 ));
+            }
+        }
+        if let Some(o) = &self.optimize {
+            if self.loss.is_none() {
+                return Err(problem("optimize", "needs a [loss] section"));
+            }
+            if o.params.is_empty() {
+                return Err(problem("optimize.params", "name at least one of \"v\", \"w\", \"x\", \"q\""));
+            }
+            for p in &o.params {
+                if !["v", "w", "x", "q"].contains(&p.as_str()) {
+                    return Err(problem(
+                        "optimize.params",
+                        format!("unknown parameter {p:?}: use \"v\", \"w\", \"x\" or \"q\""),
+                    ));
+                }
+            }
+            let lr = match &o.optimizer {
+                OptimizerSpec::Gd { learning_rate } => *learning_rate,
+                OptimizerSpec::Adam { learning_rate, beta1, beta2 } => {
+                    for (k, b) in [("beta1", beta1), ("beta2", beta2)] {
+                        if !(b.is_finite() && *b >= 0.0 && *b < 1.0) {
+                            return Err(problem(format!("optimize.optimizer.{k}"), format!("must be in [0, 1), got {b}")));
+                        }
+                    }
+                    *learning_rate
+                }
+            };
+            if !(lr.is_finite() && lr > 0.0) {
+                return Err(problem("optimize.optimizer.learning_rate", format!("must be a positive number, got {lr}")));
+            }
+            if o.epochs == 0 {
+                return Err(problem("optimize.epochs", "must be at least 1"));
+            }
+            if !(o.max_gradient_norm.is_finite() && o.max_gradient_norm > 0.0) {
+                return Err(problem("optimize.max_gradient_norm", "must be a positive number"));
+            }
+            if let Some(v) = &o.recover_velocity {
+                check_finite("optimize.recover_velocity", v)?;
+            }
+            if self.contact.enabled {
+                return Err(problem("optimize", "gradients do not pass through contact: set [contact] enabled = false"));
             }
         }
         let c = &self.contact;

@@ -1,0 +1,1 @@
+//! Plots (written by the plotting work in progress).
