@@ -75,17 +75,15 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
             o.epochs = n;
         }
     }
-    let out = args.out.unwrap_or_else(|| PathBuf::from("out").join(format!("{}-optimize", scene.name)));
+    let out =
+        args.out.unwrap_or_else(|| PathBuf::from("out").join(format!("{}-optimize", scene.name)));
     let ck_path = out.join("checkpoint.json");
-    let resume = if args.resume {
-        Some(Checkpoint::load(&ck_path)?)
-    } else {
-        None
-    };
+    let resume = if args.resume { Some(Checkpoint::load(&ck_path)?) } else { None };
     let problem = Optimization::new(scene)?;
     let start = Instant::now();
     let done = resume.as_ref().map(|c| c.next_epoch).unwrap_or(0);
-    let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(problem.epochs as u64) };
+    let bar =
+        if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(problem.epochs as u64) };
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:30}] epoch {pos}/{len} ({elapsed} < {eta})")
             .expect("valid template")
@@ -102,8 +100,22 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
         let p = &r.params;
         csv.push_str(&format!(
             "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
-            r.epoch, r.loss, r.grad_norm, p.v[0], p.v[1], p.v[2], p.w[0], p.w[1], p.w[2], p.x[0], p.x[1],
-            p.x[2], p.q[0], p.q[1], p.q[2], p.q[3]
+            r.epoch,
+            r.loss,
+            r.grad_norm,
+            p.v[0],
+            p.v[1],
+            p.v[2],
+            p.w[0],
+            p.w[1],
+            p.w[2],
+            p.x[0],
+            p.x[1],
+            p.x[2],
+            p.q[0],
+            p.q[1],
+            p.q[2],
+            p.q[3]
         ));
     }
     diffluid::output::write_atomic(&out.join("loss.csv"), csv.as_bytes())?;

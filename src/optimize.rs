@@ -131,9 +131,11 @@ impl Optimization {
     /// Builds the problem; for a recovery scene, runs the forward pass from v* to make the
     /// targets.
     pub fn new(scene: Scene) -> Result<Optimization> {
-        let invalid = |m: &str| Error::InvalidScene { origin: scene.name.clone(), message: m.into() };
+        let invalid =
+            |m: &str| Error::InvalidScene { origin: scene.name.clone(), message: m.into() };
         let spec = scene.optimize.clone().ok_or_else(|| invalid("no [optimize] section"))?;
-        let mut loss = BodyTargetLoss::from_scene(&scene).ok_or_else(|| invalid("no [loss] section"))?;
+        let mut loss =
+            BodyTargetLoss::from_scene(&scene).ok_or_else(|| invalid("no [loss] section"))?;
         let initial = Simulation::new(scene.clone())?;
         let body = loss.body;
         if !initial.bodies[body].dynamic {
@@ -181,7 +183,8 @@ impl Optimization {
     /// Loss and gradient (over the optimised parameters, 3 numbers each) at `p`.
     pub fn evaluate(&self, p: &BodyParams) -> Result<(f64, Vec<f64>)> {
         let sim = self.simulation(p);
-        let run = value_and_gradient(&sim, self.scene.time.steps, &self.loss, GradientMode::Full, None)?;
+        let run =
+            value_and_gradient(&sim, self.scene.time.steps, &self.loss, GradientMode::Full, None)?;
         let g = run.gradient.bodies[self.body];
         let mut out = Vec::with_capacity(3 * self.params.len());
         for name in &self.params {
@@ -218,8 +221,13 @@ impl Optimization {
     /// The step s (p ← p − s) the optimiser takes for gradient g.
     fn step(&self, state: &mut OptimizerState, g: &[f64]) -> Vec<f64> {
         match (&self.optimizer, state) {
-            (OptimizerSpec::Gd { learning_rate }, _) => g.iter().map(|x| learning_rate * x).collect(),
-            (OptimizerSpec::Adam { learning_rate, beta1, beta2 }, OptimizerState::Adam { m, v, t }) => {
+            (OptimizerSpec::Gd { learning_rate }, _) => {
+                g.iter().map(|x| learning_rate * x).collect()
+            }
+            (
+                OptimizerSpec::Adam { learning_rate, beta1, beta2 },
+                OptimizerState::Adam { m, v, t },
+            ) => {
                 *t += 1;
                 let (b1t, b2t) = (1.0 - beta1.powi(*t as i32), 1.0 - beta2.powi(*t as i32));
                 (0..g.len())
@@ -298,7 +306,8 @@ impl Optimization {
                 ));
                 break;
             }
-            let rec = EpochRecord { epoch: ck.next_epoch, loss, grad_norm: norm, params: ck.params };
+            let rec =
+                EpochRecord { epoch: ck.next_epoch, loss, grad_norm: norm, params: ck.params };
             on_epoch(&rec);
             ck.history.push(rec);
             let s = self.step(&mut ck.optimizer, &g);

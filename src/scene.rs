@@ -730,7 +730,10 @@ impl Scene {
                 return Err(problem("optimize", "needs a [loss] section"));
             }
             if o.params.is_empty() {
-                return Err(problem("optimize.params", "name at least one of \"v\", \"w\", \"x\", \"q\""));
+                return Err(problem(
+                    "optimize.params",
+                    "name at least one of \"v\", \"w\", \"x\", \"q\"",
+                ));
             }
             for p in &o.params {
                 if !["v", "w", "x", "q"].contains(&p.as_str()) {
@@ -745,14 +748,20 @@ impl Scene {
                 OptimizerSpec::Adam { learning_rate, beta1, beta2 } => {
                     for (k, b) in [("beta1", beta1), ("beta2", beta2)] {
                         if !(b.is_finite() && *b >= 0.0 && *b < 1.0) {
-                            return Err(problem(format!("optimize.optimizer.{k}"), format!("must be in [0, 1), got {b}")));
+                            return Err(problem(
+                                format!("optimize.optimizer.{k}"),
+                                format!("must be in [0, 1), got {b}"),
+                            ));
                         }
                     }
                     *learning_rate
                 }
             };
             if !(lr.is_finite() && lr > 0.0) {
-                return Err(problem("optimize.optimizer.learning_rate", format!("must be a positive number, got {lr}")));
+                return Err(problem(
+                    "optimize.optimizer.learning_rate",
+                    format!("must be a positive number, got {lr}"),
+                ));
             }
             if o.epochs == 0 {
                 return Err(problem("optimize.epochs", "must be at least 1"));
@@ -764,7 +773,10 @@ impl Scene {
                 check_finite("optimize.recover_velocity", v)?;
             }
             if self.contact.enabled {
-                return Err(problem("optimize", "gradients do not pass through contact: set [contact] enabled = false"));
+                return Err(problem(
+                    "optimize",
+                    "gradients do not pass through contact: set [contact] enabled = false",
+                ));
             }
         }
         let c = &self.contact;
