@@ -401,7 +401,8 @@ pub fn backward_adjoint(
     mode: GradientMode,
 ) -> Result<AdjointState> {
     let scene = initial.scene();
-    if scene.contact.enabled && !initial.bodies.is_empty() {
+    let through_contact = scene.optimize.as_ref().is_some_and(|o| o.through_contact);
+    if scene.contact.enabled && !initial.bodies.is_empty() && !through_contact {
         return Err(Error::InvalidScene {
             origin: scene.name.clone(),
             message: "gradients through rapier contact are not available: set [contact] \

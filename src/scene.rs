@@ -210,6 +210,11 @@ pub struct OptimizeSpec {
     /// run from this initial velocity of the loss body.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recover_velocity: Option<Arr3>,
+    /// Optimise a scene with rapier contact on, the backward pass taking the contact step as
+    /// free flight: an approximation (the gradient ignores contact impulses), named here so
+    /// it is never silent. Default false: contact and optimisation are then an error.
+    #[serde(default)]
+    pub through_contact: bool,
 }
 
 fn max_grad() -> f64 {
@@ -772,10 +777,11 @@ impl Scene {
             if let Some(v) = &o.recover_velocity {
                 check_finite("optimize.recover_velocity", v)?;
             }
-            if self.contact.enabled {
+            if self.contact.enabled && !o.through_contact {
                 return Err(problem(
                     "optimize",
-                    "gradients do not pass through contact: set [contact] enabled = false",
+                    "gradients do not pass through contact: set [contact] enabled = false, or \
+                     optimize.through_contact = true to take contact as free flight in the gradient",
                 ));
             }
         }
