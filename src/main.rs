@@ -433,7 +433,8 @@ fn main() -> ExitCode {
         Some(Command::Run(args)) => run(args),
         Some(Command::Gradcheck(args)) => gradcheck(args),
         Some(Command::Optimize(args)) => optimize(args),
-        None => run(RunArgs::default()),
+        // The main job: the embedded block drop forward, then its optimisation.
+        None => run(RunArgs::default()).and_then(|()| optimize(OptimizeArgs::default())),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
