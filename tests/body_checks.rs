@@ -1,0 +1,164 @@
+//! Rigid bodies from any shape, heavy bodies on the floor, and bad bodies.
+//!
+//! - Mesh against primitive: an OBJ cube and a parry cuboid of the same size are the same
+//!   solid, so their signed distances, mass properties and hence whole coupled trajectories
+//!   must agree (to 1% of the distance travelled; in practice to round-off).
+//! - Heavy body: a body three times as dense as water sinks and, with contact on, comes to
+//!   rest on the floor: its lowest point just above y = 0 and its speed near zero.
+//! - Bad input: every malformed body is rejected with a message naming it.
+
+use diffluid::math::Vec3;
+use diffluid::{Scene, Simulation};
+
+fn tank(body: &str, steps: usize, contact: bool) -> String {
+    format!(
+        r#"
+name = "bodies"
+[domain]
+size = [0.8, 0.8, 0.8]
+dx = 0.05
+[time]
+dt = 0.01
+steps = {steps}
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.4, 0.8] }}
+{body}
+[contact]
+enabled = {contact}
+[output]
+particles = false
+"#
+    )
+}
+
+fn trajectory(shape: &str) -> Vec<(Vec3, diffluid::math::Rotation)> {
+    let body = format!(
+        r#"[[body]]
+shape = {shape}
+density = 1500.0
+position = [0.41, 0.47, 0.38]
+axis_angle = {{ axis = [0.3, 1.0, 0.2], degrees = 25 }}
+velocity = [0.3, -0.5, 0.1]
+angular_velocity = [0.4, -0.2, 0.6]"#
+    );
+    let scene = Scene::from_toml(&tank(&body, 30, false), "<test>").unwrap();
+    let mut sim = Simulation::new(scene).unwrap();
+    (0..30)
+        .map(|_| {
+            sim.step().unwrap();
+            (sim.bodies[0].x, sim.bodies[0].q)
+        })
+        .collect()
+}
+
+#[test]
+fn obj_cube_and_cuboid_give_the_same_trajectory() {
+    let mesh = trajectory(r#"{ kind = "mesh", obj = "../meshes/cube.obj" }"#);
+    let cuboid = trajectory(r#"{ kind = "cuboid", half_extents = [0.1, 0.1, 0.1] }"#);
+    let travelled = (mesh.last().unwrap().0 - mesh[0].0).length().max(1e-3);
+    let mut worst: f64 = 0.0;
+    for ((xm, qm), (xc, qc)) in mesh.iter().zip(&cuboid) {
+        worst = worst.max((*xm - *xc).length() / travelled);
+        worst = worst.max(1.0 - qm.dot(*qc).abs());
+    }
+    eprintln!(
+        "mesh vs cuboid: worst relative trajectory difference {worst:.2e} over {travelled:.3} m"
+    );
+    // The issue asks for 1%; the two shapes give the same distances and mass properties,
+    // so the runs agree to round-off (measured 4e-16).
+    assert!(worst < 1e-9, "trajectories differ by {worst}");
+}
+
+#[test]
+fn heavy_body_sinks_and_rests_on_the_floor() {
+    let body = r#"[[body]]
+shape = { kind = "cuboid", half_extents = [0.1, 0.1, 0.1] }
+density = 3000.0
+position = [0.41, 0.25, 0.38]"#;
+    let scene = Scene::from_toml(&tank(body, 300, true), "<test>").unwrap();
+    let mut sim = Simulation::new(scene).unwrap();
+    let mut speeds = Vec::new();
+    for _ in 0..300 {
+        sim.step().unwrap();
+        speeds.push(sim.bodies[0].v.length());
+    }
+    let (lo, _) = sim.bodies[0].bounds();
+    let tail = speeds[280..].iter().cloned().fold(0.0, f64::max);
+    eprintln!(
+        "heavy body: lowest point {:.4} m, max speed over the last 20 steps {tail:.2e} m/s",
+        lo.y
+    );
+    assert!(lo.y > -0.002 && lo.y < 0.004, "lowest point {} m is not on the floor", lo.y);
+    assert!(tail < 0.01, "still moving at {tail} m/s");
+}
+
+fn rejected(body: &str, needles: &[&str]) {
+    let text = tank(body, 5, false);
+    let err = match Scene::from_toml(&text, "<test>") {
+        Err(e) => e.to_string(),
+        Ok(s) => match Simulation::new(s) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("accepted: {body}"),
+        },
+    };
+    for n in needles {
+        assert!(err.contains(n), "message {err:?} lacks {n:?}");
+    }
+}
+
+#[test]
+fn bad_bodies_are_rejected_with_a_clear_message() {
+    let ball =
+        |extra: &str| format!("[[body]]\nshape = {{ kind = \"ball\", radius = 0.1 }}\n{extra}");
+    rejected(
+        &ball("density = 500.0\nposition = [0.75, 0.5, 0.4]"),
+        &["body[0]", "inside the tank"],
+    );
+    rejected(&ball("density = 500.0\nposition = [0.1, 0.5, 0.4]"), &["body[0]", "touching a wall"]);
+    rejected(&ball("density = 0.0\nposition = [0.4, 0.5, 0.4]"), &["body[0].density", "positive"]);
+    rejected(&ball("density = -5.0\nposition = [0.4, 0.5, 0.4]"), &["body[0].density", "positive"]);
+    rejected(&ball("mass = 0.0\nposition = [0.4, 0.5, 0.4]"), &["body[0].mass", "positive"]);
+    rejected(
+        &ball("density = 1.0\nmass = 1.0\nposition = [0.4, 0.5, 0.4]"),
+        &["exactly one of density and mass"],
+    );
+    rejected(&ball("position = [0.4, 0.5, 0.4]"), &["exactly one of density and mass"]);
+    rejected(
+        &ball("density = 500.0\nposition = [0.4, 0.5, 0.4]\nvelocity = [nan, 0.0, 0.0]"),
+        &["body[0].velocity", "finite"],
+    );
+    rejected(
+        "[[body]]\nshape = { kind = \"ball\", radius = 0.0 }\ndensity = 500.0\nposition = [0.4, 0.5, 0.4]",
+        &["body[0]", "radius"],
+    );
+    rejected(
+        "[[body]]\nshape = { kind = \"convex_hull\", points = [[0,0,0],[1,0,0],[0,1,0],[1,1,0]] }\ndensity = 500.0\nposition = [0.4, 0.5, 0.4]",
+        &["body[0]", "degenerate"],
+    );
+    rejected(
+        "[[body]]\nshape = { kind = \"mesh\", obj = \"no/such/file.obj\" }\ndensity = 500.0\nposition = [0.4, 0.5, 0.4]",
+        &["body[0]", "cannot read mesh", "no/such/file.obj"],
+    );
+    // An open mesh: the cube without its last triangle.
+    let cube =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/assets/meshes/cube.obj"))
+            .unwrap();
+    let mut lines: Vec<&str> = cube.lines().collect();
+    let last_face = lines.iter().rposition(|l| l.starts_with("f ")).unwrap();
+    lines.remove(last_face);
+    let dir = std::env::temp_dir().join(format!("diffluid-open-mesh-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("open.obj");
+    std::fs::write(&path, lines.join("\n")).unwrap();
+    rejected(
+        &format!(
+            "[[body]]\nshape = {{ kind = \"mesh\", obj = \"{}\" }}\ndensity = 500.0\nposition = [0.4, 0.5, 0.4]",
+            path.display()
+        ),
+        &["body[0]", "not closed"],
+    );
+    std::fs::remove_dir_all(dir).ok();
+}
