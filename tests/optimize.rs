@@ -74,3 +74,57 @@ fn a_run_killed_and_resumed_ends_where_an_uninterrupted_one_does() {
     assert_eq!(params(&a), params(&b), "resumed run ended elsewhere");
     std::fs::remove_dir_all(&base).ok();
 }
+
+/// Bad optimisation settings are rejected with a message naming the key.
+#[test]
+fn bad_optimisation_input_is_rejected() {
+    let base = include_str!("../assets/scenes/recover_box.toml");
+    let cases = [
+        ("params = [\"v\"]", "params = [\"speed\"]", "unknown parameter \"speed\""),
+        ("learning_rate = 5.0", "learning_rate = -1.0", "optimize.optimizer.learning_rate"),
+        ("kind = \"gd\"", "kind = \"newton\"", "unknown variant `newton`"),
+        ("epochs = 60", "epochs = 0", "optimize.epochs"),
+        ("target = [0.4, 0.2, 0.4]", "target = [0.4, 2.0, 0.4]", "outside the tank"),
+        ("body = \"box\"", "body = \"crate\"", "no body named \"crate\""),
+    ];
+    for (from, to, needle) in cases {
+        assert!(base.contains(from), "the base scene lacks {from:?}");
+        let text = base.replacen(from, to, 1);
+        let err = Scene::from_toml(&text, "<test>").unwrap_err().to_string();
+        assert!(err.contains(needle), "{to:?}: message {err:?} lacks {needle:?}");
+    }
+    // Through the CLI: one line, non-zero exit.
+    let dir = std::env::temp_dir().join(format!("diffluid-badopt-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("bad.toml");
+    std::fs::write(&path, base.replacen("params = [\"v\"]", "params = [\"speed\"]", 1)).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+        .args(["optimize"])
+        .arg(&path)
+        .args(["--quiet", "--out"])
+        .arg(dir.join("out"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    assert!(stderr.starts_with("error:") && stderr.contains("optimize.params"), "{stderr}");
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// The paper's block drop: plain gradient descent with learning rate 1.0 on v and ω for 50
+/// epochs must bring the loss down at least 100× (the paper's Figure 2 falls about that).
+#[test]
+fn block_drop_loss_falls_a_hundredfold_in_fifty_epochs() {
+    let problem = Optimization::new(Scene::builtin("block_drop").unwrap()).unwrap();
+    assert_eq!(problem.epochs, 50);
+    let out = problem.run(None, None, |_| {}).unwrap();
+    assert!(out.stopped.is_none(), "{:?}", out.stopped);
+    let first = out.history[0].loss;
+    eprintln!(
+        "block drop: loss {first:.3e} -> {:.3e} ({:.0}x)",
+        out.final_loss,
+        first / out.final_loss
+    );
+    assert!(out.final_loss * 100.0 < first, "loss fell only {}x", first / out.final_loss);
+}
