@@ -133,6 +133,7 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
             wall_seconds: start.elapsed().as_secs_f64(),
         },
     )?;
+    pictures(&problem, &problem.initial_params(), &outcome, &out)?;
     if let Some(reason) = &outcome.stopped {
         return Err(Error::Usage(format!("optimisation stopped at {reason}")));
     }
@@ -148,6 +149,70 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
         out.display()
     );
     Ok(())
+}
+
+/// loss.png, trajectory.png (the body's path before and after, over the liquid at a few
+/// frames) and optimized.gif (the optimised run).
+fn pictures(
+    problem: &diffluid::optimize::Optimization,
+    start: &diffluid::optimize::BodyParams,
+    outcome: &diffluid::optimize::Outcome,
+    out: &Path,
+) -> Result<(), Error> {
+    use diffluid::plot::{animation_gif, loss_plot, trajectory_plot, Frame, Track};
+    let loss: Vec<f64> = outcome.history.iter().map(|r| r.loss).collect();
+    let norms: Vec<f64> = outcome.history.iter().map(|r| r.grad_norm).collect();
+    if !loss.is_empty() {
+        loss_plot(&out.join("loss.png"), &loss, &norms)?;
+    }
+    let steps = problem.scene.time.steps;
+    let body = problem.body;
+    let (verts, _) = diffluid::mesh::surface_mesh(&problem.initial.bodies[body].shape);
+    let record = |p: &diffluid::optimize::BodyParams,
+                  frames: bool|
+     -> Result<
+        (Vec<diffluid::math::Vec3>, Vec<(String, Vec<diffluid::math::Vec3>)>, Vec<Frame>),
+        Error,
+    > {
+        let mut sim = problem.simulation(p);
+        let mut path = vec![sim.bodies[body].x];
+        let mut snaps = Vec::new();
+        let mut gif = Vec::new();
+        let every = (steps / 25).max(1);
+        for n in 0..=steps {
+            if n > 0 {
+                sim.step()?;
+                path.push(sim.bodies[body].x);
+            }
+            if frames && (n == 0 || n == steps / 2 || n == steps) {
+                snaps.push((format!("liquid, step {n}"), sim.particles.clone()));
+            }
+            if frames && n % every == 0 {
+                let pose = sim.bodies[body].pose();
+                gif.push(Frame {
+                    particles: sim.particles.clone(),
+                    bodies: vec![verts.iter().map(|v| pose.transform_point(*v)).collect()],
+                    label: format!("{} optimised, step {n}", problem.scene.name),
+                });
+            }
+        }
+        Ok((path, snaps, gif))
+    };
+    let (before, _, _) = record(start, false)?;
+    let (after, snaps, gif) = record(&outcome.params, true)?;
+    let target = problem.loss.position.map(|(t, _)| t);
+    let domain = problem.initial.grid().size();
+    trajectory_plot(
+        &out.join("trajectory.png"),
+        domain,
+        &[
+            Track { label: "before".into(), points: before },
+            Track { label: "after".into(), points: after },
+        ],
+        target,
+        &snaps,
+    )?;
+    animation_gif(&out.join("optimized.gif"), domain, &gif, 80)
 }
 
 #[derive(clap::Args)]

@@ -1,1 +1,252 @@
-//! Plots (written by the plotting work in progress).
+//! Pictures of an optimisation: the loss curve, the body's path over the liquid, and an
+//! animated GIF. Text is drawn with the embedded DejaVu Sans (no system fonts needed).
+
+use crate::error::{Error, Result};
+use crate::math::Vec3;
+use plotters::prelude::*;
+use std::path::Path;
+
+static FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans.ttf");
+
+fn font() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        plotters::style::register_font("sans-serif", FontStyle::Normal, FONT)
+            .unwrap_or_else(|_| panic!("the embedded font is valid"));
+    });
+}
+
+fn err(path: &Path, e: impl std::fmt::Display) -> Error {
+    Error::Write { path: path.to_path_buf(), source: std::io::Error::other(e.to_string()) }
+}
+
+/// The loss (and the gradient norm) per epoch on a log axis, as a PNG.
+pub fn loss_plot(path: &Path, loss: &[f64], grad_norm: &[f64]) -> Result<()> {
+    font();
+    if loss.is_empty() {
+        return Err(err(path, "no epochs to plot"));
+    }
+    let pos: Vec<f64> =
+        loss.iter().chain(grad_norm).copied().filter(|x| *x > 0.0 && x.is_finite()).collect();
+    let (lo, hi) = pos.iter().fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+    let (lo, hi) = if lo <= hi { (lo * 0.5, hi * 2.0) } else { (1e-12, 1.0) };
+    let root = BitMapBackend::new(path, (900, 500)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(path, e))?;
+    let n = loss.len().max(2) - 1;
+    let mut chart = ChartBuilder::on(&root)
+        .caption("loss", ("sans-serif", 24))
+        .margin(15)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0..n, (lo..hi).log_scale())
+        .map_err(|e| err(path, e))?;
+    chart
+        .configure_mesh()
+        .x_desc("epoch")
+        .y_desc("loss, |gradient|")
+        .draw()
+        .map_err(|e| err(path, e))?;
+    let series = |v: &[f64]| -> Vec<(usize, f64)> {
+        v.iter()
+            .enumerate()
+            .filter(|(_, x)| **x > 0.0 && x.is_finite())
+            .map(|(i, x)| (i, *x))
+            .collect()
+    };
+    chart
+        .draw_series(LineSeries::new(series(loss), BLUE.stroke_width(2)))
+        .map_err(|e| err(path, e))?
+        .label("loss")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+    chart
+        .draw_series(LineSeries::new(series(grad_norm), RED.mix(0.7)))
+        .map_err(|e| err(path, e))?
+        .label("gradient norm")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.mix(0.7)));
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(path, e))?;
+    root.present().map_err(|e| err(path, e))
+}
+
+/// A body's path, with a label.
+#[derive(Clone, Debug)]
+pub struct Track {
+    /// Legend label.
+    pub label: String,
+    /// Centre of mass per step.
+    pub points: Vec<Vec3>,
+}
+
+/// Side (x–y) and top (x–z) views of body paths over liquid particle snapshots, as a PNG.
+pub fn trajectory_plot(
+    path: &Path,
+    domain: Vec3,
+    tracks: &[Track],
+    target: Option<Vec3>,
+    particles: &[(String, Vec<Vec3>)],
+) -> Result<()> {
+    font();
+    let root = BitMapBackend::new(path, (1200, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(path, e))?;
+    let panels = root.split_evenly((1, 2));
+    let colours = [BLUE, RED, GREEN, MAGENTA, BLACK];
+    for (panel, (title, b)) in
+        panels.iter().zip([("side view (x–y)", 1usize), ("top view (x–z)", 2usize)])
+    {
+        let pick = |v: Vec3| (v.x, v.to_array()[b]);
+        let mut chart = ChartBuilder::on(panel)
+            .caption(title, ("sans-serif", 20))
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(45)
+            .build_cartesian_2d(0.0..domain.x, 0.0..domain.to_array()[b])
+            .map_err(|e| err(path, e))?;
+        chart
+            .configure_mesh()
+            .x_desc("x (m)")
+            .y_desc(if b == 1 { "y (m)" } else { "z (m)" })
+            .draw()
+            .map_err(|e| err(path, e))?;
+        let light = [RGBColor(120, 170, 230), RGBColor(150, 210, 150), RGBColor(230, 180, 120)];
+        for (k, (label, pts)) in particles.iter().enumerate() {
+            let c = light[k % light.len()];
+            chart
+                .draw_series(
+                    pts.iter().step_by(2).map(|p| Circle::new(pick(*p), 1, c.mix(0.35).filled())),
+                )
+                .map_err(|e| err(path, e))?
+                .label(label.as_str())
+                .legend(move |(x, y)| Circle::new((x + 10, y), 4, c.filled()));
+        }
+        for (k, t) in tracks.iter().enumerate() {
+            let c = colours[k % colours.len()];
+            chart
+                .draw_series(LineSeries::new(t.points.iter().map(|p| pick(*p)), c.stroke_width(2)))
+                .map_err(|e| err(path, e))?
+                .label(t.label.as_str())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
+                });
+            if let Some(last) = t.points.last() {
+                chart
+                    .draw_series(std::iter::once(Circle::new(pick(*last), 5, c.filled())))
+                    .map_err(|e| err(path, e))?;
+            }
+        }
+        if let Some(tg) = target {
+            chart
+                .draw_series(std::iter::once(Cross::new(pick(tg), 8, BLACK.stroke_width(2))))
+                .map_err(|e| err(path, e))?
+                .label("target")
+                .legend(|(x, y)| Cross::new((x + 10, y), 5, BLACK));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| err(path, e))?;
+    }
+    root.present().map_err(|e| err(path, e))
+}
+
+/// One frame of an animation.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    /// Liquid particles.
+    pub particles: Vec<Vec3>,
+    /// Each body's surface points (e.g. mesh vertices).
+    pub bodies: Vec<Vec<Vec3>>,
+    /// Caption.
+    pub label: String,
+}
+
+/// An animated GIF of the side view (x–y).
+pub fn animation_gif(path: &Path, domain: Vec3, frames: &[Frame], delay_ms: u32) -> Result<()> {
+    font();
+    if frames.is_empty() {
+        return Err(err(path, "no frames"));
+    }
+    let root = BitMapBackend::gif(path, (640, 320), delay_ms)
+        .map_err(|e| err(path, e))?
+        .into_drawing_area();
+    for f in frames {
+        root.fill(&WHITE).map_err(|e| err(path, e))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(&f.label, ("sans-serif", 16))
+            .margin(8)
+            .x_label_area_size(25)
+            .y_label_area_size(35)
+            .build_cartesian_2d(0.0..domain.x, 0.0..domain.y)
+            .map_err(|e| err(path, e))?;
+        chart.configure_mesh().disable_mesh().draw().map_err(|e| err(path, e))?;
+        chart
+            .draw_series(
+                f.particles
+                    .iter()
+                    .step_by(2)
+                    .map(|p| Circle::new((p.x, p.y), 1, BLUE.mix(0.4).filled())),
+            )
+            .map_err(|e| err(path, e))?;
+        for b in &f.bodies {
+            chart
+                .draw_series(b.iter().map(|p| Circle::new((p.x, p.y), 2, BLACK.filled())))
+                .map_err(|e| err(path, e))?;
+        }
+        root.present().map_err(|e| err(path, e))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("diffluid-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d.join(name)
+    }
+
+    fn starts_with(path: &Path, magic: &[u8]) -> bool {
+        std::fs::read(path).map(|b| b.len() > 100 && b.starts_with(magic)).unwrap_or(false)
+    }
+
+    #[test]
+    fn writes_pngs_and_a_gif() {
+        let p = tmp("loss.png");
+        loss_plot(&p, &[1.0, 0.3, 0.05, 0.01], &[2.0, 1.0, 0.4, 0.1]).unwrap();
+        assert!(starts_with(&p, b"\x89PNG"));
+        assert!(loss_plot(&tmp("empty.png"), &[], &[]).is_err());
+        let d = Vec3::new(1.0, 0.8, 1.0);
+        let tr = Track {
+            label: "path".into(),
+            points: vec![Vec3::new(0.2, 0.6, 0.3), Vec3::new(0.5, 0.3, 0.4)],
+        };
+        let liquid = vec![Vec3::new(0.5, 0.1, 0.5); 10];
+        let p = tmp("traj.png");
+        trajectory_plot(
+            &p,
+            d,
+            &[tr],
+            Some(Vec3::new(0.6, 0.2, 0.5)),
+            &[("liquid, step 0".into(), liquid.clone())],
+        )
+        .unwrap();
+        assert!(starts_with(&p, b"\x89PNG"));
+        let p = tmp("anim.gif");
+        let frames: Vec<Frame> = (0..3)
+            .map(|k| Frame {
+                particles: liquid.clone(),
+                bodies: vec![vec![Vec3::new(0.3, 0.5 - 0.1 * k as f64, 0.5)]],
+                label: format!("step {k}"),
+            })
+            .collect();
+        animation_gif(&p, d, &frames, 100).unwrap();
+        assert!(starts_with(&p, b"GIF8"));
+    }
+}
