@@ -151,6 +151,13 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
     Ok(())
 }
 
+/// A run's body path, liquid snapshots and animation frames.
+type Recording = (
+    Vec<diffluid::math::Vec3>,
+    Vec<(String, Vec<diffluid::math::Vec3>)>,
+    Vec<diffluid::plot::Frame>,
+);
+
 /// loss.png, trajectory.png (the body's path before and after, over the liquid at a few
 /// frames) and optimized.gif (the optimised run).
 fn pictures(
@@ -168,12 +175,7 @@ fn pictures(
     let steps = problem.scene.time.steps;
     let body = problem.body;
     let (verts, _) = diffluid::mesh::surface_mesh(&problem.initial.bodies[body].shape);
-    let record = |p: &diffluid::optimize::BodyParams,
-                  frames: bool|
-     -> Result<
-        (Vec<diffluid::math::Vec3>, Vec<(String, Vec<diffluid::math::Vec3>)>, Vec<Frame>),
-        Error,
-    > {
+    let record = |p: &diffluid::optimize::BodyParams, frames: bool| -> Result<Recording, Error> {
         let mut sim = problem.simulation(p);
         let mut path = vec![sim.bodies[body].x];
         let mut snaps = Vec::new();
