@@ -130,7 +130,10 @@ fn arr(v: Vec3) -> [f64; 3] {
 impl Optimization {
     /// Builds the problem; for a recovery scene, runs the forward pass from v* to make the
     /// targets.
-    pub fn new(scene: Scene) -> Result<Optimization> {
+    pub fn new(mut scene: Scene) -> Result<Optimization> {
+        if scene.optimize.as_ref().is_some_and(|o| o.freeze_surface) {
+            scene.solver.freeze_surface = true;
+        }
         let invalid =
             |m: &str| Error::InvalidScene { origin: scene.name.clone(), message: m.into() };
         let spec = scene.optimize.clone().ok_or_else(|| invalid("no [optimize] section"))?;

@@ -215,6 +215,11 @@ pub struct OptimizeSpec {
     /// it is never silent. Default false: contact and optimisation are then an error.
     #[serde(default)]
     pub through_contact: bool,
+    /// Hold the liquid surface fixed during the optimisation's epochs (as the paper did for
+    /// its timings: no marker particles in the loop). The gradient is then exact, and an epoch
+    /// costs no particle work. `run` keeps the scene's own setting. Default false.
+    #[serde(default)]
+    pub freeze_surface: bool,
 }
 
 fn max_grad() -> f64 {
