@@ -508,7 +508,12 @@ mod tests {
     use super::*;
 
     /// A small tank with a free surface and a partly blocked face.
+    /// The system with the φ_L and face weights it was built from.
     fn system() -> PressureSystem {
+        system_with_inputs().0
+    }
+
+    fn system_with_inputs() -> (PressureSystem, Vec<f64>, [Vec<f64>; 3]) {
         let grid = Grid { n: [5, 6, 4], dx: 0.1 };
         let cells = grid.cells();
         let mut phi = vec![0.0; cells.len()];
@@ -527,37 +532,21 @@ mod tests {
             w
         });
         weights[0][grid.faces(0).index(2, 1, 1)] = 0.3;
-        PressureSystem::build(
+        let sys = PressureSystem::build(
             &grid,
             &phi,
             &weights,
             PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
-        )
+        );
+        (sys, phi, weights)
     }
 
     #[test]
     fn projection_adjoint_is_the_transpose() {
         // For fixed geometry the projection is linear in (û, v̂):
         // ⟨P(û, v̂), (ū, v̄)⟩ = ⟨(û, v̂), Pᵀ(ū, v̄)⟩, to the solver's tolerance.
-        let mut sys = system();
+        let (mut sys, phi, weights) = system_with_inputs();
         let grid = sys.grid;
-        let cells = grid.cells();
-        let mut phi = vec![0.0; cells.len()];
-        cells.fill_par(&mut phi, |_, j, _| (j as f64 + 0.5) * 0.1 - 0.33);
-        let mut weights = [0, 1, 2].map(|a| {
-            let lat = grid.faces(a);
-            let mut w = vec![1.0; lat.len()];
-            lat.fill_par(&mut w, |i, j, k| {
-                let f = [i, j, k];
-                if f[a] == 0 || f[a] == grid.n[a] {
-                    0.0
-                } else {
-                    1.0
-                }
-            });
-            w
-        });
-        weights[0][grid.faces(0).index(2, 1, 1)] = 0.3;
         // A body touching a few rows, with an SPD Δt·M⁻¹.
         let jac: Vec<(usize, [f64; 6])> = (0..6)
             .map(|r| {
