@@ -20,46 +20,6 @@ use crate::dual::Scalar;
 use crate::grid::{Grid, Lattice};
 use crate::shape::Solid;
 
-/// Fraction of a triangle's area where the linear interpolant of corner values is negative.
-#[inline]
-pub fn triangle_fraction_inside(a: f64, b: f64, c: f64) -> f64 {
-    let mut v = [a, b, c];
-    v.sort_by(|x, y| x.total_cmp(y));
-    let [a, b, c] = v;
-    if c < 0.0 {
-        1.0
-    } else if a >= 0.0 {
-        0.0
-    } else if b < 0.0 {
-        // a, b inside, c outside: one minus the small outside corner at c.
-        1.0 - (c / (c - a)) * (c / (c - b))
-    } else {
-        // Only a inside: the small corner at a.
-        (a / (a - b)) * (a / (a - c))
-    }
-}
-
-/// Fraction of a square's area inside, from its corner values in cyclic order.
-#[inline]
-pub fn square_fraction_inside(corners: [f64; 4]) -> f64 {
-    let m = 0.25 * (corners[0] + corners[1] + corners[2] + corners[3]);
-    (0..4).map(|e| triangle_fraction_inside(m, corners[e], corners[(e + 1) % 4])).sum::<f64>()
-        * 0.25
-}
-
-/// The four node indices of face `f` of `axis`, in cyclic order around the face.
-#[inline]
-pub fn face_corner_nodes(nodes: &Lattice, axis: usize, f: [usize; 3]) -> [usize; 4] {
-    let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
-    let at = |db: usize, dc: usize| {
-        let mut p = f;
-        p[b] += db;
-        p[c] += dc;
-        nodes.index(p[0], p[1], p[2])
-    };
-    [at(0, 0), at(1, 0), at(1, 1), at(0, 1)]
-}
-
 /// Fraction of a tetrahedron's volume where the linear interpolant of its vertex values is
 /// negative. It depends on the values only (affine invariance), so their order is free.
 /// Generic over [`Scalar`] so it also gives derivatives (see `dual.rs`).
@@ -195,32 +155,21 @@ pub fn cv_fraction<T: Scalar>(axis: usize, f: [usize; 3], at: impl Fn([usize; 3]
             }
         }
     }
-    snap_t(sum / T::cst((r * r * r) as f64))
-}
-
-/// [`snap`] for any scalar: a snapped fraction is a constant (no derivative).
-#[inline]
-pub fn snap_t<T: Scalar>(f: T) -> T {
-    let v = f.val();
-    if v < 1e-9 {
-        T::cst(0.0)
-    } else if v > 1.0 - 1e-9 {
-        T::cst(1.0)
-    } else {
-        f
-    }
+    snap(sum / T::cst((r * r * r) as f64))
 }
 
 /// Fractions within 1e-9 of 0 or 1 are 0 or 1: round-off dust (a face inside a body came out
 /// at 2e-12 on one side of a mirror-symmetric scene and 0 on the other) must not make a face
 /// a pressure unknown's only, nearly closed, opening. The threshold is a discontinuity of
-/// the step in the body's pose, so it sits far below anything a gradient check resolves.
+/// the step in the body's pose, so it sits far below anything a gradient check resolves. A
+/// snapped fraction is a constant (no derivative).
 #[inline]
-pub fn snap(f: f64) -> f64 {
-    if f < 1e-9 {
-        0.0
-    } else if f > 1.0 - 1e-9 {
-        1.0
+pub fn snap<T: Scalar>(f: T) -> T {
+    let v = f.val();
+    if v < 1e-9 {
+        T::cst(0.0)
+    } else if v > 1.0 - 1e-9 {
+        T::cst(1.0)
     } else {
         f
     }
@@ -295,25 +244,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn triangle_fraction_limits() {
-        assert_eq!(triangle_fraction_inside(1.0, 2.0, 3.0), 0.0);
-        assert_eq!(triangle_fraction_inside(-1.0, -2.0, -3.0), 1.0);
-        // Symmetric split: a plane through the midpoints of two edges cuts off 1/4.
-        assert!((triangle_fraction_inside(-1.0, 1.0, 1.0) - 0.25).abs() < 1e-15);
-        assert!((triangle_fraction_inside(1.0, -1.0, -1.0) - 0.75).abs() < 1e-15);
-    }
-
-    #[test]
-    fn square_fraction_of_a_plane_is_exact() {
-        // A plane φ = x − x0 cutting the unit square: the fraction inside is x0 for any
-        // position, since φ is linear and the triangle split is exact for linear φ.
-        for &x0 in &[0.1, 0.37, 0.5, 0.83] {
-            let c = [0.0 - x0, 1.0 - x0, 1.0 - x0, 0.0 - x0];
-            assert!((square_fraction_inside(c) - x0).abs() < 1e-14, "x0 = {x0}");
-        }
-    }
-
-    #[test]
     fn tet_fraction_cases_are_consistent() {
         assert!((tet_fraction_inside([-1.0, 1.0, 1.0, 1.0]) - 0.125).abs() < 1e-15);
         assert!((tet_fraction_inside([-1.0, -1.0, 1.0, 1.0]) - 0.5).abs() < 1e-14);
@@ -346,7 +276,7 @@ mod tests {
     #[test]
     fn fraction_is_continuous_in_corner_values() {
         // Moving one corner through zero changes the fraction continuously.
-        let f = |t: f64| square_fraction_inside([t, 0.3, 0.5, -0.2]);
+        let f = |t: f64| box_fraction_inside([t, 0.3, 0.5, -0.2, 0.1, -0.4, 0.6, 0.2]);
         for &t in &[-1e-9, 0.0, 1e-9] {
             assert!((f(t) - f(0.0)).abs() < 1e-8);
         }
