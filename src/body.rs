@@ -148,17 +148,22 @@ impl RigidBody {
     }
 }
 
-/// `normalise(q + Δt/2·[0, ω]⊗q)`.
+/// `q + Δt/2·[0, ω]⊗q`, before normalisation.
 #[inline]
-pub fn quat_step(q: Rotation, w: Vec3, dt: f64) -> Rotation {
+fn quat_step_raw(q: Rotation, w: Vec3, dt: f64) -> Rotation {
     let wq = Rotation::from_xyzw(w.x, w.y, w.z, 0.0) * q;
-    let raw = Rotation::from_xyzw(
+    Rotation::from_xyzw(
         q.x + 0.5 * dt * wq.x,
         q.y + 0.5 * dt * wq.y,
         q.z + 0.5 * dt * wq.z,
         q.w + 0.5 * dt * wq.w,
-    );
-    raw.normalize()
+    )
+}
+
+/// `normalise(q + Δt/2·[0, ω]⊗q)`.
+#[inline]
+pub fn quat_step(q: Rotation, w: Vec3, dt: f64) -> Rotation {
+    quat_step_raw(q, w, dt).normalize()
 }
 
 /// Adjoint of [`quat_step`]: given ∂L/∂q' (as a 4-vector in a quaternion), returns
@@ -167,13 +172,7 @@ pub fn quat_step(q: Rotation, w: Vec3, dt: f64) -> Rotation {
 /// ω̄ = Δt/2·vec(r̄ ⊗ q*), using L(p)ᵀ = L(p*) and R(q)ᵀ = R(q*) for the left and right
 /// multiplication matrices.
 pub fn quat_step_adjoint(q: Rotation, w: Vec3, dt: f64, qbar_out: Rotation) -> (Rotation, Vec3) {
-    let wq = Rotation::from_xyzw(w.x, w.y, w.z, 0.0) * q;
-    let r = Rotation::from_xyzw(
-        q.x + 0.5 * dt * wq.x,
-        q.y + 0.5 * dt * wq.y,
-        q.z + 0.5 * dt * wq.z,
-        q.w + 0.5 * dt * wq.w,
-    );
+    let r = quat_step_raw(q, w, dt);
     let len = r.length();
     let qn = r * (1.0 / len);
     let proj = qn.dot(qbar_out);
