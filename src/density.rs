@@ -54,7 +54,7 @@ pub fn correct(
     let bins = Bins::new(particles, grid);
     let mut phi = surface::liquid_sdf(particles, &bins, grid, g.radius);
     surface::extend_into_solids(&mut phi, grid, g.centre_in_solid);
-    let dens = surface::particle_density(particles, &bins, grid, ppc);
+    let dens = surface::particle_density(particles, grid, ppc);
     // Unit Δt and density: the "velocity" update below is then a displacement in metres
     // whose volume flux out of each cell equals the right-hand side.
     let params = PressureParams { dt: 1.0, density: 1.0, theta_min: solver.theta_min };

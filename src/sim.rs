@@ -154,7 +154,7 @@ impl Simulation {
         particles.retain(|x| bodies.iter().all(|b| b.sdf(*x) > margin));
         let (frozen_phi, frozen_volume) = if scene.solver.freeze_surface {
             let bins = Bins::new(&particles, &grid);
-            let vol = surface::liquid_volume(&particles, &bins, &grid, ppc);
+            let vol = surface::liquid_volume(&particles, &grid, ppc);
             (Some(surface::liquid_sdf(&particles, &bins, &grid, radius)), vol)
         } else {
             (None, 0.0)
@@ -215,13 +215,7 @@ impl Simulation {
         if self.frozen_phi.is_some() {
             return self.frozen_volume;
         }
-        let bins = Bins::new(&self.particles, &self.grid);
-        surface::liquid_volume(
-            &self.particles,
-            &bins,
-            &self.grid,
-            self.scene.solver.particles_per_cell,
-        )
+        surface::liquid_volume(&self.particles, &self.grid, self.scene.solver.particles_per_cell)
     }
 
     /// Where the solids are now: static weights minus each body's face fractions.

@@ -262,7 +262,7 @@ pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]
 /// and a weight that would fall on a cell beyond a tank wall lands on its mirror image inside
 /// (reflection), so every particle deposits exactly one unit. The scatter runs in particle
 /// order on one thread, so the sums do not depend on the thread count.
-pub fn particle_density(pos: &[Vec3], _bins: &Bins, grid: &Grid, ppc: usize) -> Vec<f64> {
+pub fn particle_density(pos: &[Vec3], grid: &Grid, ppc: usize) -> Vec<f64> {
     let cells = grid.cells();
     let mut out = vec![0.0; cells.len()];
     let unit = 1.0 / ppc as f64;
@@ -299,8 +299,8 @@ pub fn particle_density(pos: &[Vec3], _bins: &Bins, grid: &Grid, ppc: usize) -> 
 /// Liquid volume in m³: the particle density capped at one full cell per cell, times the
 /// cell volume. A freshly seeded region gives its exact volume; marker particles that bunch
 /// up (the way a marker-particle liquid loses volume) push cells over full and lower it.
-pub fn liquid_volume(pos: &[Vec3], bins: &Bins, grid: &Grid, ppc: usize) -> f64 {
-    let dens = particle_density(pos, bins, grid, ppc);
+pub fn liquid_volume(pos: &[Vec3], grid: &Grid, ppc: usize) -> f64 {
+    let dens = particle_density(pos, grid, ppc);
     let parts: Vec<f64> = dens
         .chunks(crate::grid::REDUCE_CHUNK)
         .map(|c| c.iter().map(|d| d.min(1.0)).sum())
@@ -334,7 +334,7 @@ mod tests {
         let pos = seed(&grid, &[region], 8, &sdf);
         assert_eq!(pos.len(), 8 * 8 * 4 * 8);
         let bins = Bins::new(&pos, &grid);
-        let vol = liquid_volume(&pos, &bins, &grid, 8);
+        let vol = liquid_volume(&pos, &grid, 8);
         assert!((vol - 0.5).abs() < 1e-12, "volume {vol}");
         let phi = liquid_sdf(&pos, &bins, &grid, particle_radius(grid.dx, 2));
         // Centres at y = 7/16 (below) and 9/16 (above) straddle the surface y = 0.5 evenly.
