@@ -162,7 +162,7 @@ pub enum GradientMode {
 }
 
 /// A loss on the final state.
-pub trait Loss {
+pub trait Loss: Sync {
     /// L(final state).
     fn value(&self, sim: &Simulation) -> f64;
     /// ∂L/∂(final state).
@@ -400,6 +400,15 @@ pub fn backward_adjoint(
     final_adjoint: AdjointState,
     mode: GradientMode,
 ) -> Result<AdjointState> {
+    crate::grid::on_pool(|| backward_adjoint_on_pool(initial, tape, final_adjoint, mode))
+}
+
+fn backward_adjoint_on_pool(
+    initial: &Simulation,
+    tape: &Tape,
+    final_adjoint: AdjointState,
+    mode: GradientMode,
+) -> Result<AdjointState> {
     let scene = initial.scene();
     let through_contact = scene.optimize.as_ref().is_some_and(|o| o.through_contact);
     if scene.contact.enabled && !initial.bodies.is_empty() && !through_contact {
@@ -432,9 +441,14 @@ pub fn backward_adjoint(
             let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], bodies[i].x);
             sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&bodies[i], dt)));
         }
+        // The faces the step reads after advection; the projection's (valid) faces are
+        // among them.
+        let needed = crate::advect::needed_faces(&grid, &phi, &geo.body_faces);
         let valid0: [Vec<u8>; 3] = [0, 1, 2].map(|a| {
             (0..grid.faces(a).len())
-                .map(|f| u8::from(sys.face_gradient(a, f, &geo.weights, &phi).is_some()))
+                .map(|f| {
+                    u8::from(needed[a][f] && sys.face_gradient(a, f, &geo.weights, &phi).is_some())
+                })
                 .collect()
         });
 
@@ -460,7 +474,7 @@ pub fn backward_adjoint(
 
         // Recompute the step's intermediate fields: û (advected, with gravity) and the
         // corrected field before the bodies' velocities are set.
-        let mut u_hat = crate::advect::advect(&rec.u, &grid, dt);
+        let mut u_hat = crate::advect::advect(&rec.u, &grid, dt, Some(&needed));
         crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
         let mut u_corr = u_hat.clone();
         sys.update_velocity(&rec.p, &mut u_corr, &geo.weights, &phi);
@@ -584,7 +598,7 @@ pub fn backward_adjoint(
         }
 
         // 2ᵀ: gravity is the identity. 1ᵀ: advection.
-        let u0 = advect_adjoint(&rec.u, &uhat, &grid, dt);
+        let u0 = advect_adjoint(&rec.u, &uhat, &grid, dt, Some(&needed));
         adj = AdjointState { u: u0, bodies: new_bodies };
     }
     Ok(adj)
@@ -613,6 +627,18 @@ pub struct GradientRun {
 /// (√N segments keep memory at O(√N) steps); the forward map is deterministic, so the
 /// gradient is bit-identical to the one without checkpoints.
 pub fn value_and_gradient(
+    initial: &Simulation,
+    steps: usize,
+    loss: &dyn Loss,
+    mode: GradientMode,
+    checkpoint_every: Option<usize>,
+) -> Result<GradientRun> {
+    crate::grid::on_pool(|| {
+        value_and_gradient_on_pool(initial, steps, loss, mode, checkpoint_every)
+    })
+}
+
+fn value_and_gradient_on_pool(
     initial: &Simulation,
     steps: usize,
     loss: &dyn Loss,

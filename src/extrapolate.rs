@@ -10,23 +10,24 @@
 use crate::grid::{Grid, Lattice, Mac};
 use rayon::prelude::*;
 
-/// The valid lattice neighbours of sample `idx` (at most 6).
+/// The neighbours of sample `idx` along the 6 lattice directions, in the order −x, +x, −y,
+/// +y, −z, +z, that `keep` accepts (at most 6).
 #[inline]
-fn valid_neighbours(lat: &Lattice, valid: &[u8], idx: usize, out: &mut [usize; 6]) -> usize {
-    let [i, j, k] = lat.ijk(idx);
-    let p = [i, j, k];
+fn neighbours(
+    lat: &Lattice,
+    idx: usize,
+    keep: impl Fn(usize) -> bool,
+    out: &mut [usize; 6],
+) -> usize {
+    let p = lat.ijk(idx);
+    let step = [1, lat.n[0], lat.slab()];
     let mut n = 0;
     for a in 0..3 {
-        for s in [-1i64, 1] {
-            let q = p[a] as i64 + s;
-            if q < 0 || q >= lat.n[a] as i64 {
-                continue;
-            }
-            let mut r = p;
-            r[a] = q as usize;
-            let ni = lat.index(r[0], r[1], r[2]);
-            if valid[ni] != 0 {
-                out[n] = ni;
+        let below = (p[a] > 0).then(|| idx - step[a]);
+        let above = (p[a] + 1 < lat.n[a]).then(|| idx + step[a]);
+        for m in [below, above].into_iter().flatten() {
+            if keep(m) {
+                out[n] = m;
                 n += 1;
             }
         }
@@ -34,34 +35,78 @@ fn valid_neighbours(lat: &Lattice, valid: &[u8], idx: usize, out: &mut [usize; 6
     n
 }
 
+/// Marks "never valid" in [`Layers::level`].
+const NEVER: u8 = u8::MAX;
+
+/// Which faces each extrapolation layer sets, found by growing a front from the valid faces:
+/// a face set in layer l has a neighbour set in layer l − 1 (or valid, for l = 0), so only
+/// the faces next to the last front are candidates. The work is proportional to the faces
+/// near the liquid, not to the grid.
+struct Layers {
+    /// 0 for a valid face, l + 1 for a face set in layer l, [`NEVER`] otherwise.
+    level: Vec<u8>,
+    /// Faces set in each layer, in increasing index order.
+    fronts: Vec<Vec<usize>>,
+}
+
+impl Layers {
+    fn new(valid0: &[u8], lat: &Lattice, layers: usize) -> Layers {
+        assert!(layers < NEVER as usize - 1, "at most 253 extrapolation layers");
+        let mut level: Vec<u8> = valid0.iter().map(|&v| if v != 0 { 0 } else { NEVER }).collect();
+        let mut last: Vec<usize> = (0..valid0.len()).filter(|&i| valid0[i] != 0).collect();
+        let mut fronts = Vec::with_capacity(layers);
+        let mut nb = [0usize; 6];
+        for l in 0..layers {
+            let mut front = Vec::new();
+            for &idx in &last {
+                let n = neighbours(lat, idx, |m| level[m] == NEVER, &mut nb);
+                for &m in &nb[..n] {
+                    level[m] = l as u8 + 1;
+                    front.push(m);
+                }
+            }
+            front.sort_unstable();
+            last = front.clone();
+            fronts.push(front);
+        }
+        Layers { level, fronts }
+    }
+
+    /// Valid before layer `l`.
+    #[inline]
+    fn known_before(&self, idx: usize, l: usize) -> bool {
+        (self.level[idx] as usize) <= l
+    }
+}
+
 /// Extrapolates one component over `layers` layers and zeroes what stays invalid.
 /// `valid` is updated to the final mask of extrapolated-or-valid samples.
 pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: usize) {
-    for _ in 0..layers {
-        let (src, mask) = (field.to_vec(), valid.to_vec());
-        let slab = lat.slab();
-        field.par_chunks_mut(slab).zip(valid.par_chunks_mut(slab)).enumerate().for_each(
-            |(k, (fc, vc))| {
+    let lay = Layers::new(valid, lat, layers);
+    for (l, front) in lay.fronts.iter().enumerate() {
+        // A face of this front reads only faces known before the layer, never another face
+        // of the front: compute them all, then write.
+        let values: Vec<f64> = front
+            .iter()
+            .map(|&idx| {
                 let mut nb = [0usize; 6];
-                for l in 0..slab {
-                    let idx = k * slab + l;
-                    if mask[idx] != 0 {
-                        continue;
-                    }
-                    let n = valid_neighbours(lat, &mask, idx, &mut nb);
-                    if n > 0 {
-                        fc[l] = nb[..n].iter().map(|&m| src[m]).sum::<f64>() / n as f64;
-                        vc[l] = 1;
-                    }
-                }
-            },
-        );
-    }
-    field.par_iter_mut().zip(valid.par_iter()).for_each(|(f, v)| {
-        if *v == 0 {
-            *f = 0.0;
+                let n = neighbours(lat, idx, |m| lay.known_before(m, l), &mut nb);
+                nb[..n].iter().map(|&m| field[m]).sum::<f64>() / n as f64
+            })
+            .collect();
+        for (&idx, v) in front.iter().zip(values) {
+            field[idx] = v;
         }
-    });
+    }
+    field.par_iter_mut().zip(valid.par_iter_mut()).zip(lay.level.par_iter()).for_each(
+        |((f, v), &lev)| {
+            if lev == NEVER {
+                *f = 0.0;
+            } else {
+                *v = 1;
+            }
+        },
+    );
 }
 
 /// Extrapolates all three components and then sets every face `weights` closes (weight 0:
@@ -83,45 +128,24 @@ pub fn correct_velocity(
     }
 }
 
-/// The masks of the extrapolation layers: `masks[l]` is the valid mask before layer `l`
-/// (`masks[0]` is the projection's), and `masks[layers]` the final one.
-fn layer_masks(valid0: &[u8], lat: &Lattice, layers: usize) -> Vec<Vec<u8>> {
-    let mut masks = vec![valid0.to_vec()];
-    let mut nb = [0usize; 6];
-    for l in 0..layers {
-        let prev = &masks[l];
-        let mut next = prev.clone();
-        for idx in 0..prev.len() {
-            if prev[idx] == 0 && valid_neighbours(lat, prev, idx, &mut nb) > 0 {
-                next[idx] = 1;
-            }
-        }
-        masks.push(next);
-    }
-    masks
-}
-
 /// Transpose of [`extrapolate`] for the projection's mask `valid0`: takes the adjoint of
 /// the extrapolated field and returns (in place) the adjoint of the field before it.
 pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers: usize) {
-    let masks = layer_masks(valid0, lat, layers);
+    let lay = Layers::new(valid0, lat, layers);
     // Faces left invalid were set to zero: nothing flows back from them.
-    for (a, v) in adj.iter_mut().zip(&masks[layers]) {
-        if *v == 0 {
+    for (a, &lev) in adj.iter_mut().zip(&lay.level) {
+        if lev == NEVER {
             *a = 0.0;
         }
     }
     let mut nb = [0usize; 6];
-    for l in (0..layers).rev() {
-        let (before, after) = (&masks[l], &masks[l + 1]);
-        for idx in 0..adj.len() {
-            if before[idx] == 0 && after[idx] != 0 {
-                // Set in layer l to the mean of its valid neighbours; its old value unused.
-                let a = std::mem::take(&mut adj[idx]);
-                let n = valid_neighbours(lat, before, idx, &mut nb);
-                for &m in &nb[..n] {
-                    adj[m] += a / n as f64;
-                }
+    for (l, front) in lay.fronts.iter().enumerate().rev() {
+        for &idx in front {
+            // Set in layer l to the mean of its known neighbours; its old value unused.
+            let a = std::mem::take(&mut adj[idx]);
+            let n = neighbours(lat, idx, |m| lay.known_before(m, l), &mut nb);
+            for &m in &nb[..n] {
+                adj[m] += a / n as f64;
             }
         }
     }

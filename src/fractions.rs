@@ -72,6 +72,14 @@ pub fn tet_fraction_inside<T: Scalar>(v: [T; 4]) -> T {
 /// gave a symmetric floating box a spurious torque).
 #[inline]
 pub fn box_fraction_inside<T: Scalar>(c: [T; 8]) -> T {
+    // Most boxes a body's bounding box covers lie wholly on one side of its surface; every
+    // tetrahedron would then give exactly 1 (all inside) or 0, constants.
+    if c.iter().all(|x| x.val() < 0.0) {
+        return T::cst(1.0);
+    }
+    if c.iter().all(|x| x.val() >= 0.0) {
+        return T::cst(0.0);
+    }
     let mut centre = T::cst(0.0);
     for x in c {
         centre = centre + x;
@@ -320,9 +328,8 @@ pub fn body_faces_generic<T: Scalar + Send + Sync>(
     let (lo, hi) = (bounds.0.to_array(), bounds.1.to_array());
     let cell_lo = |d: usize| ((lo[d] / grid.dx).floor() - 1.0).max(0.0) as usize;
     let cell_hi = |d: usize| (((hi[d] / grid.dx).ceil() + 1.0).max(0.0) as usize).min(grid.n[d]);
-    let mut out: [Vec<(usize, T)>; 3] = Default::default();
-    for axis in 0..3 {
-        // Faces [flo, fhi) per axis: interior along `axis`, any cell across it.
+    // Faces [flo, fhi) per axis: interior along `axis`, any cell across it.
+    let ranges: [Option<([usize; 3], [usize; 3])>; 3] = [0, 1, 2].map(|axis| {
         let mut flo = [0usize; 3];
         let mut fhi = [0usize; 3];
         for d in 0..3 {
@@ -334,24 +341,43 @@ pub fn body_faces_generic<T: Scalar + Send + Sync>(
                 fhi[d] = cell_hi(d).min(grid.n[d]);
             }
         }
-        if (0..3).any(|d| fhi[d] <= flo[d]) {
-            continue;
+        (0..3).all(|d| fhi[d] > flo[d]).then_some((flo, fhi))
+    });
+    // The refined control-volume corners of every axis lie on one lattice, every dx/2 from
+    // the origin (`half`): along `axis` a corner of face i sits at (i − 1/2 + s/2)·dx, across
+    // it at (j + s/2)·dx. The distance is sampled once there, over the corners all three axes
+    // need, rather than once per axis.
+    let r = SUBSAMPLE;
+    let half = Lattice { n: grid.n.map(|n| r * n + 1), off: [0.0; 3], dx: grid.dx / r as f64 };
+    let mut hlo = [usize::MAX; 3];
+    let mut hhi = [0usize; 3];
+    for (axis, range) in ranges.iter().enumerate() {
+        let Some((flo, fhi)) = range else { continue };
+        for d in 0..3 {
+            let lo = if d == axis { r * (flo[d] - 1) + 1 } else { r * flo[d] };
+            let hi = if d == axis { r * (fhi[d] - 1) + 1 } else { r * fhi[d] };
+            hlo[d] = hlo[d].min(lo);
+            hhi[d] = hhi[d].max(hi + 1);
         }
-        // Control-volume corners, on the refined lattice: along `axis` from flo-1 to fhi-1,
-        // across from flo to fhi (cv coordinates, times SUBSAMPLE).
-        let r = SUBSAMPLE;
-        let slo: [usize; 3] = [0, 1, 2].map(|d| r * if d == axis { flo[d] - 1 } else { flo[d] });
-        let ext: [usize; 3] = [0, 1, 2].map(|d| r * (fhi[d] - flo[d]) + 1);
-        let cv = cv_fine_lattice(grid, axis);
-        let mut block = vec![T::cst(0.0); ext[0] * ext[1] * ext[2]];
-        block.par_iter_mut().enumerate().for_each(|(l, v)| {
-            let i = l % ext[0] + slo[0];
-            let j = (l / ext[0]) % ext[1] + slo[1];
-            let k = l / (ext[0] * ext[1]) + slo[2];
-            *v = sdf(cv.position(i, j, k));
-        });
+    }
+    let mut out: [Vec<(usize, T)>; 3] = Default::default();
+    if ranges.iter().all(Option::is_none) {
+        return out;
+    }
+    let ext: [usize; 3] = [0, 1, 2].map(|d| hhi[d] - hlo[d]);
+    let mut block = vec![T::cst(0.0); ext[0] * ext[1] * ext[2]];
+    block.par_iter_mut().enumerate().for_each(|(l, v)| {
+        let i = l % ext[0] + hlo[0];
+        let j = (l / ext[0]) % ext[1] + hlo[1];
+        let k = l / (ext[0] * ext[1]) + hlo[2];
+        *v = sdf(half.position(i, j, k));
+    });
+    for (axis, range) in ranges.iter().enumerate() {
+        let Some((flo, fhi)) = *range else { continue };
+        // Refined cv coordinates of `axis` are `half` coordinates shifted by one along it.
         let at = |p: [usize; 3]| {
-            block[(p[0] - slo[0]) + ext[0] * ((p[1] - slo[1]) + ext[1] * (p[2] - slo[2]))]
+            let q: [usize; 3] = [0, 1, 2].map(|d| p[d] + usize::from(d == axis) - hlo[d]);
+            block[q[0] + ext[0] * (q[1] + ext[1] * q[2])]
         };
         let lat = grid.faces(axis);
         for k in flo[2]..fhi[2] {

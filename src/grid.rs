@@ -16,6 +16,15 @@ pub const NONE: u32 = u32::MAX;
 /// chunks and then added in order, so a sum never depends on the number of threads.
 pub const REDUCE_CHUNK: usize = 4096;
 
+/// Runs `f` on a thread of rayon's pool. A step makes dozens of short parallel loops; called
+/// from a thread outside the pool, each one would hand its work over and put the caller to
+/// sleep until it is done (a pair of context switches, tens of microseconds, per loop: on
+/// block_drop that was half the time of a step). Inside the pool, the caller takes part in
+/// its own loops. Cheap when already on the pool.
+pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| f())
+}
+
 /// The simulation grid: `n` cells of side `dx`, the domain `[0, n·dx]`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Grid {
