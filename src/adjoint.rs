@@ -419,6 +419,12 @@ fn backward_adjoint_on_pool(
                 .into(),
         });
     }
+    if scene.solver.coupling != crate::scene::Coupling::Monolithic {
+        return Err(Error::InvalidScene {
+            origin: scene.name.clone(),
+            message: "gradients are only available for solver.coupling = \"monolithic\"".into(),
+        });
+    }
     let grid = *initial.grid();
     let dt = scene.time.dt;
     let solver = &scene.solver;

@@ -285,6 +285,20 @@ pub enum Preconditioner {
     None,
 }
 
+/// How the liquid and the bodies exchange momentum in a step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Coupling {
+    /// One pressure solve for liquid and bodies together (Batty et al. 2007): the body's
+    /// response to the pressure is part of the system, so it is stable for any density ratio.
+    #[default]
+    Monolithic,
+    /// The partitioned baseline: the liquid is solved around each body moving at its current
+    /// velocity (held fixed), then the body is pushed by the resulting pressure force. Light
+    /// bodies go unstable (the added-mass instability); kept to show where, not for use.
+    Weak,
+}
+
 /// Solver settings. Every field has a default, given with its reason.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -316,6 +330,9 @@ pub struct Solver {
     /// forward pass is exactly the map the adjoint differentiates, which gradient checks need.
     /// It also skips all particle work. Default false.
     pub freeze_surface: bool,
+    /// Liquid–body coupling. Default `monolithic`; `weak` is the partitioned baseline the
+    /// stability map compares against (no gradients through it).
+    pub coupling: Coupling,
 }
 
 impl Default for Solver {
@@ -329,6 +346,7 @@ impl Default for Solver {
             theta_min: 0.01,
             density_correction: true,
             freeze_surface: false,
+            coupling: Coupling::Monolithic,
         }
     }
 }

@@ -32,7 +32,7 @@ use crate::grid::{Grid, Mac};
 use crate::math::Vec3;
 use crate::pressure::BodyCoupling;
 use crate::pressure::{PressureParams, PressureSystem};
-use crate::scene::Scene;
+use crate::scene::{Coupling, Scene};
 use crate::surface::{self, Bins};
 use serde::Serialize;
 use std::time::Instant;
@@ -348,14 +348,28 @@ impl Simulation {
         let mut sys = PressureSystem::build(&grid, &phi, &geo.weights, params);
         let dynamic: Vec<usize> =
             (0..self.bodies.len()).filter(|&i| self.bodies[i].dynamic).collect();
-        for &i in &dynamic {
-            let b = &self.bodies[i];
-            let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], b.x);
-            sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(b, dt)));
-        }
+        let mut couplings: Vec<BodyCoupling> = dynamic
+            .iter()
+            .map(|&i| {
+                let b = &self.bodies[i];
+                let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], b.x);
+                BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(b, dt))
+            })
+            .collect();
         let vel: Vec<[f64; 6]> =
             dynamic.iter().map(|&i| generalized_velocity(&self.bodies[i])).collect();
-        let b = sys.rhs(&u, &geo.weights, &vel);
+        let weak = solver.coupling == Coupling::Weak;
+        let b = if weak {
+            // Partitioned: the bodies are boundaries moving at their current velocity.
+            let mut b = sys.rhs(&u, &geo.weights, &[]);
+            for (c, v) in couplings.iter().zip(&vel) {
+                c.add_jt(&v.map(|x| -x), &mut b);
+            }
+            b
+        } else {
+            sys.bodies = std::mem::take(&mut couplings);
+            sys.rhs(&u, &geo.weights, &vel)
+        };
         let (p, stats) =
             sys.solve(&b, solver.preconditioner, solver.tolerance, solver.max_iterations);
         if !stats.converged {
@@ -368,7 +382,8 @@ impl Simulation {
         }
         let mut valid = sys.update_velocity(&p, &mut u, &geo.weights, &phi);
         let mut forces = Vec::with_capacity(dynamic.len());
-        for (coupling, &i) in sys.bodies.iter().zip(&dynamic) {
+        let couplings = if weak { &couplings } else { &sys.bodies };
+        for (coupling, &i) in couplings.iter().zip(&dynamic) {
             let f = coupling.force(&p);
             let dv = coupling.dt_minv_times(&f);
             let body = &mut self.bodies[i];
@@ -381,7 +396,7 @@ impl Simulation {
             });
         }
         let mut flux = sys.fluid_flux(&u, &geo.weights);
-        for (coupling, &i) in sys.bodies.iter().zip(&dynamic) {
+        for (coupling, &i) in couplings.iter().zip(&dynamic) {
             coupling.add_jt(&generalized_velocity(&self.bodies[i]), &mut flux);
         }
         let max_divergence = flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / grid.dx.powi(3);
