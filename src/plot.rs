@@ -157,7 +157,7 @@ pub fn trajectory_plot(
 /// One frame of an animation.
 #[derive(Clone, Debug)]
 pub struct Frame {
-    /// Liquid particles.
+    /// Liquid particles to draw (a caller may pass a subset: every one is drawn).
     pub particles: Vec<Vec3>,
     /// Each body's surface points (e.g. mesh vertices).
     pub bodies: Vec<Vec<Vec3>>,
@@ -186,10 +186,7 @@ pub fn animation_gif(path: &Path, domain: Vec3, frames: &[Frame], delay_ms: u32)
         chart.configure_mesh().disable_mesh().draw().map_err(|e| err(path, e))?;
         chart
             .draw_series(
-                f.particles
-                    .iter()
-                    .step_by(2)
-                    .map(|p| Circle::new((p.x, p.y), 1, BLUE.mix(0.4).filled())),
+                f.particles.iter().map(|p| Circle::new((p.x, p.y), 1, BLUE.mix(0.4).filled())),
             )
             .map_err(|e| err(path, e))?;
         for b in &f.bodies {
