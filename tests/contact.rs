@@ -197,3 +197,57 @@ fn fixed_body_is_not_moved() {
     println!("fixed block: ball rest gap {gap:.3e} m");
     assert!(gap.abs() <= 0.01 * r, "gap {gap}");
 }
+
+/// (5) No contact work when no contact is possible: a body whose swept, padded bounding box
+/// keeps clear of the walls and of the other bodies flies freely, with the integrator used
+/// without contact, and rapier is not called. Near a wall, moving fast toward one, or close
+/// to another body, contact is possible.
+#[test]
+fn contact_is_skipped_only_when_no_contact_is_possible() {
+    use diffluid::sim::contact_possible;
+    let domain = Vec3::ONE;
+    let dt = 0.01;
+    let mut b = cube(0.05, Vec3::new(0.5, 0.5, 0.5));
+    assert!(!contact_possible(std::slice::from_ref(&b), domain, dt));
+    // 1 mm from the floor: the pad (1% of the 0.17 m diagonal) reaches it; 2 mm does not.
+    b.x.y = 0.051;
+    assert!(contact_possible(std::slice::from_ref(&b), domain, dt));
+    b.x.y = 0.052;
+    assert!(!contact_possible(std::slice::from_ref(&b), domain, dt));
+    // ... unless it moves 1 mm toward the floor within the step.
+    b.v = Vec3::new(0.0, -0.1, 0.0);
+    assert!(contact_possible(std::slice::from_ref(&b), domain, dt));
+    assert!(contact_possible(std::slice::from_ref(&b), domain, dt));
+    // 0.2 m from the floor, but falling at 25 m/s: within reach in one step.
+    b.x.y = 0.25;
+    b.v = Vec3::new(0.0, -25.0, 0.0);
+    assert!(contact_possible(std::slice::from_ref(&b), domain, dt));
+    b.v = Vec3::ZERO;
+    assert!(!contact_possible(std::slice::from_ref(&b), domain, dt));
+    // Two bodies 1 mm apart.
+    let other = cube(0.05, Vec3::new(0.5, 0.351, 0.5));
+    assert!(contact_possible(&[b.clone(), other.clone()], domain, dt));
+    let far = cube(0.05, Vec3::new(0.2, 0.7, 0.2));
+    assert!(!contact_possible(&[b, far], domain, dt));
+}
+
+/// (6) The same scene with contact on and off runs bit-identically while the body is far
+/// from everything: the contact stage does nothing it need not do.
+#[test]
+fn contact_on_changes_nothing_away_from_walls() {
+    let mut scene = diffluid::Scene::builtin("block_drop").unwrap();
+    scene.solver.freeze_surface = true;
+    scene.time.steps = 10;
+    scene.optimize = None;
+    let mut on = scene.clone();
+    on.contact.enabled = true;
+    let (mut a, mut b) =
+        (diffluid::Simulation::new(scene).unwrap(), diffluid::Simulation::new(on).unwrap());
+    for _ in 0..10 {
+        a.step().unwrap();
+        b.step().unwrap();
+    }
+    let (x, y) = (&a.bodies[0], &b.bodies[0]);
+    assert_eq!((x.x, x.q, x.v, x.w), (y.x, y.q, y.v, y.w));
+    assert_eq!(a.u, b.u);
+}
