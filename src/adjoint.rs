@@ -65,6 +65,9 @@ pub struct StepRecord {
     pub p: Vec<f64>,
     /// Particle φ_L of the step (empty when the surface is frozen: the initial one).
     pub phi: Vec<f64>,
+    /// The contact impulse (as a velocity change [Δv; Δω], per dynamic body) the projection
+    /// held on each body; zero without contact. The gradient takes it as a constant.
+    pub contact_kick: Vec<[f64; 6]>,
 }
 
 /// The recorded forward pass.
@@ -580,8 +583,10 @@ fn backward_adjoint_on_pool(
             };
             for (k, &i) in dynamic.iter().enumerate() {
                 let b = &bodies[i];
-                let vh =
+                let kick = rec.contact_kick.get(k).copied().unwrap_or([0.0; 6]);
+                let vh0 =
                     [b.v.x + dt * g.x, b.v.y + dt * g.y, b.v.z + dt * g.z, b.w.x, b.w.y, b.w.z];
+                let vh: [f64; 6] = std::array::from_fn(|d| vh0[d] + kick[d]);
                 let gr = geometry_gradient(&geo_in, b, &dual_faces[i], k, &vh, &adj_v[k]);
                 for d in 0..6 {
                     pose_grad[i][d] += gr[d];
