@@ -378,6 +378,7 @@ impl Simulation {
         let mut kick = vec![[0.0f64; 6]; dynamic.len()];
         let mut contact_iterations = 0;
         let mut contact_residual = 0.0;
+        let mut last_p: Option<Vec<f64>> = None;
         let u_advected = u;
         let (p, stats, mut u, mut valid, forces) = loop {
             let vel: Vec<[f64; 6]> = v_start
@@ -395,8 +396,19 @@ impl Simulation {
             } else {
                 sys.rhs(&u_advected, &geo.weights, &vel)
             };
-            let (p, stats) =
-                sys.solve(&b, solver.preconditioner, solver.tolerance, solver.max_iterations);
+            // Warm start: the last solve's pressure (this step's previous contact iteration,
+            // or the last step's).
+            let guess = match &last_p {
+                Some(p) => p.clone(),
+                None => sys.cell_of_row.iter().map(|&c| self.pressure[c as usize]).collect(),
+            };
+            let (p, stats) = sys.solve_from(
+                &b,
+                guess,
+                solver.preconditioner,
+                solver.tolerance,
+                solver.max_iterations,
+            );
             if !stats.converged {
                 return Err(Error::NotConverged {
                     step: self.step + 1,
@@ -434,6 +446,7 @@ impl Simulation {
                         }
                     }
                     contact_iterations += 1;
+                    last_p = Some(p);
                     continue;
                 }
             }
