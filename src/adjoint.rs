@@ -450,15 +450,14 @@ fn backward_adjoint_on_pool(
             let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], bodies[i].x);
             sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&bodies[i], dt)));
         }
-        // The faces the step reads after advection; the projection's (valid) faces are
-        // among them.
+        // The faces the step reads after advection, and the projection's (valid) faces.
         let needed = crate::advect::needed_faces(&grid, &phi, &geo.body_faces);
         let valid0: [Vec<u8>; 3] = [0, 1, 2].map(|a| {
-            (0..grid.faces(a).len())
-                .map(|f| {
-                    u8::from(needed[a][f] && sys.face_gradient(a, f, &geo.weights, &phi).is_some())
-                })
-                .collect()
+            let mut v = vec![0u8; grid.faces(a).len()];
+            for pf in &sys.faces[a] {
+                v[pf.face as usize] = 1;
+            }
+            v
         });
 
         // 6ᵀ: rigid integration. The body's velocity after the step is v' itself.
@@ -486,7 +485,7 @@ fn backward_adjoint_on_pool(
         let mut u_hat = crate::advect::advect(&rec.u, &grid, dt, Some(&needed));
         crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
         let mut u_corr = u_hat.clone();
-        sys.update_velocity(&rec.p, &mut u_corr, &geo.weights, &phi);
+        sys.update_velocity(&rec.p, &mut u_corr);
         let mut valid0 = valid0;
         crate::extrapolate::mark_body_faces(&mut valid0, &geo.body_faces);
         // The fractions' derivatives along each body's pose (full gradient only).
@@ -555,8 +554,7 @@ fn backward_adjoint_on_pool(
 
         // 4ᵀ: projection.
         let adj_v: Vec<[f64; 6]> = dynamic.iter().map(|&i| vbar[i]).collect();
-        let (uhat, vhat, _s, stats) =
-            sys.projection_adjoint(&ubar, &adj_v, &geo.weights, &phi, solver);
+        let (uhat, vhat, _s, stats) = sys.projection_adjoint(&ubar, &adj_v, solver);
         if !stats.converged {
             return Err(Error::NotConverged {
                 step: t + 1,

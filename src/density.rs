@@ -81,7 +81,7 @@ pub fn correct(
         });
     }
     let mut d = Mac::zeros(grid);
-    let mut valid = sys.update_velocity(&q, &mut d, g.weights, &phi);
+    let mut valid = sys.update_velocity(&q, &mut d);
     correct_velocity(&mut d, &mut valid, g.weights, grid, 1);
     let nodes = grid.nodes();
     let size = grid.size();

@@ -82,6 +82,20 @@ pub struct PressureSystem {
     pub has_air: bool,
     /// Rank-6 coupling terms, one per dynamic body.
     pub bodies: Vec<BodyCoupling>,
+    /// Per axis, the faces the velocity update acts on (open faces next to a liquid cell),
+    /// in increasing face order, with their pressure gradients.
+    pub faces: [Vec<ProjectedFace>; 3],
+}
+
+/// A face the velocity update acts on.
+#[derive(Clone, Copy, Debug)]
+pub struct ProjectedFace {
+    /// Face index on its axis's lattice.
+    pub face: u32,
+    /// Its fluid weight.
+    pub weight: f64,
+    /// The pressure gradient across it.
+    pub gradient: FaceGradient,
 }
 
 /// One body's coupling over the unknowns: the non-zero columns of J and Δt·M_S⁻¹.
@@ -238,7 +252,7 @@ impl PressureSystem {
             plus: rows.iter().map(|r| r.1).collect(),
             nbr: rows.iter().map(|r| r.2).collect(),
         };
-        PressureSystem {
+        let mut sys = PressureSystem {
             grid: *grid,
             params,
             cell_of_row,
@@ -246,7 +260,43 @@ impl PressureSystem {
             stencil,
             has_air,
             bodies: Vec::new(),
-        }
+            faces: Default::default(),
+        };
+        sys.faces = [0, 1, 2].map(|a| sys.projected_faces(a, weights, phi));
+        sys
+    }
+
+    /// The faces of `axis` next to a liquid cell that the velocity update acts on, each once
+    /// (a row takes its − face, and its + face when no row lies beyond it), sorted.
+    fn projected_faces(
+        &self,
+        axis: usize,
+        weights: &[Vec<f64>; 3],
+        phi: &[f64],
+    ) -> Vec<ProjectedFace> {
+        let grid = &self.grid;
+        let cells = grid.cells();
+        let mut out: Vec<ProjectedFace> =
+            self.cell_of_row
+                .par_iter()
+                .flat_map_iter(|&c| {
+                    let ijk = cells.ijk(c as usize);
+                    let beyond = neighbour(grid, axis, ijk, 1);
+                    let plus_is_row = beyond.is_some_and(|n| self.row_of_cell[n] != NONE);
+                    let sides: &[usize] = if plus_is_row { &[0] } else { &[0, 1] };
+                    sides
+                        .iter()
+                        .filter_map(|&side| {
+                            let f = cell_face(grid, axis, ijk, side);
+                            self.face_gradient(axis, f, weights, phi).map(|gradient| {
+                                ProjectedFace { face: f as u32, weight: weights[axis][f], gradient }
+                            })
+                        })
+                        .collect::<Vec<_>>()
+                })
+                .collect();
+        out.sort_unstable_by_key(|pf| pf.face);
+        out
     }
 
     /// Number of unknowns.
@@ -363,25 +413,16 @@ impl PressureSystem {
 
     /// Applies `u −= (Δt/ρ) ∇p` on every open face next to a liquid cell (with p = 0 in air
     /// at distance θ·dx) and returns the mask of faces so updated (the valid faces).
-    pub fn update_velocity(
-        &self,
-        p: &[f64],
-        u: &mut Mac,
-        weights: &[Vec<f64>; 3],
-        phi: &[f64],
-    ) -> [Vec<u8>; 3] {
+    pub fn update_velocity(&self, p: &[f64], u: &mut Mac) -> [Vec<u8>; 3] {
         let grid = &self.grid;
         let k = self.params.dt / (self.params.density * grid.dx);
         let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
         for a in 0..3 {
-            u.c[a].par_iter_mut().zip(valid[a].par_iter_mut()).enumerate().for_each(
-                |(f, (uf, vf))| {
-                    if let Some(g) = self.face_gradient(a, f, weights, phi) {
-                        *uf -= k * g.apply(p);
-                        *vf = 1;
-                    }
-                },
-            );
+            for pf in &self.faces[a] {
+                let f = pf.face as usize;
+                u.c[a][f] -= k * pf.gradient.apply(p);
+                valid[a][f] = 1;
+            }
         }
         valid
     }
@@ -420,26 +461,21 @@ impl PressureSystem {
 
     /// Adjoint of [`PressureSystem::update_velocity`] with respect to p: given the adjoint
     /// of the updated face velocities, returns `−k·G̃ᵀ·adj` per row.
-    pub fn update_velocity_adjoint(
-        &self,
-        adj_u: &Mac,
-        weights: &[Vec<f64>; 3],
-        phi: &[f64],
-    ) -> Vec<f64> {
+    pub fn update_velocity_adjoint(&self, adj_u: &Mac) -> Vec<f64> {
         let k = self.params.dt / (self.params.density * self.grid.dx);
         let mut out = vec![0.0; self.len()];
         for a in 0..3 {
-            for (f, &adj) in adj_u.c[a].iter().enumerate() {
+            for pf in &self.faces[a] {
+                let adj = adj_u.c[a][pf.face as usize];
                 if adj == 0.0 {
                     continue;
                 }
-                if let Some(g) = self.face_gradient(a, f, weights, phi) {
-                    if g.cp != 0.0 {
-                        out[g.rp as usize] -= k * g.cp * adj;
-                    }
-                    if g.cm != 0.0 {
-                        out[g.rm as usize] += k * g.cm * adj;
-                    }
+                let g = &pf.gradient;
+                if g.cp != 0.0 {
+                    out[g.rp as usize] -= k * g.cp * adj;
+                }
+                if g.cm != 0.0 {
+                    out[g.rm as usize] += k * g.cm * adj;
                 }
             }
         }
@@ -448,25 +484,16 @@ impl PressureSystem {
 
     /// Transpose of [`PressureSystem::fluid_flux`]: the face adjoint `dx²·w_f·(s_m − s_p)`
     /// from a row adjoint `s` (zero in air and solid).
-    pub fn fluid_flux_adjoint(&self, s: &[f64], weights: &[Vec<f64>; 3]) -> Mac {
+    pub fn fluid_flux_adjoint(&self, s: &[f64]) -> Mac {
         let grid = &self.grid;
         let area = grid.dx * grid.dx;
         let mut out = Mac::zeros(grid);
+        let sv = |r: u32| if r != NONE { s[r as usize] } else { 0.0 };
         for a in 0..3 {
-            let lat = grid.faces(a);
-            let w = &weights[a];
-            lat.fill_par(&mut out.c[a], |i, j, k| {
-                let f = lat.index(i, j, k);
-                if w[f] <= 0.0 {
-                    return 0.0;
-                }
-                let (m, p) = grid.face_cells(a, [i, j, k]);
-                let sv = |c: Option<usize>| match c.map(|c| self.row_of_cell[c]) {
-                    Some(r) if r != NONE => s[r as usize],
-                    _ => 0.0,
-                };
-                area * w[f] * (sv(m) - sv(p))
-            });
+            for pf in &self.faces[a] {
+                let g = &pf.gradient;
+                out.c[a][pf.face as usize] = area * pf.weight * (sv(g.rm) - sv(g.rp));
+            }
         }
         out
     }
@@ -480,11 +507,9 @@ impl PressureSystem {
         &self,
         adj_u: &Mac,
         adj_v: &[[f64; 6]],
-        weights: &[Vec<f64>; 3],
-        phi: &[f64],
         solver: &crate::scene::Solver,
     ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
-        let mut pbar = self.update_velocity_adjoint(adj_u, weights, phi);
+        let mut pbar = self.update_velocity_adjoint(adj_u);
         for (b, av) in self.bodies.iter().zip(adj_v) {
             b.add_jt(&b.dt_minv_times(av), &mut pbar);
         }
@@ -492,7 +517,7 @@ impl PressureSystem {
         // iteration of 18 on block_drop.
         let (s, stats) =
             self.solve(&pbar, solver.preconditioner, solver.tolerance, solver.max_iterations);
-        let ft = self.fluid_flux_adjoint(&s, weights);
+        let ft = self.fluid_flux_adjoint(&s);
         let mut u_hat = adj_u.clone();
         for a in 0..3 {
             for (x, y) in u_hat.c[a].iter_mut().zip(&ft.c[a]) {
@@ -560,10 +585,26 @@ mod tests {
     }
 
     #[test]
+    fn projected_faces_are_every_face_with_a_gradient_once() {
+        // The face list the velocity update walks must be exactly the faces where the
+        // per-face rule gives a gradient, each once, in order.
+        let (sys, phi, weights) = system_with_inputs();
+        for a in 0..3 {
+            let brute: Vec<u32> = (0..sys.grid.faces(a).len())
+                .filter(|&f| sys.face_gradient(a, f, &weights, &phi).is_some())
+                .map(|f| f as u32)
+                .collect();
+            let listed: Vec<u32> = sys.faces[a].iter().map(|pf| pf.face).collect();
+            assert!(!brute.is_empty());
+            assert_eq!(listed, brute, "axis {a}");
+        }
+    }
+
+    #[test]
     fn projection_adjoint_is_the_transpose() {
         // For fixed geometry the projection is linear in (û, v̂):
         // ⟨P(û, v̂), (ū, v̄)⟩ = ⟨(û, v̂), Pᵀ(ū, v̄)⟩, to the solver's tolerance.
-        let (mut sys, phi, weights) = system_with_inputs();
+        let (mut sys, _, weights) = system_with_inputs();
         let grid = sys.grid;
         // A body touching a few rows, with an SPD Δt·M⁻¹.
         let jac: Vec<(usize, [f64; 6])> = (0..6)
@@ -595,13 +636,13 @@ mod tests {
         let b = sys.rhs(&uh, &weights, &[vh]);
         let (p, _) = sys.solve(&b, Preconditioner::Mic0, tol, 10_000);
         let mut u1 = uh.clone();
-        sys.update_velocity(&p, &mut u1, &weights, &phi);
+        sys.update_velocity(&p, &mut u1);
         let dv = sys.bodies[0].dt_minv_times(&sys.bodies[0].force(&p));
         let v1: [f64; 6] = std::array::from_fn(|d| vh[d] + dv[d]);
         // Adjoint.
         let settings =
             crate::scene::Solver { tolerance: tol, max_iterations: 10_000, ..Default::default() };
-        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &weights, &phi, &settings);
+        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &settings);
         let lhs = u1.dot(&ub) + (0..6).map(|d| v1[d] * vb[d]).sum::<f64>();
         let rhs = uh.dot(&ua) + (0..6).map(|d| vh[d] * va[0][d]).sum::<f64>();
         assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");

@@ -418,7 +418,7 @@ impl Simulation {
                 });
             }
             let mut u = u_advected.clone();
-            let valid = sys.update_velocity(&p, &mut u, &geo.weights, &phi);
+            let valid = sys.update_velocity(&p, &mut u);
             let mut forces = Vec::with_capacity(dynamic.len());
             for ((coupling, &i), v) in couplings.iter().zip(&dynamic).zip(&vel) {
                 let f = coupling.force(&p);
