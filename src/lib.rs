@@ -2,7 +2,7 @@
 //!
 //! The forward step is a pipeline of stages, one module each (see [`sim`]):
 //! [`surface`] (marker particles, liquid signed distance), [`advect`], [`forces`],
-//! [`pressure`] (with [`cg`] and [`mic0`]), and [`extrapolate`]. Geometry enters through
+//! [`pressure`] (with [`cg`], [`mic0`] and [`multigrid`]), and [`extrapolate`]. Geometry enters through
 //! [`shape`] (parry shapes) and [`fractions`] (face weights from signed distances); scenes
 //! are TOML files read by [`scene`].
 #![warn(missing_docs)]
@@ -25,6 +25,7 @@ pub mod grid;
 pub mod math;
 pub mod mesh;
 pub mod mic0;
+pub mod multigrid;
 pub mod optimize;
 pub mod output;
 pub mod plot;

@@ -11,69 +11,211 @@
 
 use crate::grid::NONE;
 use crate::pressure::Stencil;
+use rayon::prelude::*;
 
 /// Bridson's τ: the fraction of dropped fill-in moved to the diagonal.
 pub const TAU: f64 = 0.97;
 /// Bridson's σ: the smallest pivot kept, relative to the diagonal.
 pub const SIGMA: f64 = 0.25;
 
+/// Tiles across y; see the private `Schedule`.
+const TILES_J: usize = 4;
+/// Planes per tile along z.
+const TILE_K: usize = 2;
+
+/// The order of the triangular solves' parallel work (level scheduling by tiles). The rows
+/// of one x-line (j, k) are consecutive; the lines are grouped in tiles of TILE × TILE lines
+/// in (j, k), and a tile's rows are swept in their sequential order by one thread. A row
+/// depends on its −x, −y and −z neighbours only, which lie in the same tile (earlier) or in
+/// the tiles at (J−1, K) and (J, K−1). So tiles of one wave J + K are independent, and the
+/// waves run in order. Every row is still computed from the same operands in the same order
+/// as in a sequential sweep, so the result is bit-identical for any thread count; tiles rather
+/// than single lines keep the number of waves (and of rayon joins) small, 2·n/TILE.
+#[derive(Clone, Debug, Default)]
+struct Schedule {
+    /// Row ranges `[start, end)` of the lines, grouped by tile, tiles by wave.
+    lines: Vec<(u32, u32)>,
+    /// Ranges of `lines`, one per tile, sorted by wave.
+    tiles: Vec<(usize, usize)>,
+    /// The tiles of wave `w` are `tiles[wave[w]..wave[w + 1]]`.
+    wave: Vec<usize>,
+}
+
+impl Schedule {
+    fn new(n: [usize; 3], cell_of_row: &[u32]) -> Schedule {
+        let tile_j = n[1].div_ceil(TILES_J).max(1);
+        let tiles_j = n[1].div_ceil(tile_j).max(1);
+        // (wave, tile, start, end) of each line, in row order.
+        let mut lines: Vec<(usize, usize, u32, u32)> = Vec::new();
+        let mut last_line = usize::MAX;
+        for (r, &c) in cell_of_row.iter().enumerate() {
+            let line = c as usize / n[0];
+            if line != last_line {
+                let (j, k) = (line % n[1], line / n[1]);
+                let (tj, tk) = (j / tile_j, k / TILE_K);
+                lines.push((tj + tk, tj + tiles_j * tk, r as u32, r as u32 + 1));
+                last_line = line;
+            } else {
+                lines.last_mut().expect("a line").3 = r as u32 + 1;
+            }
+        }
+        // Stable: rows keep their order inside a tile.
+        lines.sort_by_key(|l| (l.0, l.1));
+        let (mut tiles, mut wave) = (Vec::new(), vec![0]);
+        for (i, l) in lines.iter().enumerate() {
+            if i == 0 || l.1 != lines[i - 1].1 {
+                if i > 0 && l.0 != lines[i - 1].0 {
+                    wave.push(tiles.len());
+                }
+                tiles.push((i, i + 1));
+            } else {
+                tiles.last_mut().expect("a tile").1 = i + 1;
+            }
+        }
+        if !tiles.is_empty() {
+            wave.push(tiles.len());
+        }
+        Schedule { lines: lines.iter().map(|l| (l.2, l.3)).collect(), tiles, wave }
+    }
+
+    /// Calls `f` on the row range of every line, wave after wave, the tiles of a wave in
+    /// parallel and the lines of a tile in order.
+    fn forward(&self, f: impl Fn(usize, usize) + Sync) {
+        for w in self.wave.windows(2) {
+            self.tiles[w[0]..w[1]].par_iter().with_min_len(1).for_each(|&(a, b)| {
+                for &(s, e) in &self.lines[a..b] {
+                    f(s as usize, e as usize);
+                }
+            });
+        }
+    }
+
+    /// As [`Schedule::forward`], everything in reverse order.
+    fn backward(&self, f: impl Fn(usize, usize) + Sync) {
+        for w in self.wave.windows(2).rev() {
+            self.tiles[w[0]..w[1]].par_iter().with_min_len(1).for_each(|&(a, b)| {
+                for &(s, e) in self.lines[a..b].iter().rev() {
+                    f(s as usize, e as usize);
+                }
+            });
+        }
+    }
+}
+
+/// A vector the triangular solves write from several threads at once.
+///
+/// Soundness rests on the schedule: every row is written by exactly one task (the one whose
+/// tile holds it), and a row is read only by that task after writing it, or by tasks of a
+/// later wave, which start after the wave that wrote it has joined (a rayon join orders the
+/// memory). Relaxed atomics would need no `unsafe`, but they cost 50% more time per solve
+/// (measured at 128³, one thread): the compiler may not reorder loads across them.
+struct Shared<'a> {
+    ptr: *mut f64,
+    len: usize,
+    _marker: std::marker::PhantomData<&'a mut [f64]>,
+}
+
+// SAFETY: see the type's doc; the schedule keeps the threads' accesses apart.
+unsafe impl Send for Shared<'_> {}
+// SAFETY: as above.
+unsafe impl Sync for Shared<'_> {}
+
+impl<'a> Shared<'a> {
+    fn new(v: &'a mut [f64]) -> Self {
+        Shared { ptr: v.as_mut_ptr(), len: v.len(), _marker: std::marker::PhantomData }
+    }
+
+    #[inline]
+    fn get(&self, i: usize) -> f64 {
+        assert!(i < self.len);
+        // SAFETY: in bounds; no other thread writes row i while it may be read (type doc).
+        unsafe { *self.ptr.add(i) }
+    }
+
+    #[inline]
+    fn set(&self, i: usize, x: f64) {
+        assert!(i < self.len);
+        // SAFETY: in bounds; only this task touches row i during its wave (type doc).
+        unsafe { *self.ptr.add(i) = x }
+    }
+}
+
 /// The MIC(0) factor, stored as the inverse square roots of its pivots.
+///
+/// The factorisation and the triangular solves run wave by wave (see the private
+/// `Schedule`): each row is written by exactly one thread and read only after the wave that
+/// wrote it has joined, so the answer does not depend on the number of threads.
 #[derive(Clone, Debug, Default)]
 pub struct Mic0 {
     inv: Vec<f64>,
+    schedule: Schedule,
 }
 
 impl Mic0 {
-    /// Factors the stencil. Rows must be in lexicographic order (x fastest), so the −x, −y,
-    /// −z neighbours of a row come before it.
-    pub fn new(a: &Stencil) -> Mic0 {
+    /// Factors the stencil of the rows in cells `cell_of_row` of a lattice of `n` cells. Rows
+    /// must be in lexicographic order (x fastest), so the −x, −y, −z neighbours of a row come
+    /// before it.
+    pub fn new(a: &Stencil, n: [usize; 3], cell_of_row: &[u32]) -> Mic0 {
+        let schedule = Schedule::new(n, cell_of_row);
         let n = a.diag.len();
         let mut inv = vec![0.0; n];
-        for r in 0..n {
-            let mut e = a.diag[r];
-            for axis in 0..3 {
-                let m = a.nbr[r][2 * axis];
-                if m == NONE {
-                    continue;
+        let inv_s = Shared::new(&mut inv);
+        let (diag, nbr, plus) = (&a.diag[..], &a.nbr[..], &a.plus[..]);
+        schedule.forward(|start, end| {
+            for r in start..end {
+                let mut e = diag[r];
+                for axis in 0..3 {
+                    let m = nbr[r][2 * axis];
+                    if m == NONE {
+                        continue;
+                    }
+                    let m = m as usize;
+                    let im = inv_s.get(m);
+                    let c = plus[m][axis] * im;
+                    let others: f64 = (0..3).filter(|&b| b != axis).map(|b| plus[m][b]).sum();
+                    e -= c * c + TAU * plus[m][axis] * others * im * im;
                 }
-                let m = m as usize;
-                let c = a.plus[m][axis] * inv[m];
-                let others: f64 = (0..3).filter(|&b| b != axis).map(|b| a.plus[m][b]).sum();
-                e -= c * c + TAU * a.plus[m][axis] * others * inv[m] * inv[m];
+                if e < SIGMA * diag[r] {
+                    e = diag[r];
+                }
+                inv_s.set(r, if e > 0.0 { 1.0 / e.sqrt() } else { 0.0 });
             }
-            if e < SIGMA * a.diag[r] {
-                e = a.diag[r];
-            }
-            inv[r] = if e > 0.0 { 1.0 / e.sqrt() } else { 0.0 };
-        }
-        Mic0 { inv }
+        });
+        Mic0 { inv, schedule }
     }
 
     /// z = (L Lᵀ)⁻¹ r.
     pub fn apply(&self, a: &Stencil, r: &[f64], z: &mut [f64]) {
-        let n = r.len();
-        // Forward: L q = r, stored in z.
-        for i in 0..n {
-            let mut t = r[i];
-            for axis in 0..3 {
-                let m = a.nbr[i][2 * axis];
-                if m != NONE {
-                    let m = m as usize;
-                    t += a.plus[m][axis] * self.inv[m] * z[m];
+        // Slices in locals: the compiler cannot keep a Vec's pointer in a register across
+        // stores it cannot prove to be elsewhere.
+        let (inv, nbr, plus) = (&self.inv[..], &a.nbr[..], &a.plus[..]);
+        let q = Shared::new(z);
+        // Forward: L q = r.
+        self.schedule.forward(|start, end| {
+            for i in start..end {
+                let mut t = r[i];
+                for axis in 0..3 {
+                    let m = nbr[i][2 * axis];
+                    if m != NONE {
+                        let m = m as usize;
+                        t += plus[m][axis] * inv[m] * q.get(m);
+                    }
                 }
+                q.set(i, t * inv[i]);
             }
-            z[i] = t * self.inv[i];
-        }
-        // Backward: Lᵀ z = q.
-        for i in (0..n).rev() {
-            let mut t = z[i];
-            for axis in 0..3 {
-                let p = a.nbr[i][2 * axis + 1];
-                if p != NONE {
-                    t += a.plus[i][axis] * self.inv[i] * z[p as usize];
+        });
+        // Backward: Lᵀ z = q, in place.
+        self.schedule.backward(|start, end| {
+            for i in (start..end).rev() {
+                let mut t = q.get(i);
+                for axis in 0..3 {
+                    let p = nbr[i][2 * axis + 1];
+                    if p != NONE {
+                        t += plus[i][axis] * inv[i] * q.get(p as usize);
+                    }
                 }
+                q.set(i, t * inv[i]);
             }
-            z[i] = t * self.inv[i];
-        }
+        });
     }
 }

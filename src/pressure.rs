@@ -17,6 +17,7 @@
 use crate::cg::{pcg_from, CgSettings, CgStats};
 use crate::grid::{Grid, Mac, NONE};
 use crate::mic0::Mic0;
+use crate::multigrid::Multigrid;
 use crate::scene::Preconditioner;
 use rayon::prelude::*;
 
@@ -366,7 +367,8 @@ impl PressureSystem {
         b
     }
 
-    /// Solves A p = b with the chosen preconditioner.
+    /// Solves A p = b with the chosen preconditioner ([`Preconditioner::Auto`] picks one by the
+    /// number of unknowns).
     pub fn solve(
         &self,
         b: &[f64],
@@ -389,9 +391,12 @@ impl PressureSystem {
         assert_eq!(p.len(), self.len());
         let settings = CgSettings { tolerance, max_iterations, project_constant: !self.has_air };
         let apply = |x: &[f64], y: &mut [f64]| self.apply(x, y);
-        let stats = match preconditioner {
+        // The solve runs as one task on a rayon worker, so its many small parallel loops
+        // (dozens per wavefront-scheduled MIC(0) or per V-cycle) are forked from inside the
+        // pool instead of each waking a worker from outside (two thread switches apiece).
+        let stats = rayon::scope(|_| match preconditioner {
             Preconditioner::Mic0 => {
-                let m = Mic0::new(&self.stencil);
+                let m = Mic0::new(&self.stencil, self.grid.n, &self.cell_of_row);
                 pcg_from(
                     apply,
                     |r: &[f64], z: &mut [f64]| m.apply(&self.stencil, r, z),
@@ -400,6 +405,10 @@ impl PressureSystem {
                     &settings,
                 )
             }
+            Preconditioner::Multigrid => {
+                let m = Multigrid::new(self.grid.n, &self.cell_of_row, &self.stencil);
+                pcg_from(apply, |r: &[f64], z: &mut [f64]| m.apply(r, z), b, &mut p, &settings)
+            }
             Preconditioner::None => pcg_from(
                 apply,
                 |r: &[f64], z: &mut [f64]| z.copy_from_slice(r),
@@ -407,7 +416,14 @@ impl PressureSystem {
                 &mut p,
                 &settings,
             ),
-        };
+            Preconditioner::Auto => {
+                let chosen = preconditioner.resolve(self.len());
+                let (q, stats) =
+                    self.solve_from(b, std::mem::take(&mut p), chosen, tolerance, max_iterations);
+                p = q;
+                stats
+            }
+        });
         (p, stats)
     }
 

@@ -1,0 +1,595 @@
+//! A geometric multigrid V-cycle as a preconditioner for the pressure CG (MGPCG, McAdams,
+//! Sifakis & Teran 2010), beside [`crate::mic0`].
+//!
+//! **Levels.** The finest level is the pressure stencil on the whole cell lattice: the
+//! unknowns keep their rows, every other cell (air, solid) is absent, which on the fine
+//! level is exactly the Dirichlet (air, p = 0, with the ghost-fluid θ already in the
+//! diagonal) or Neumann (solid, weight 0) condition the stencil was built with. A coarse
+//! cell is a 2×2×2 block of fine cells (fewer at the upper ends of a lattice whose size is
+//! not even), and the coarse operator is the Galerkin product `½·Pᵀ A P` with `P` the
+//! piecewise-constant prolongation from a block to its fine cells that are present. It is
+//! again a symmetric weakly diagonally dominant 7-point stencil, so nothing else is needed
+//! to coarsen fractional face weights (bodies), ghost-fluid diagonals and odd lattice sizes:
+//! they are summed into the coarse coefficients. The factor ½ is the ratio between the
+//! Galerkin and the rediscretised coarse Laplacian in 3-D (a coarse face spans four fine
+//! faces, while the rediscretised coupling at spacing 2h is twice the fine one); without it
+//! piecewise-constant prolongation makes the coarse correction about twice too small
+//! (Braess 1995, who over-corrects by a factor instead). The rank-6 rigid-body terms are
+//! left out, as in MIC(0): they are a low-rank change that CG absorbs in a few iterations.
+//!
+//! **Smoother.** Red–black Gauss–Seidel, colour = parity of i + j + k. The cycle smooths
+//! red then black ([`SMOOTHING`] times) on the way down and black then red on the way up,
+//! and the coarsest level is a palindromic sequence of half-sweeps; restriction is `Pᵀ`
+//! (the transpose of prolongation). So the whole V-cycle, as a map from residual to
+//! correction, is symmetric, and positive definite because Gauss–Seidel converges in the
+//! energy norm of any symmetric positive semi-definite matrix with a positive diagonal: it is
+//! a valid CG preconditioner. In a closed tank with no air every level is singular with the
+//! constant in its null space; the cycle does not divide by anything that vanishes there
+//! (only by diagonals, which are positive), and CG projects the constant out.
+//!
+//! **Parallelism.** Each colour is stored apart, so a half-sweep writes one colour while it
+//! reads the other, one independent update per cell; restriction sums each block's children
+//! in a fixed order. No reduction depends on the thread count: the cycle is bit-identical
+//! with any number of rayon threads.
+
+use crate::grid::NONE;
+use crate::pressure::Stencil;
+use rayon::prelude::*;
+use std::sync::Mutex;
+
+/// Scale of the Galerkin coarse operator, `A_c = COARSE_SCALE·Pᵀ A P` (see the module doc).
+/// Measured on the system of `benches/solve.rs` to 1e-6: 0.5 takes 8 CG iterations at 64³
+/// and 128³, 0.6 takes 9–10, and the plain Galerkin product (1.0) 22–30.
+pub const COARSE_SCALE: f64 = 0.5;
+/// Red–black Gauss–Seidel sweeps before and after the coarse correction on every level but
+/// the coarsest. Measured as above: 1 sweep takes 13 iterations, 2 take 8 and 3 take 7; in
+/// time 1 was the slowest, and 2 and 3 were within the noise of a shared 2-core machine.
+pub const SMOOTHING: usize = 2;
+/// Coarsening stops once a level has at most this many cells present.
+pub const COARSEST_CELLS: usize = 128;
+/// Red–black sweeps on the coarsest level (a few hundred cells at most: cheap).
+pub const COARSEST_SWEEPS: usize = 30;
+
+/// Smallest loop handed to rayon as one piece.
+const MIN_PAR: usize = 1024;
+/// Marks a slot of the black colour in a packed (colour, index) slot.
+const BLACK_BIT: u32 = 1 << 31;
+
+#[inline]
+fn pack(colour: usize, i: usize) -> u32 {
+    (i as u32) | if colour == 1 { BLACK_BIT } else { 0 }
+}
+
+#[inline]
+fn unpack(s: u32) -> (usize, usize) {
+    ((s >> 31) as usize, (s & !BLACK_BIT) as usize)
+}
+
+/// A 7-point stencil on a whole lattice; a cell with a zero diagonal is absent.
+struct LatticeStencil {
+    n: [usize; 3],
+    diag: Vec<f64>,
+    /// Coupling to the +x, +y, +z neighbour (A_ij = −plus).
+    plus: Vec<[f64; 3]>,
+}
+
+impl LatticeStencil {
+    fn index(&self, i: usize, j: usize, k: usize) -> usize {
+        i + self.n[0] * (j + self.n[1] * k)
+    }
+
+    fn ijk(&self, c: usize) -> [usize; 3] {
+        let i = c % self.n[0];
+        let r = c / self.n[0];
+        [i, r % self.n[1], r / self.n[1]]
+    }
+
+    fn present(&self) -> usize {
+        self.diag.iter().filter(|&&d| d > 0.0).count()
+    }
+
+    /// `COARSE_SCALE·Pᵀ A P` over 2×2×2 blocks.
+    fn coarsen(&self) -> LatticeStencil {
+        let n = self.n.map(|m| m.div_ceil(2));
+        let len = n[0] * n[1] * n[2];
+        let mut coarse = LatticeStencil { n, diag: vec![0.0; len], plus: vec![[0.0; 3]; len] };
+        let rows: Vec<(f64, [f64; 3])> = (0..len)
+            .into_par_iter()
+            .with_min_len(MIN_PAR)
+            .map(|cc| {
+                let big = coarse.ijk(cc);
+                let (mut diag, mut gross, mut plus) = (0.0, 0.0, [0.0; 3]);
+                for k in 2 * big[2]..(2 * big[2] + 2).min(self.n[2]) {
+                    for j in 2 * big[1]..(2 * big[1] + 2).min(self.n[1]) {
+                        for i in 2 * big[0]..(2 * big[0] + 2).min(self.n[0]) {
+                            let c = self.index(i, j, k);
+                            let d = self.diag[c];
+                            if d <= 0.0 {
+                                continue;
+                            }
+                            diag += d;
+                            gross += d;
+                            let ijk = [i, j, k];
+                            for a in 0..3 {
+                                // A child at an even index couples to its +a sibling inside
+                                // the block; one at an odd index to the next block.
+                                if ijk[a] % 2 == 0 {
+                                    diag -= 2.0 * self.plus[c][a];
+                                } else {
+                                    plus[a] += self.plus[c][a];
+                                }
+                            }
+                        }
+                    }
+                }
+                // A block whose rows cancel (a sealed pocket of a few cells) is left out
+                // rather than divided by its round-off: dropping a row and column keeps the
+                // operator positive semi-definite.
+                if diag <= 1e-12 * gross {
+                    return (0.0, [0.0; 3]);
+                }
+                (COARSE_SCALE * diag, plus.map(|p| COARSE_SCALE * p))
+            })
+            .collect();
+        for (c, (d, p)) in rows.into_iter().enumerate() {
+            coarse.diag[c] = d;
+            coarse.plus[c] = p;
+        }
+        // No coupling into an absent block.
+        let (nn, diag) = (coarse.n, &coarse.diag);
+        coarse.plus.par_iter_mut().enumerate().with_min_len(MIN_PAR).for_each(|(c, p)| {
+            let i = c % nn[0];
+            let j = (c / nn[0]) % nn[1];
+            let k = c / (nn[0] * nn[1]);
+            let ijk = [i, j, k];
+            let stride = [1, nn[0], nn[0] * nn[1]];
+            for a in 0..3 {
+                if diag[c] <= 0.0 || ijk[a] + 1 >= nn[a] || diag[c + stride[a]] <= 0.0 {
+                    p[a] = 0.0;
+                }
+            }
+        });
+        coarse
+    }
+}
+
+/// The cells of one colour on one level, numbered in lattice order.
+#[derive(Debug, Default)]
+struct Half {
+    /// Lattice cell of each entry.
+    cell: Vec<u32>,
+    /// Diagonal.
+    diag: Vec<f64>,
+    /// Its inverse.
+    inv_diag: Vec<f64>,
+    /// Entries of the other colour at −x, +x, −y, +y, −z, +z ([`NONE`] when absent).
+    nbr: Vec<[u32; 6]>,
+    /// Their couplings (A_ij = −coef).
+    coef: Vec<[f64; 6]>,
+    /// Packed slot of the block on the next coarser level ([`NONE`] on the coarsest).
+    parent: Vec<u32>,
+    /// Red entries of the finer level in this block (coarse levels only; [`NONE`]-padded).
+    red_children: Vec<[u32; 4]>,
+}
+
+impl Half {
+    fn len(&self) -> usize {
+        self.diag.len()
+    }
+}
+
+/// One level: red (index 0) and black (index 1) cells.
+#[derive(Debug)]
+struct Level {
+    half: [Half; 2],
+}
+
+/// Splits a lattice stencil by colour; returns the level and the packed slot of each cell.
+fn split(lat: &LatticeStencil) -> (Level, Vec<u32>) {
+    let len = lat.diag.len();
+    let mut slot = vec![NONE; len];
+    let mut count = [0usize; 2];
+    let mut cells: [Vec<u32>; 2] = [Vec::new(), Vec::new()];
+    for c in 0..len {
+        if lat.diag[c] > 0.0 {
+            let [i, j, k] = lat.ijk(c);
+            let colour = (i + j + k) % 2;
+            slot[c] = pack(colour, count[colour]);
+            count[colour] += 1;
+            cells[colour].push(c as u32);
+        }
+    }
+    let stride = [1, lat.n[0], lat.n[0] * lat.n[1]];
+    let half = cells.map(|cell| {
+        let rows: Vec<([u32; 6], [f64; 6])> = cell
+            .par_iter()
+            .with_min_len(MIN_PAR)
+            .map(|&c| {
+                let c = c as usize;
+                let ijk = lat.ijk(c);
+                let (mut nbr, mut coef) = ([NONE; 6], [0.0; 6]);
+                for a in 0..3 {
+                    if ijk[a] > 0 {
+                        let m = c - stride[a];
+                        let w = lat.plus[m][a];
+                        if w != 0.0 && slot[m] != NONE {
+                            nbr[2 * a] = unpack(slot[m]).1 as u32;
+                            coef[2 * a] = w;
+                        }
+                    }
+                    if ijk[a] + 1 < lat.n[a] {
+                        let p = c + stride[a];
+                        let w = lat.plus[c][a];
+                        if w != 0.0 && slot[p] != NONE {
+                            nbr[2 * a + 1] = unpack(slot[p]).1 as u32;
+                            coef[2 * a + 1] = w;
+                        }
+                    }
+                }
+                (nbr, coef)
+            })
+            .collect();
+        let diag: Vec<f64> = cell.iter().map(|&c| lat.diag[c as usize]).collect();
+        Half {
+            inv_diag: diag.iter().map(|d| 1.0 / d).collect(),
+            diag,
+            nbr: rows.iter().map(|r| r.0).collect(),
+            coef: rows.iter().map(|r| r.1).collect(),
+            cell,
+            parent: Vec::new(),
+            red_children: Vec::new(),
+        }
+    });
+    (Level { half }, slot)
+}
+
+/// Vectors of one level.
+#[derive(Debug)]
+struct Work {
+    x: [Vec<f64>; 2],
+    b: [Vec<f64>; 2],
+    /// Residual of the red cells (black ones are zero after a black half-sweep).
+    r: Vec<f64>,
+}
+
+/// The multigrid hierarchy of one pressure stencil, applied as `z ≈ A⁻¹ r`.
+#[derive(Debug)]
+pub struct Multigrid {
+    levels: Vec<Level>,
+    /// Packed fine slot of each row ([`NONE`] for a row left out: zero diagonal).
+    slot_of_row: Vec<u32>,
+    /// Row of each fine entry, per colour.
+    row: [Vec<u32>; 2],
+    work: Mutex<Vec<Work>>,
+}
+
+impl Multigrid {
+    /// Builds the levels from the stencil over the unknowns, on a lattice of `n` cells whose
+    /// cell `cell_of_row[r]` holds row `r`.
+    pub fn new(n: [usize; 3], cell_of_row: &[u32], a: &Stencil) -> Multigrid {
+        let len = n[0] * n[1] * n[2];
+        let mut lat = LatticeStencil { n, diag: vec![0.0; len], plus: vec![[0.0; 3]; len] };
+        for (r, &c) in cell_of_row.iter().enumerate() {
+            lat.diag[c as usize] = a.diag[r].max(0.0);
+            lat.plus[c as usize] = a.plus[r];
+        }
+        let (fine, slot) = split(&lat);
+        let slot_of_row: Vec<u32> = cell_of_row.iter().map(|&c| slot[c as usize]).collect();
+        let row = [0, 1].map(|colour| {
+            let h = &fine.half[colour];
+            let mut row = vec![NONE; h.len()];
+            for (r, &s) in slot_of_row.iter().enumerate() {
+                if s != NONE && unpack(s).0 == colour {
+                    row[unpack(s).1] = r as u32;
+                }
+            }
+            row
+        });
+        let mut levels = vec![fine];
+        let mut present = lat.present();
+        while present > COARSEST_CELLS && lat.n.iter().any(|&m| m > 1) {
+            let coarse_lat = lat.coarsen();
+            let (mut coarse, coarse_slot) = split(&coarse_lat);
+            if coarse.half[0].len() + coarse.half[1].len() == 0 {
+                break;
+            }
+            let finer = levels.last_mut().expect("the fine level");
+            let cn = coarse_lat.n;
+            let block = |c: u32| {
+                let [i, j, k] = lat.ijk(c as usize);
+                (i / 2) + cn[0] * ((j / 2) + cn[1] * (k / 2))
+            };
+            for h in finer.half.iter_mut() {
+                h.parent = h.cell.par_iter().map(|&c| coarse_slot[block(c)]).collect();
+            }
+            // Red children of each block, in lattice order.
+            for colour in 0..2 {
+                let mut children = vec![[NONE; 4]; coarse.half[colour].len()];
+                let mut filled = vec![0u8; children.len()];
+                for (i, &p) in finer.half[0].parent.iter().enumerate() {
+                    if p != NONE && unpack(p).0 == colour {
+                        let b = unpack(p).1;
+                        children[b][filled[b] as usize] = i as u32;
+                        filled[b] += 1;
+                    }
+                }
+                coarse.half[colour].red_children = children;
+            }
+            levels.push(coarse);
+            present = coarse_lat.present();
+            lat = coarse_lat;
+        }
+        for h in levels.last_mut().expect("the fine level").half.iter_mut() {
+            h.parent = vec![NONE; h.len()];
+        }
+        let work = levels
+            .iter()
+            .map(|l| {
+                let (nr, nb) = (l.half[0].len(), l.half[1].len());
+                Work {
+                    x: [vec![0.0; nr], vec![0.0; nb]],
+                    b: [vec![0.0; nr], vec![0.0; nb]],
+                    r: vec![0.0; nr],
+                }
+            })
+            .collect();
+        Multigrid { levels, slot_of_row, row, work: Mutex::new(work) }
+    }
+
+    /// Number of levels, the finest included.
+    pub fn levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// z = V(r): one V-cycle from a zero guess.
+    pub fn apply(&self, r: &[f64], z: &mut [f64]) {
+        let mut work = self.work.lock().unwrap_or_else(|e| e.into_inner());
+        let w = &mut work[0];
+        for colour in 0..2 {
+            let rows = &self.row[colour];
+            w.b[colour].par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, bi)| {
+                *bi = r[rows[i] as usize];
+            });
+        }
+        self.cycle(0, &mut work);
+        let x = &work[0].x;
+        z.par_iter_mut().with_min_len(MIN_PAR).zip(&self.slot_of_row).for_each(|(zr, &s)| {
+            *zr = if s == NONE {
+                0.0
+            } else {
+                let (colour, i) = unpack(s);
+                x[colour][i]
+            };
+        });
+    }
+
+    /// One V-cycle on level `l` for the right-hand side in `work[0].b`, answer in `work[0].x`.
+    fn cycle(&self, l: usize, work: &mut [Work]) {
+        let level = &self.levels[l];
+        let (w, coarser) = work.split_first_mut().expect("work for every level");
+        w.x[1].par_iter_mut().with_min_len(MIN_PAR).for_each(|x| *x = 0.0);
+        if l + 1 == self.levels.len() {
+            // Palindromic: R (B R)^COARSEST_SWEEPS.
+            relax(level, 0, w);
+            for _ in 0..COARSEST_SWEEPS {
+                relax(level, 1, w);
+                relax(level, 0, w);
+            }
+            return;
+        }
+        for _ in 0..SMOOTHING {
+            relax(level, 0, w);
+            relax(level, 1, w);
+        }
+        // Residual of the red cells; the black ones were just solved for exactly.
+        let red = &level.half[0];
+        {
+            let [xr, xb] = &w.x;
+            let b = &w.b[0];
+            w.r.par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, ri)| {
+                *ri = b[i] - red.diag[i] * xr[i] + neighbours(red, i, xb);
+            });
+        }
+        let c = &mut coarser[0];
+        let next = &self.levels[l + 1];
+        for colour in 0..2 {
+            let children = &next.half[colour].red_children;
+            let r = &w.r;
+            c.b[colour].par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, bi)| {
+                let mut s = 0.0;
+                for &ch in &children[i] {
+                    if ch != NONE {
+                        s += r[ch as usize];
+                    }
+                }
+                *bi = s;
+            });
+        }
+        self.cycle(l + 1, coarser);
+        let xc = &coarser[0].x;
+        for colour in 0..2 {
+            let parent = &level.half[colour].parent;
+            w.x[colour].par_iter_mut().with_min_len(MIN_PAR).zip(parent).for_each(|(x, &p)| {
+                if p != NONE {
+                    let (pc, pi) = unpack(p);
+                    *x += xc[pc][pi];
+                }
+            });
+        }
+        for _ in 0..SMOOTHING {
+            relax(level, 1, w);
+            relax(level, 0, w);
+        }
+    }
+}
+
+/// `Σ coef·x_other` over the neighbours of entry `i`.
+#[inline]
+fn neighbours(h: &Half, i: usize, other: &[f64]) -> f64 {
+    let (nbr, coef) = (&h.nbr[i], &h.coef[i]);
+    let mut t = 0.0;
+    for d in 0..6 {
+        if nbr[d] != NONE {
+            t += coef[d] * other[nbr[d] as usize];
+        }
+    }
+    t
+}
+
+/// Gauss–Seidel half-sweep over one colour: each of its cells solved for with the other
+/// colour held.
+fn relax(level: &Level, colour: usize, w: &mut Work) {
+    let h = &level.half[colour];
+    let [x0, x1] = &mut w.x;
+    let (x, other) = if colour == 0 { (x0, &*x1) } else { (x1, &*x0) };
+    let b = &w.b[colour];
+    x.par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, xi)| {
+        *xi = (b[i] + neighbours(h, i, other)) * h.inv_diag[i];
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::{dot, Grid};
+    use crate::pressure::{PressureParams, PressureSystem};
+
+    /// A tank of `n` cells filled to `level` (a sloped surface; above 1 it is full and
+    /// closed), with a blob of fractional face weights standing in for a body.
+    fn system(n: [usize; 3], level: f64) -> PressureSystem {
+        let grid = Grid { n, dx: 1.0 / n[0] as f64 };
+        let cells = grid.cells();
+        let mut phi = vec![0.0; cells.len()];
+        cells.fill_par(&mut phi, |i, j, k| {
+            let p = cells.position(i, j, k);
+            p.y - level - 0.1 * p.x + 0.05 * p.z
+        });
+        let weights = [0, 1, 2].map(|a| {
+            let lat = grid.faces(a);
+            let mut w = vec![0.0; lat.len()];
+            lat.fill_par(&mut w, |i, j, k| {
+                let f = [i, j, k];
+                if f[a] == 0 || f[a] == grid.n[a] {
+                    return 0.0;
+                }
+                let p = lat.position(i, j, k);
+                let r = (p - crate::math::v3([0.5, 0.2, 0.3])).length();
+                // Solid inside r < 0.1, fractional over the next 0.05.
+                ((r - 0.1) / 0.05).clamp(0.0, 1.0)
+            });
+            w
+        });
+        PressureSystem::build(
+            &grid,
+            &phi,
+            &weights,
+            PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
+        )
+    }
+
+    fn field(n: usize, seed: u64) -> Vec<f64> {
+        (0..n as u64)
+            .map(|i| {
+                let h = (i ^ seed).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
+                h as f64 / (1u64 << 24) as f64 - 0.5
+            })
+            .collect()
+    }
+
+    fn cases() -> Vec<(&'static str, PressureSystem)> {
+        vec![
+            ("35×15×20 with a free surface", system([35, 15, 20], 0.25)),
+            ("closed 12×10×9 tank", system([12, 10, 9], 10.0)),
+            ("64³ box", system([64, 64, 64], 0.6)),
+        ]
+    }
+
+    #[test]
+    fn cases_have_what_they_claim() {
+        let c = cases();
+        assert!(c[0].1.has_air && !c[1].1.has_air);
+        for (name, sys) in &c {
+            let mg = Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil);
+            assert!(mg.levels() >= 3, "{name}: {} levels", mg.levels());
+            let fractional = sys.stencil.plus.iter().flatten().any(|&p| {
+                let full = sys.params.dt * sys.grid.dx / sys.params.density;
+                p > 0.0 && p < 0.99 * full
+            });
+            assert!(fractional, "{name}: no fractional face weight");
+        }
+    }
+
+    #[test]
+    fn vcycle_is_symmetric_and_positive() {
+        // ⟨M r, s⟩ = ⟨r, M s⟩ and ⟨M r, r⟩ > 0: what CG needs of a preconditioner.
+        for (name, sys) in cases() {
+            let mg = Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil);
+            let n = sys.len();
+            let (r, s) = (field(n, 1), field(n, 2));
+            let (mut mr, mut ms) = (vec![0.0; n], vec![0.0; n]);
+            mg.apply(&r, &mut mr);
+            mg.apply(&s, &mut ms);
+            let (a, b) = (dot(&mr, &s), dot(&r, &ms));
+            let scale = dot(&mr, &mr).sqrt() * dot(&s, &s).sqrt();
+            assert!((a - b).abs() <= 1e-12 * scale, "{name}: {a} vs {b} (scale {scale})");
+            for seed in 3..8 {
+                let r = field(n, seed);
+                let mut mr = vec![0.0; n];
+                mg.apply(&r, &mut mr);
+                assert!(dot(&mr, &r) > 0.0, "{name}: not positive for seed {seed}");
+            }
+        }
+    }
+
+    #[test]
+    fn vcycle_alone_converges() {
+        // As a stationary iteration x += ω·V(b − A x) (constant removed in the closed tank)
+        // the cycle must cut the residual by a good factor per cycle, with or without air: it
+        // does not blow up on the singular operator. ω = 0.8 because the ½-scaled coarse
+        // operator over-corrects some modes (eigenvalues of V·A up to about 1.6, so ω = 1
+        // contracts by only 0.6 on the first case); CG is blind to that scaling. Measured
+        // with ω = 0.8: 0.33, 0.23 and 0.22 per cycle.
+        for (name, sys) in cases() {
+            let mg = Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil);
+            let n = sys.len();
+            let mut b = field(n, 9);
+            let centre = |v: &mut [f64]| {
+                if !sys.has_air {
+                    let m = v.iter().sum::<f64>() / n as f64;
+                    v.iter_mut().for_each(|x| *x -= m);
+                }
+            };
+            centre(&mut b);
+            let b_norm = dot(&b, &b).sqrt();
+            let (mut x, mut ax, mut r, mut z) =
+                (vec![0.0; n], vec![0.0; n], b.clone(), vec![0.0; n]);
+            let cycles = 10;
+            for _ in 0..cycles {
+                mg.apply(&r, &mut z);
+                x.iter_mut().zip(&z).for_each(|(x, z)| *x += 0.8 * z);
+                sys.apply(&x, &mut ax);
+                r.iter_mut().zip(b.iter().zip(&ax)).for_each(|(r, (b, a))| *r = b - a);
+                centre(&mut r);
+            }
+            let rate = (dot(&r, &r).sqrt() / b_norm).powf(1.0 / cycles as f64);
+            assert!(rate < 0.4, "{name}: residual falls by {rate:.3} per cycle");
+        }
+    }
+
+    #[test]
+    fn one_and_two_threads_agree_bit_for_bit() {
+        let sys = system([35, 15, 20], 0.25);
+        let r = field(sys.len(), 4);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let mg = Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil);
+                let mut z = vec![0.0; sys.len()];
+                mg.apply(&r, &mut z);
+                z
+            })
+        };
+        let (a, b) = (run(1), run(2));
+        assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
+}
