@@ -480,14 +480,6 @@ fn backward_adjoint_on_pool(
             vbar[i] = [vb.x, vb.y, vb.z, wb.x, wb.y, wb.z];
         }
 
-        // Recompute the step's intermediate fields: û (advected, with gravity) and the
-        // corrected field before the bodies' velocities are set.
-        let mut u_hat = crate::advect::advect(&rec.u, &grid, dt, Some(&needed));
-        crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
-        let mut u_corr = u_hat.clone();
-        sys.update_velocity(&rec.p, &mut u_corr);
-        let mut valid0 = valid0;
-        crate::extrapolate::mark_body_faces(&mut valid0, &geo.body_faces);
         // The fractions' derivatives along each body's pose (full gradient only).
         let dual_faces: Vec<_> = if mode == GradientMode::Full {
             bodies
@@ -504,6 +496,23 @@ fn backward_adjoint_on_pool(
         } else {
             Vec::new()
         };
+        // Recompute the step's intermediate fields: û (advected, with gravity) and the
+        // corrected field before the bodies' velocities are set. The backward pass reads them
+        // only on the faces the bodies cover, so only those are advected.
+        let mut at_bodies = crate::advect::needed_faces(&grid, &[], &geo.body_faces);
+        for faces in &dual_faces {
+            for (a, m) in at_bodies.iter_mut().enumerate() {
+                for (f, _) in &faces[a] {
+                    m[*f] = true;
+                }
+            }
+        }
+        let mut u_hat = crate::advect::advect(&rec.u, &grid, dt, Some(&at_bodies));
+        crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
+        let mut u_corr = u_hat.clone();
+        sys.update_velocity(&rec.p, &mut u_corr);
+        let mut valid0 = valid0;
+        crate::extrapolate::mark_body_faces(&mut valid0, &geo.body_faces);
         let mut pose_grad = vec![[0.0f64; 6]; bodies.len()];
 
         // 5ᵀ: walls and static solids, extrapolation layers, then the bodies' velocities on
