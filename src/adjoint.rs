@@ -68,6 +68,9 @@ pub struct StepRecord {
     /// The contact impulse (as a velocity change [Δv; Δω], per dynamic body) the projection
     /// held on each body; zero without contact. The gradient takes it as a constant.
     pub contact_kick: Vec<[f64; 6]>,
+    /// Each body's face fractions at the start of the step (a few kB; recomputing them cost
+    /// 4% of the backward pass).
+    pub body_faces: Vec<fractions::BodyFaces>,
 }
 
 /// The recorded forward pass.
@@ -90,6 +93,11 @@ impl Tape {
                 8 * (s.u.c.iter().map(Vec::len).sum::<usize>() + s.p.len() + s.phi.len())
                     + s.bodies.len() * std::mem::size_of::<BodyState>()
                     + s.v_after.len() * 48
+                    + s.contact_kick.len() * 48
+                    + s.body_faces
+                        .iter()
+                        .map(|b| b.faces.iter().map(Vec::len).sum::<usize>() * 16)
+                        .sum::<usize>()
             })
             .sum();
         total / self.steps.len()
@@ -441,7 +449,7 @@ fn backward_adjoint_on_pool(
         for (b, s) in bodies.iter_mut().zip(&rec.bodies) {
             s.apply(b);
         }
-        let geo = initial.geometry_of(&bodies);
+        let geo = initial.geometry_with(&bodies, rec.body_faces.clone());
         let mut phi = if rec.phi.is_empty() { frozen_phi.clone() } else { rec.phi.clone() };
         surface::extend_into_solids(&mut phi, &grid, &geo.centre_in_solid);
         let mut sys = PressureSystem::build(&grid, &phi, &geo.weights, params);

@@ -234,13 +234,27 @@ impl Simulation {
 
     /// Where the solids are with the bodies in the given states.
     pub fn geometry_of(&self, bodies: &[RigidBody]) -> Geometry {
+        let faces = bodies
+            .iter()
+            .map(|b| fractions::body_faces(&self.grid, b.bounds(), |p| b.sdf(p), Some(b.volume())))
+            .collect();
+        self.geometry_with(bodies, faces)
+    }
+
+    /// [`Simulation::geometry_of`] with the bodies' face fractions already known (the
+    /// backward pass has them on the tape).
+    pub fn geometry_with(
+        &self,
+        bodies: &[RigidBody],
+        faces_of: Vec<fractions::BodyFaces>,
+    ) -> Geometry {
+        assert_eq!(bodies.len(), faces_of.len());
         let grid = &self.grid;
         let mut weights = self.statics.weights.clone();
         let mut centre_in_solid = self.statics.centre_in_solid.clone();
         let mut body_faces = Vec::with_capacity(bodies.len());
         let cells = grid.cells();
-        for b in bodies {
-            let faces = fractions::body_faces(grid, b.bounds(), |p| b.sdf(p), Some(b.volume()));
+        for (b, faces) in bodies.iter().zip(faces_of) {
             for a in 0..3 {
                 for &(f, beta) in &faces.faces[a] {
                     // β is already snapped to 0 or 1 where it is within round-off of
@@ -488,6 +502,7 @@ impl Simulation {
                 p: p.clone(),
                 phi: if self.frozen_phi.is_some() { Vec::new() } else { particle_phi },
                 contact_kick: kick.clone(),
+                body_faces: geo.body_faces.clone(),
             });
         }
 
