@@ -277,26 +277,49 @@ impl PressureSystem {
     ) -> Vec<ProjectedFace> {
         let grid = &self.grid;
         let cells = grid.cells();
-        let mut out: Vec<ProjectedFace> =
-            self.cell_of_row
-                .par_iter()
-                .flat_map_iter(|&c| {
-                    let ijk = cells.ijk(c as usize);
-                    let beyond = neighbour(grid, axis, ijk, 1);
-                    let plus_is_row = beyond.is_some_and(|n| self.row_of_cell[n] != NONE);
-                    let sides: &[usize] = if plus_is_row { &[0] } else { &[0, 1] };
-                    sides
-                        .iter()
-                        .filter_map(|&side| {
-                            let f = cell_face(grid, axis, ijk, side);
-                            self.face_gradient(axis, f, weights, phi).map(|gradient| {
-                                ProjectedFace { face: f as u32, weight: weights[axis][f], gradient }
-                            })
-                        })
-                        .collect::<Vec<_>>()
-                })
-                .collect();
-        out.sort_unstable_by_key(|pf| pf.face);
+        let w = &weights[axis];
+        let tmin = self.params.theta_min;
+        let stride = [1, grid.n[0], grid.n[0] * grid.n[1]][axis];
+        // Walking the rows in cell order, the − faces come in increasing face order, and so
+        // do the + faces: two sorted lists, merged at the end.
+        let mut minus = Vec::with_capacity(self.len());
+        let mut plus = Vec::new();
+        for (r, &c) in self.cell_of_row.iter().enumerate() {
+            let (r, c) = (r as u32, c as usize);
+            let ijk = cells.ijk(c);
+            let f = cell_face(grid, axis, ijk, 0);
+            if ijk[axis] > 0 && w[f] > 0.0 {
+                let m = c - stride;
+                let rm = self.row_of_cell[m];
+                let gradient = if rm != NONE {
+                    FaceGradient { rm, cm: 1.0, rp: r, cp: 1.0 }
+                } else {
+                    FaceGradient { rm, cm: 0.0, rp: r, cp: 1.0 / ghost_theta(phi[c], phi[m], tmin) }
+                };
+                minus.push(ProjectedFace { face: f as u32, weight: w[f], gradient });
+            }
+            let f = cell_face(grid, axis, ijk, 1);
+            if ijk[axis] + 1 < grid.n[axis] && w[f] > 0.0 {
+                let pl = c + stride;
+                let rp = self.row_of_cell[pl];
+                if rp == NONE {
+                    let cm = 1.0 / ghost_theta(phi[c], phi[pl], tmin);
+                    let gradient = FaceGradient { rm: r, cm, rp, cp: 0.0 };
+                    plus.push(ProjectedFace { face: f as u32, weight: w[f], gradient });
+                }
+            }
+        }
+        let mut out = Vec::with_capacity(minus.len() + plus.len());
+        let (mut i, mut j) = (0, 0);
+        while i < minus.len() || j < plus.len() {
+            if j == plus.len() || (i < minus.len() && minus[i].face < plus[j].face) {
+                out.push(minus[i]);
+                i += 1;
+            } else {
+                out.push(plus[j]);
+                j += 1;
+            }
+        }
         out
     }
 
@@ -613,6 +636,12 @@ mod tests {
             let listed: Vec<u32> = sys.faces[a].iter().map(|pf| pf.face).collect();
             assert!(!brute.is_empty());
             assert_eq!(listed, brute, "axis {a}");
+            for pf in &sys.faces[a] {
+                let g = sys.face_gradient(a, pf.face as usize, &weights, &phi).unwrap();
+                let h = pf.gradient;
+                assert_eq!((g.rm, g.cm, g.rp, g.cp), (h.rm, h.cm, h.rp, h.cp), "face {}", pf.face);
+                assert_eq!(pf.weight, weights[a][pf.face as usize]);
+            }
         }
     }
 
