@@ -11,6 +11,7 @@
 
 pub mod adjoint;
 pub mod advect;
+pub mod bench;
 pub mod body;
 pub mod cg;
 #[cfg(feature = "contact")]

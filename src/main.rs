@@ -31,6 +31,157 @@ enum Command {
     /// with the full gradient and with the paper's approximation. The surface is held fixed
     /// in both passes. Exits with status 1 if a full-gradient relative error exceeds 1e-3.
     Gradcheck(GradcheckArgs),
+    /// Speed against accuracy: sweeps of resolution and solver tolerance, the stability map
+    /// of the monolithic and the weak coupling, thin plates, and time per step against liquid
+    /// cells. Writes CSV tables and PNG charts.
+    Bench(BenchArgs),
+}
+
+#[derive(clap::Args)]
+struct BenchArgs {
+    /// Output folder.
+    #[arg(long, default_value = "out/bench")]
+    out: PathBuf,
+    /// Small sweeps (about a minute) instead of the full ones.
+    #[arg(long)]
+    quick: bool,
+}
+
+/// Writes `rows` as a CSV table with a header.
+fn write_csv<T: Serialize>(path: &Path, rows: &[T]) -> Result<(), Error> {
+    let io = |e: csv::Error| Error::Write {
+        path: path.to_path_buf(),
+        source: std::io::Error::other(e.to_string()),
+    };
+    let mut w = csv::Writer::from_writer(Vec::new());
+    for r in rows {
+        w.serialize(r).map_err(io)?;
+    }
+    let bytes = w.into_inner().map_err(|e| io(e.into_error().into()))?;
+    diffluid::output::write_atomic(path, &bytes)
+}
+
+fn bench(args: BenchArgs) -> Result<(), Error> {
+    use diffluid::bench;
+    use diffluid::plot::{line_chart, stability_chart, Series};
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| Error::Write { path: args.out.clone(), source: e })?;
+    let out = |name: &str| args.out.join(name);
+    let bar = ProgressBar::new(4);
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} {msg} [{elapsed}]")
+            .expect("valid template"),
+    );
+    let series = |pairs: Vec<(String, (f64, f64))>| -> Vec<Series> {
+        let mut out: Vec<Series> = Vec::new();
+        for (label, p) in pairs {
+            match out.iter_mut().find(|s| s.0 == label) {
+                Some(s) => s.1.push(p),
+                None => out.push((label, vec![p])),
+            }
+        }
+        out
+    };
+
+    bar.set_message("accuracy against time");
+    let acc = bench::accuracy(args.quick)?;
+    write_csv(&out("accuracy.csv"), &acc)?;
+    let s = series(acc.iter().map(|r| (r.quantity.clone(), (r.seconds, r.error))).collect());
+    line_chart(
+        &out("accuracy.png"),
+        "error against wall time",
+        ("wall time of the run, s", "relative error"),
+        (true, true),
+        &s,
+    )?;
+    bar.inc(1);
+
+    bar.set_message("stability map");
+    let st = bench::stability(args.quick)?;
+    write_csv(&out("stability.csv"), &st)?;
+    let panels: Vec<diffluid::plot::StabilityPanel> = ["monolithic", "weak"]
+        .iter()
+        .map(|c| {
+            let cells = st
+                .iter()
+                .filter(|r| r.coupling == *c)
+                .map(|r| (r.density_ratio, r.cfl, r.stable))
+                .collect();
+            (c.to_string(), cells)
+        })
+        .collect();
+    stability_chart(&out("stability.png"), &panels)?;
+    bar.inc(1);
+
+    bar.set_message("thin plates");
+    let thin = bench::thin_plates(args.quick)?;
+    write_csv(&out("thin.csv"), &thin)?;
+    // Log axis: |value|, floored at 1e-13 (a sealed plate leaks nothing; the particle count
+    // behind it can come out a little negative, which thin.csv keeps).
+    let floor = |v: f64| v.abs().max(1e-13);
+    let s: Vec<Series> = vec![
+        ("leakage".into(), thin.iter().map(|r| (r.thickness_cells, floor(r.leakage))).collect()),
+        (
+            "torque error".into(),
+            thin.iter().map(|r| (r.thickness_cells, floor(r.torque_error))).collect(),
+        ),
+        (
+            "force error".into(),
+            thin.iter().map(|r| (r.thickness_cells, floor(r.force_error))).collect(),
+        ),
+    ];
+    line_chart(
+        &out("thin.png"),
+        "thin plates (|value|, floored at 1e-13)",
+        ("plate thickness, cells", "relative error"),
+        (false, true),
+        &s,
+    )?;
+    bar.inc(1);
+
+    bar.set_message("cost against liquid cells");
+    let cost = bench::cost(args.quick)?;
+    write_csv(&out("cost.csv"), &cost)?;
+    let s = series(
+        cost.iter()
+            .map(|r| {
+                let label =
+                    if r.series == "air" { "liquid fixed, air grown" } else { "liquid grown" };
+                (label.to_string(), (r.liquid_cells as f64, r.seconds_per_step * 1e3))
+            })
+            .collect(),
+    );
+    line_chart(
+        &out("cost.png"),
+        "time per step against liquid cells",
+        ("liquid cells", "ms per step (median)"),
+        (false, false),
+        &s,
+    )?;
+    bar.inc(1);
+    bar.finish_and_clear();
+
+    let air: Vec<&bench::CostRow> = cost.iter().filter(|r| r.series == "air").collect();
+    if air.len() >= 2 {
+        println!(
+            "doubling the air above the pool: {:+.1}% time per step ({} -> {} cells)",
+            100.0 * (air[1].seconds_per_step / air[0].seconds_per_step - 1.0),
+            air[0].cells,
+            air[1].cells
+        );
+    }
+    let lightest = st.iter().map(|r| r.density_ratio).fold(f64::INFINITY, f64::min);
+    for c in ["monolithic", "weak"] {
+        let rows: Vec<_> = st.iter().filter(|r| r.coupling == c).collect();
+        let stable = rows.iter().filter(|r| r.stable).count();
+        let light = rows.iter().filter(|r| r.density_ratio == lightest && r.stable).count();
+        println!(
+            "{c}: stable in {stable} of {} cells ({light} at density ratio {lightest})",
+            rows.len()
+        );
+    }
+    println!("wrote {}", args.out.display());
+    Ok(())
 }
 
 #[derive(clap::Args, Default)]
@@ -502,6 +653,7 @@ fn main() -> ExitCode {
         Some(Command::Run(args)) => run(args),
         Some(Command::Gradcheck(args)) => gradcheck(args),
         Some(Command::Optimize(args)) => optimize(args),
+        Some(Command::Bench(args)) => bench(args),
         // The main job: the embedded block drop forward, then its optimisation.
         None => run(RunArgs::default()).and_then(|()| optimize(OptimizeArgs::default())),
     };

@@ -199,6 +199,161 @@ pub fn animation_gif(path: &Path, domain: Vec3, frames: &[Frame], delay_ms: u32)
     Ok(())
 }
 
+/// A labelled series of (x, y) points for the bench charts.
+pub type Series = (String, Vec<(f64, f64)>);
+
+const PALETTE: [RGBColor; 5] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+    RGBColor(255, 127, 14),
+];
+
+fn span(v: impl Iterator<Item = f64>, log: bool) -> (f64, f64) {
+    let (lo, hi) = v
+        .filter(|x| x.is_finite() && (!log || *x > 0.0))
+        .fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(x), b.max(x)));
+    match (lo <= hi, log) {
+        (false, _) => (1e-3, 1.0),
+        (true, true) => (lo / 2.0, hi * 2.0),
+        (true, false) => {
+            let pad = 0.05 * (hi - lo).max(1e-12);
+            (lo - pad, hi + pad)
+        }
+    }
+}
+
+/// An axis label: plain for moderate numbers, `1e-6` style otherwise.
+fn short(x: f64) -> String {
+    let a = x.abs();
+    if a == 0.0 || (1e-2..1e4).contains(&a) {
+        format!("{}", (x * 1e3).round() / 1e3)
+    } else {
+        format!("{x:.0e}")
+    }
+}
+
+/// Lines with markers on log–log axes (`log_x`/`log_y` choose each axis), one per series:
+/// the bench's accuracy-against-time, thin-body and cost charts.
+pub fn line_chart(
+    path: &Path,
+    title: &str,
+    (x_desc, y_desc): (&str, &str),
+    (log_x, log_y): (bool, bool),
+    series: &[Series],
+) -> Result<()> {
+    font();
+    let (x0, x1) = span(series.iter().flat_map(|s| s.1.iter().map(|p| p.0)), log_x);
+    let (y0, y1) = span(series.iter().flat_map(|s| s.1.iter().map(|p| p.1)), log_y);
+    let root = BitMapBackend::new(path, (900, 560)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(path, e))?;
+    macro_rules! builder {
+        () => {
+            ChartBuilder::on(&root)
+                .caption(title, ("sans-serif", 22))
+                .margin(15)
+                .x_label_area_size(45)
+                .y_label_area_size(80)
+        };
+    }
+    macro_rules! draw {
+        ($chart:expr) => {{
+            let mut chart = $chart.map_err(|e| err(path, e))?;
+            chart
+                .configure_mesh()
+                .x_desc(x_desc)
+                .y_desc(y_desc)
+                .x_label_formatter(&|x| short(*x))
+                .y_label_formatter(&|y| short(*y))
+                .draw()
+                .map_err(|e| err(path, e))?;
+            for (k, (label, pts)) in series.iter().enumerate() {
+                let c = PALETTE[k % PALETTE.len()];
+                let pts: Vec<(f64, f64)> = pts
+                    .iter()
+                    .copied()
+                    .filter(|p| {
+                        p.0.is_finite()
+                            && p.1.is_finite()
+                            && (!log_x || p.0 > 0.0)
+                            && (!log_y || p.1 > 0.0)
+                    })
+                    .collect();
+                chart
+                    .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
+                    .map_err(|e| err(path, e))?
+                    .label(label.as_str())
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
+                    });
+                chart
+                    .draw_series(pts.iter().map(|p| Circle::new(*p, 4, c.filled())))
+                    .map_err(|e| err(path, e))?;
+            }
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| err(path, e))?;
+        }};
+    }
+    match (log_x, log_y) {
+        (true, true) => {
+            draw!(builder!().build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale()))
+        }
+        (true, false) => draw!(builder!().build_cartesian_2d((x0..x1).log_scale(), y0..y1)),
+        (false, true) => draw!(builder!().build_cartesian_2d(x0..x1, (y0..y1).log_scale())),
+        (false, false) => draw!(builder!().build_cartesian_2d(x0..x1, y0..y1)),
+    }
+    root.present().map_err(|e| err(path, e))
+}
+
+/// One panel of the stability map: a title and (density ratio, CFL number, stable) cells.
+pub type StabilityPanel = (String, Vec<(f64, f64, bool)>);
+
+/// The stability map: one panel per coupling, density ratio (log) across, CFL number (log)
+/// up, a filled green dot where the run was stable and a red cross where it was not.
+pub fn stability_chart(path: &Path, panels: &[StabilityPanel]) -> Result<()> {
+    font();
+    let root =
+        BitMapBackend::new(path, (500 * panels.len().max(1) as u32, 480)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(path, e))?;
+    let areas = root.split_evenly((1, panels.len().max(1)));
+    let (r0, r1) = span(panels.iter().flat_map(|p| p.1.iter().map(|c| c.0)), true);
+    let (c0, c1) = span(panels.iter().flat_map(|p| p.1.iter().map(|c| c.1)), true);
+    for (area, (name, cells)) in areas.iter().zip(panels) {
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("{name} coupling"), ("sans-serif", 22))
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(55)
+            .build_cartesian_2d((r0..r1).log_scale(), (c0..c1).log_scale())
+            .map_err(|e| err(path, e))?;
+        chart
+            .configure_mesh()
+            .x_desc("density ratio ρ_body/ρ_liquid")
+            .y_desc("CFL number")
+            .draw()
+            .map_err(|e| err(path, e))?;
+        chart
+            .draw_series(
+                cells.iter().filter(|c| c.2).map(|c| Circle::new((c.0, c.1), 7, GREEN.filled())),
+            )
+            .map_err(|e| err(path, e))?;
+        chart
+            .draw_series(
+                cells
+                    .iter()
+                    .filter(|c| !c.2)
+                    .map(|c| Cross::new((c.0, c.1), 7, RED.stroke_width(3))),
+            )
+            .map_err(|e| err(path, e))?;
+    }
+    root.present().map_err(|e| err(path, e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,404 @@
+//! `diffluid bench`: speed against accuracy, stability where methods fail, thin bodies, and
+//! what air costs. Each study returns plain rows (written as CSV by the CLI and drawn by
+//! [`crate::plot`]); `quick` shrinks every sweep so a test can run them all.
+//!
+//! Every scene is built here as TOML text, the way a user would write it, and timed in
+//! process with the wall clock: a row's `seconds` is the whole run of that configuration.
+
+use crate::adjoint::{central_difference, value_and_gradient, BodyParam, BodyTargetLoss};
+use crate::error::Result;
+use crate::math::Vec3;
+use crate::scene::Coupling;
+use crate::{Scene, Simulation};
+use serde::Serialize;
+use std::time::Instant;
+
+/// One point of the accuracy-against-time chart.
+#[derive(Clone, Debug, Serialize)]
+pub struct AccuracyRow {
+    /// `archimedes`, `gradient` or `dam_break_front`.
+    pub quantity: String,
+    /// What was varied (`dx=0.05`, `tol=1e-8`).
+    pub setting: String,
+    /// Relative error (see each study).
+    pub error: f64,
+    /// Wall time of the configuration, s.
+    pub seconds: f64,
+}
+
+/// One cell of the stability map.
+#[derive(Clone, Debug, Serialize)]
+pub struct StabilityRow {
+    /// `monolithic` or `weak`.
+    pub coupling: String,
+    /// Body density over liquid density.
+    pub density_ratio: f64,
+    /// |v₀|·Δt/dx of the body's initial velocity.
+    pub cfl: f64,
+    /// Whether the run stayed within the energy bound (see [`stability`]).
+    pub stable: bool,
+    /// Largest total kinetic energy over the energy bound (∞ when the run failed).
+    pub energy_ratio: f64,
+}
+
+/// One plate of the thin-body study.
+#[derive(Clone, Debug, Serialize)]
+pub struct ThinRow {
+    /// Plate thickness in cells.
+    pub thickness_cells: f64,
+    /// Volume through a sealed static plate over the volume that crosses without it.
+    pub leakage: f64,
+    /// |pressure torque| on a submerged tilted plate, over ρ·g·V times its half length
+    /// (the exact torque about its centre is zero).
+    pub torque_error: f64,
+    /// |F_y − ρ·g·V| / ρ·g·V on the same plate.
+    pub force_error: f64,
+}
+
+/// One point of the cost study.
+#[derive(Clone, Debug, Serialize)]
+pub struct CostRow {
+    /// `air` (liquid fixed, tank taller) or `liquid` (tank fixed, liquid deeper).
+    pub series: String,
+    /// Air height over liquid depth (`air`) or liquid depth in m (`liquid`).
+    pub setting: f64,
+    /// Grid cells.
+    pub cells: usize,
+    /// Liquid cells (pressure unknowns) at the last step.
+    pub liquid_cells: usize,
+    /// Median wall time of a step, s.
+    pub seconds_per_step: f64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn clock<T>(f: impl FnOnce() -> Result<T>) -> Result<(T, f64)> {
+    let t = Instant::now();
+    let out = f()?;
+    Ok((out, t.elapsed().as_secs_f64()))
+}
+
+/// A cube tank of side `size` at cell size `dx`, still water `depth` deep, and `bodies`
+/// (TOML `[[body]]` tables) and other tables appended as they are.
+fn tank(size: [f64; 3], dx: f64, dt: f64, steps: usize, depth: f64, extra: &str) -> String {
+    format!(
+        r#"
+name = "bench"
+[domain]
+size = [{}, {}, {}]
+dx = {dx}
+[time]
+dt = {dt}
+steps = {steps}
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [{}, {depth}, {}] }}
+[output]
+particles = false
+{extra}
+"#,
+        size[0], size[1], size[2], size[0], size[2]
+    )
+}
+
+/// Accuracy against time, three ways:
+///
+/// - `archimedes`: a flat box (0.4 × 0.2 × 0.4 m, density ratio 0.5) placed at its exact
+///   draft in still water, off the grid's planes; the first step's pressure force F_y against its weight m·g gives
+///   the draft error the discretisation makes, ΔF/(ρ·g·A) over the draft 0.1 m, for dx from
+///   0.1 to 0.025 m (2 to 8 cells across its height);
+/// - `gradient`: the adjoint dL/dv_x of `gradcheck_box` at CG tolerances 1e-4 … 1e-10
+///   against a central difference taken at 1e-12;
+/// - `dam_break_front`: the dam break's front (the smallest x a particle reaches) after
+///   0.5 s, at dx 0.25, 0.125 and 0.0625, against the finest run.
+pub fn accuracy(quick: bool) -> Result<Vec<AccuracyRow>> {
+    let mut rows = Vec::new();
+    let dxs: &[f64] = if quick { &[0.1, 0.05] } else { &[0.1, 0.05, 0.04, 0.025] };
+    for &dx in dxs {
+        let body = r#"[[body]]
+shape = { kind = "cuboid", half_extents = [0.2, 0.1, 0.2] }
+density = 500.0
+position = [0.413, 0.437, 0.391]
+[solver]
+density_correction = false
+tolerance = 1e-10"#;
+        // Off the grid on purpose: aligned with the cells, the volume-consistent fractions
+        // make the force exact to round-off at every resolution.
+        let text = tank([0.8, 0.8, 0.8], dx, 0.005, 1, 0.437, body);
+        let ((force, weight), seconds) = clock(|| {
+            let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+            let report = sim.step()?;
+            Ok((report.bodies[0].force[1], sim.bodies[0].mass * 9.81))
+        })?;
+        let area = 0.4 * 0.4;
+        let draft_error = (force - weight).abs() / (1000.0 * 9.81 * area) / 0.1;
+        rows.push(AccuracyRow {
+            quantity: "archimedes".into(),
+            setting: format!("dx={dx}"),
+            error: draft_error,
+            seconds,
+        });
+    }
+
+    let mut scene = Scene::builtin("gradcheck_box")?;
+    scene.solver.freeze_surface = true;
+    let steps = scene.time.steps;
+    let loss = BodyTargetLoss::from_scene(&scene).expect("gradcheck_box has a loss");
+    let mut tight = scene.clone();
+    tight.solver.tolerance = 1e-12;
+    let reference = {
+        let sim = Simulation::new(tight)?;
+        central_difference(&sim, steps, &loss, 0, BodyParam::V(0), 1e-6)?
+    };
+    let tols: &[f64] = if quick { &[1e-4, 1e-8] } else { &[1e-4, 1e-6, 1e-8, 1e-10] };
+    for &tol in tols {
+        let mut s = scene.clone();
+        s.solver.tolerance = tol;
+        let sim = Simulation::new(s)?;
+        let (run, seconds) = clock(|| {
+            value_and_gradient(&sim, steps, &loss, crate::adjoint::GradientMode::Full, None)
+        })?;
+        let ad = BodyParam::V(0).of(&run.gradient.bodies[0]);
+        rows.push(AccuracyRow {
+            quantity: "gradient".into(),
+            setting: format!("tol={tol:e}"),
+            error: (ad - reference).abs() / reference.abs().max(1e-300),
+            seconds,
+        });
+    }
+
+    // Cell sizes that divide the 4 × 1.5 × 2 m tank.
+    let dxs: &[f64] = if quick { &[0.25, 0.125] } else { &[0.25, 0.125, 0.0625] };
+    let mut fronts = Vec::new();
+    for &dx in dxs {
+        let mut scene = Scene::builtin("dam_break")?;
+        scene.domain.dx = dx;
+        scene.time.dt = 0.025;
+        scene.time.steps = 20;
+        scene.output.particles = false;
+        let (front, seconds) = clock(|| {
+            let mut sim = Simulation::new(scene.clone())?;
+            for _ in 0..20 {
+                sim.step()?;
+            }
+            Ok(sim.particles.iter().map(|p| p.x).fold(f64::INFINITY, f64::min))
+        })?;
+        fronts.push((dx, front, seconds));
+    }
+    let finest = fronts.last().expect("at least one resolution").1;
+    let travel = 3.6 - finest;
+    for (dx, front, seconds) in &fronts[..fronts.len() - 1] {
+        rows.push(AccuracyRow {
+            quantity: "dam_break_front".into(),
+            setting: format!("dx={dx}"),
+            error: (front - finest).abs() / travel,
+            seconds: *seconds,
+        });
+    }
+    Ok(rows)
+}
+
+/// The stability map: a 0.2 m cube in a closed 0.6 m tank full of water (dx 0.05 m; no free
+/// surface, so only the coupling is on trial: an explicit free surface has a time-step limit
+/// of its own), launched sideways at 1 m/s with Δt set for the CFL number |v₀|·Δt/dx, run
+/// for 30 steps with contact on, with the monolithic and the weak coupling.
+///
+/// A run is stable when it finishes and the total kinetic energy (liquid plus body) never
+/// exceeds twice what the scene can supply: the initial kinetic energy plus the potential
+/// energy the body can release by rising or sinking the whole tank height, |m − ρV|·g·H.
+/// An instability grows by orders of magnitude within a few steps, far past that bound.
+pub fn stability(quick: bool) -> Result<Vec<StabilityRow>> {
+    let ratios: &[f64] =
+        if quick { &[0.01, 1.0, 10.0] } else { &[0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0] };
+    let cfls: &[f64] = if quick { &[0.5, 1.0] } else { &[0.5, 1.0, 2.0, 4.0, 8.0] };
+    let (dx, v0, steps, size) = (0.05, 1.0, 30, 0.6);
+    let mut rows = Vec::new();
+    for &coupling in &[Coupling::Monolithic, Coupling::Weak] {
+        for &ratio in ratios {
+            for &cfl in cfls {
+                let dt = cfl * dx / v0;
+                let body = format!(
+                    r#"[[body]]
+shape = {{ kind = "cuboid", half_extents = [0.1, 0.1, 0.1] }}
+density = {}
+position = [0.3, 0.25, 0.3]
+velocity = [{v0}, 0.0, 0.0]
+[contact]
+enabled = true
+[solver]
+density_correction = false"#,
+                    1000.0 * ratio
+                );
+                let mut scene =
+                    Scene::from_toml(&tank([size; 3], dx, dt, steps, size, &body), "<bench>")?;
+                scene.solver.coupling = coupling;
+                let volume = 0.2f64.powi(3);
+                let mass = 1000.0 * ratio * volume;
+                let bound =
+                    2.0 * (0.5 * mass * v0 * v0 + (mass - 1000.0 * volume).abs() * 9.81 * size);
+                let mut sim = Simulation::new(scene)?;
+                let mut worst: f64 = 0.0;
+                for _ in 0..steps {
+                    match sim.step() {
+                        Ok(r) => {
+                            let b = &sim.bodies[0];
+                            let e = r.kinetic_energy
+                                + 0.5 * b.mass * b.v.length_squared()
+                                + 0.5 * b.w.dot(b.world_inertia() * b.w);
+                            worst = worst.max(if e.is_finite() { e } else { f64::INFINITY });
+                        }
+                        Err(_) => {
+                            worst = f64::INFINITY;
+                            break;
+                        }
+                    }
+                    if worst > 1e3 * bound {
+                        break;
+                    }
+                }
+                rows.push(StabilityRow {
+                    coupling: format!("{coupling:?}").to_lowercase(),
+                    density_ratio: ratio,
+                    cfl,
+                    stable: worst <= bound,
+                    energy_ratio: worst / bound,
+                });
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// Thin bodies, plates 0.25 to 2 cells thick (dx 0.05 m):
+///
+/// - leakage: a static plate across the whole tank (1.0 × 0.6 × 0.3 m) holds 0.5 m of water
+///   on its left against 0.1 m on its right; after 0.3 s the liquid volume that has reached
+///   the right, over the volume that reaches it with no plate at all;
+/// - torque and force: the same plate as a neutrally buoyant body, 0.4 × 0.3 m, tilted 30°
+///   about z, submerged in still water; the first solve's pressure torque about its centre
+///   (exactly zero) and force (exactly ρ·g·V up).
+pub fn thin_plates(quick: bool) -> Result<Vec<ThinRow>> {
+    let dx = 0.05;
+    let thicknesses: &[f64] = if quick { &[0.25, 2.0] } else { &[0.25, 0.5, 1.0, 1.5, 2.0] };
+    let right_volume = |plate: Option<f64>| -> Result<f64> {
+        let obstacle = match plate {
+            Some(t) => format!(
+                r#"[[obstacle]]
+shape = {{ kind = "box", min = [{}, 0.0, 0.0], max = [{}, 0.6, 0.3] }}"#,
+                0.5 - t / 2.0,
+                0.5 + t / 2.0
+            ),
+            None => String::new(),
+        };
+        let text = format!(
+            r#"
+name = "leak"
+[domain]
+size = [1.0, 0.6, 0.3]
+dx = {dx}
+[time]
+dt = 0.01
+steps = 30
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.45, 0.5, 0.3] }}
+[[liquid]]
+shape = {{ kind = "box", min = [0.55, 0.0, 0.0], max = [1.0, 0.1, 0.3] }}
+{obstacle}
+[output]
+particles = false
+"#
+        );
+        let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+        let count = |s: &Simulation| s.particles.iter().filter(|p| p.x > 0.55).count() as f64;
+        let before = count(&sim);
+        for _ in 0..30 {
+            sim.step()?;
+        }
+        Ok(count(&sim) - before)
+    };
+    let open = right_volume(None)?;
+    let mut rows = Vec::new();
+    for &t in thicknesses {
+        let leaked = right_volume(Some(t * dx))?;
+        let body = format!(
+            r#"[[body]]
+shape = {{ kind = "cuboid", half_extents = [0.2, {}, 0.15] }}
+density = 1000.0
+position = [0.5, 0.3, 0.3]
+axis_angle = {{ axis = [0.0, 0.0, 1.0], degrees = 30.0 }}
+[solver]
+density_correction = false
+tolerance = 1e-10"#,
+            t * dx / 2.0
+        );
+        let text = tank([1.0, 0.7, 0.6], dx, 0.005, 1, 0.6, &body);
+        let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+        let r = sim.step()?;
+        let volume = 0.4 * 0.3 * t * dx;
+        let buoyancy = 1000.0 * 9.81 * volume;
+        let torque = Vec3::from_array(r.bodies[0].torque).length();
+        rows.push(ThinRow {
+            thickness_cells: t,
+            leakage: leaked / open,
+            torque_error: torque / (buoyancy * 0.2),
+            force_error: (r.bodies[0].force[1] - buoyancy).abs() / buoyancy,
+        });
+    }
+    Ok(rows)
+}
+
+/// Time per step against liquid cells: a 0.5 m pool in a 1 m × 1 m tank (dx 0.05 m) with
+/// 1, 2 and 4 times its depth of air above it (liquid fixed, air grown), and pools 0.25 to 1 m deep in a
+/// 1.2 m tall tank (liquid grown). Median of 20 steps after 5 warm-up steps, marker
+/// particles and all.
+pub fn cost(quick: bool) -> Result<Vec<CostRow>> {
+    let dx = 0.05;
+    let steps = if quick { 6 } else { 25 };
+    let run = |height: f64, depth: f64| -> Result<(usize, usize, f64)> {
+        let text = tank([1.0, height, 1.0], dx, 0.01, steps, depth, "");
+        let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+        let mut times = Vec::new();
+        let mut cells = 0;
+        for n in 0..steps {
+            let t = Instant::now();
+            let r = sim.step()?;
+            if n >= steps / 5 {
+                times.push(t.elapsed().as_secs_f64());
+            }
+            cells = r.liquid_cells;
+        }
+        Ok((sim.grid().num_cells(), cells, median(times)))
+    };
+    let mut rows = Vec::new();
+    let air: &[f64] = if quick { &[1.0, 2.0] } else { &[1.0, 2.0, 4.0] };
+    for &k in air {
+        let (cells, liquid_cells, s) = run(0.5 * (1.0 + k), 0.5)?;
+        rows.push(CostRow {
+            series: "air".into(),
+            setting: k,
+            cells,
+            liquid_cells,
+            seconds_per_step: s,
+        });
+    }
+    let depths: &[f64] = if quick { &[0.25, 0.5] } else { &[0.25, 0.5, 0.75, 1.0] };
+    for &d in depths {
+        let (cells, liquid_cells, s) = run(1.2, d)?;
+        rows.push(CostRow {
+            series: "liquid".into(),
+            setting: d,
+            cells,
+            liquid_cells,
+            seconds_per_step: s,
+        });
+    }
+    Ok(rows)
+}

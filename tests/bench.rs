@@ -1,0 +1,35 @@
+//! `diffluid bench --quick`: every table and chart is written, and the stability map says
+//! what the physics says: the monolithic coupling is stable for every density ratio at
+//! CFL ≤ 1, and the weak (partitioned) coupling blows up for the lightest body (ratio 0.01:
+//! its added mass is fifty times its own).
+
+use std::process::Command;
+
+#[test]
+fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
+    let out = std::env::temp_dir().join(format!("diffluid-bench-{}", std::process::id()));
+    let status = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+        .args(["bench", "--quick", "--out"])
+        .arg(&out)
+        .status()
+        .expect("runs");
+    assert!(status.success());
+    for f in ["accuracy", "stability", "thin", "cost"] {
+        for ext in ["csv", "png"] {
+            let p = out.join(format!("{f}.{ext}"));
+            assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{p:?}");
+        }
+    }
+    let table = std::fs::read_to_string(out.join("stability.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = table.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 12, "2 couplings × 3 ratios × 2 CFL numbers");
+    for r in &rows {
+        let (coupling, ratio, stable) = (r[0], r[1].parse::<f64>().unwrap(), r[3] == "true");
+        if coupling == "monolithic" {
+            assert!(stable, "monolithic unstable at ratio {ratio}, CFL {}", r[2]);
+        } else if ratio == 0.01 {
+            assert!(!stable, "weak coupling stable for the lightest body at CFL {}", r[2]);
+        }
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
