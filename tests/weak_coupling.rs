@@ -69,7 +69,9 @@ fn weak_coupling_matches_the_monolithic_solve_for_a_heavy_body() {
     );
     let (m, w) = (mono[14], weak[14]);
     eprintln!("heavy cube speed after 15 steps: monolithic {m:.4} m/s, weak {w:.4} m/s");
-    assert!((m - w).abs() < 0.1 * m, "monolithic {m} vs weak {w}");
+    // Measured: 0.9953 against 0.9857 m/s (1%); the partitioned step lags by one step's
+    // added-mass response, which grows with the ratio of added mass to body mass.
+    assert!((m - w).abs() < 0.02 * m, "monolithic {m} vs weak {w}");
 }
 
 #[test]
