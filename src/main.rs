@@ -59,8 +59,10 @@ struct OptimizeResult<'a> {
     initial_loss: f64,
     final_loss: f64,
     loss_reduction: f64,
+    evaluations: usize,
     params: &'a diffluid::optimize::BodyParams,
     stopped: Option<&'a str>,
+    converged: Option<&'a str>,
     wall_seconds: f64,
 }
 
@@ -91,16 +93,21 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
     );
     bar.set_position(done as u64);
     let outcome = problem.run(Some(&ck_path), resume, |r| {
-        bar.set_message(format!("loss {:.4e} |g| {:.3e}", r.loss, r.grad_norm));
+        bar.set_message(format!(
+            "loss {:.4e} |g| {:.3e} ({} evaluations)",
+            r.loss, r.grad_norm, r.evaluations
+        ));
         bar.inc(1);
     })?;
     bar.finish_and_clear();
-    let mut csv = String::from("epoch,loss,grad_norm,vx,vy,vz,wx,wy,wz,x,y,z,qw,qx,qy,qz\n");
+    let mut csv =
+        String::from("epoch,evaluations,loss,grad_norm,vx,vy,vz,wx,wy,wz,x,y,z,qw,qx,qy,qz\n");
     for r in &outcome.history {
         let p = &r.params;
         csv.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             r.epoch,
+            r.evaluations,
             r.loss,
             r.grad_norm,
             p.v[0],
@@ -128,8 +135,10 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
             initial_loss,
             final_loss: outcome.final_loss,
             loss_reduction: initial_loss / outcome.final_loss,
+            evaluations: outcome.evaluations,
             params: &outcome.params,
             stopped: outcome.stopped.as_deref(),
+            converged: outcome.converged.as_deref(),
             wall_seconds: start.elapsed().as_secs_f64(),
         },
     )?;
@@ -137,10 +146,14 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
     if let Some(reason) = &outcome.stopped {
         return Err(Error::Usage(format!("optimisation stopped at {reason}")));
     }
+    if let Some(reason) = &outcome.converged {
+        println!("L-BFGS converged at {reason}");
+    }
     println!(
-        "{}: {} epochs, loss {:.4e} -> {:.4e} ({:.0}x) in {:.1} s; v0 = {:?}; wrote {}",
+        "{}: {} epochs ({} evaluations), loss {:.4e} -> {:.4e} ({:.0}x) in {:.1} s; v0 = {:?}; wrote {}",
         problem.scene.name,
         outcome.history.len(),
+        outcome.evaluations,
         initial_loss,
         outcome.final_loss,
         initial_loss / outcome.final_loss,
