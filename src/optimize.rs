@@ -16,10 +16,10 @@
 use crate::adjoint::{value_and_gradient, BodyTargetLoss, GradientMode, Loss};
 use crate::error::{Error, Result};
 use crate::math::{Rotation, Vec3};
-use crate::scene::{LineSearchKind, OptimizerSpec, Scene};
+use crate::scene::{OptimizerSpec, Scene};
 use crate::sim::Simulation;
 use argmin::core::{CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus};
-use argmin::solver::linesearch::{HagerZhangLineSearch, MoreThuenteLineSearch};
+use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
 use serde::{Deserialize, Serialize};
 use std::cell::{Cell, RefCell};
@@ -496,13 +496,15 @@ impl Optimization {
         let (mut solver, mut state) = match restored {
             Some(x) => x,
             None => {
-                let solver = LbfgsSolver::new(&self.optimizer)?;
+                let mut solver = new_lbfgs(&self.optimizer)?;
                 let start = IterState::new()
                     .param(self.to_vector(&ck.params))
                     .max_iters(self.epochs as u64);
-                let mut solver = solver;
                 match solver.init(&mut problem, start) {
-                    Ok(state) => (solver, state),
+                    Ok((mut state, _)) => {
+                        state.update();
+                        (solver, state)
+                    }
                     Err(e) => {
                         let reason = failure.borrow().clone().unwrap_or_else(|| e.to_string());
                         return Ok(Outcome {
@@ -523,7 +525,9 @@ impl Optimization {
         while ck.next_epoch < self.epochs {
             // The state holds this epoch's parameters, loss and gradient.
             if ck.next_epoch > 0 {
-                if let TerminationStatus::Terminated(reason) = solver.terminate(&state) {
+                let status =
+                    <_ as Solver<Objective<'_>, LbfgsState>>::terminate(&mut solver, &state);
+                if let TerminationStatus::Terminated(reason) = status {
                     converged = Some(format!("epoch {}: {reason}", ck.next_epoch));
                     break;
                 }
@@ -546,8 +550,10 @@ impl Optimization {
             on_epoch(&rec);
             ck.history.push(rec);
             problem.problem.as_ref().expect("the objective").epoch.set(ck.next_epoch);
-            let next = solver.next_iter(&mut problem, state)?;
-            state = next;
+            state = solver
+                .next_iter(&mut problem, state)
+                .map_err(|e| Error::Usage(format!("L-BFGS: {e}")))?
+                .0;
             ck.evaluations = evaluations.get();
             if state.terminated() {
                 // argmin ends an iteration whose line search failed this way.
@@ -617,76 +623,22 @@ pub fn left_jacobian(r: [f64; 3]) -> [[f64; 3]; 3] {
 type Vector = Vec<f64>;
 type LbfgsState = IterState<Vector, Vector, (), (), (), f64>;
 
-/// argmin's L-BFGS with one of its line searches.
-#[derive(Clone, Serialize, Deserialize)]
-enum LbfgsSolver {
-    MoreThuente(LBFGS<MoreThuenteLineSearch<Vector, Vector, f64>, Vector, Vector, f64>),
-    HagerZhang(LBFGS<HagerZhangLineSearch<Vector, Vector, f64>, Vector, Vector, f64>),
-}
+/// argmin's L-BFGS with its Moré–Thuente line search.
+type LbfgsSolver = LBFGS<MoreThuenteLineSearch<Vector, Vector, f64>, Vector, Vector, f64>;
 
 type ArgminResult<T> = std::result::Result<T, argmin::core::Error>;
 
-impl LbfgsSolver {
-    fn new(spec: &OptimizerSpec) -> Result<LbfgsSolver> {
-        let OptimizerSpec::Lbfgs { memory, line_search, tolerance_grad, tolerance_cost } = spec
-        else {
-            unreachable!("an L-BFGS spec")
-        };
-        let invalid = |e: argmin::core::Error| Error::InvalidScene {
+fn new_lbfgs(spec: &OptimizerSpec) -> Result<LbfgsSolver> {
+    let OptimizerSpec::Lbfgs { memory, tolerance_grad, tolerance_cost } = spec else {
+        unreachable!("an L-BFGS spec")
+    };
+    LBFGS::new(MoreThuenteLineSearch::new(), *memory)
+        .with_tolerance_grad(*tolerance_grad)
+        .and_then(|s| s.with_tolerance_cost(*tolerance_cost))
+        .map_err(|e| Error::InvalidScene {
             origin: "optimize.optimizer".into(),
             message: e.to_string(),
-        };
-        Ok(match line_search {
-            LineSearchKind::MoreThuente => LbfgsSolver::MoreThuente(
-                LBFGS::new(MoreThuenteLineSearch::new(), *memory)
-                    .with_tolerance_grad(*tolerance_grad)
-                    .and_then(|s| s.with_tolerance_cost(*tolerance_cost))
-                    .map_err(invalid)?,
-            ),
-            LineSearchKind::HagerZhang => LbfgsSolver::HagerZhang(
-                LBFGS::new(HagerZhangLineSearch::new(), *memory)
-                    .with_tolerance_grad(*tolerance_grad)
-                    .and_then(|s| s.with_tolerance_cost(*tolerance_cost))
-                    .map_err(invalid)?,
-            ),
         })
-    }
-
-    fn init(
-        &mut self,
-        problem: &mut Problem<Objective<'_>>,
-        state: LbfgsState,
-    ) -> ArgminResult<LbfgsState> {
-        let (mut state, _) = match self {
-            LbfgsSolver::MoreThuente(s) => s.init(problem, state)?,
-            LbfgsSolver::HagerZhang(s) => s.init(problem, state)?,
-        };
-        state.update();
-        Ok(state)
-    }
-
-    fn next_iter(
-        &mut self,
-        problem: &mut Problem<Objective<'_>>,
-        state: LbfgsState,
-    ) -> Result<LbfgsState> {
-        let r = match self {
-            LbfgsSolver::MoreThuente(s) => s.next_iter(problem, state),
-            LbfgsSolver::HagerZhang(s) => s.next_iter(problem, state),
-        };
-        r.map(|(s, _)| s).map_err(|e| Error::Usage(format!("L-BFGS: {e}")))
-    }
-
-    fn terminate(&mut self, state: &LbfgsState) -> TerminationStatus {
-        match self {
-            LbfgsSolver::MoreThuente(s) => {
-                <_ as Solver<Objective<'_>, LbfgsState>>::terminate(s, state)
-            }
-            LbfgsSolver::HagerZhang(s) => {
-                <_ as Solver<Objective<'_>, LbfgsState>>::terminate(s, state)
-            }
-        }
-    }
 }
 
 fn to_toml<T: Serialize>(x: &T) -> String {

@@ -184,17 +184,18 @@ pub enum OptimizerSpec {
         #[serde(default = "beta2")]
         beta2: f64,
     },
-    /// L-BFGS (Liu & Nocedal 1989) from argmin, with a line search: one epoch is one
-    /// iteration, which may evaluate the loss and gradient several times. It has no learning
-    /// rate: the first step is the steepest-descent direction scaled by the line search.
+    /// L-BFGS (Liu & Nocedal 1989) from argmin, with argmin's Moré–Thuente line search
+    /// (strong Wolfe conditions, c1 = 1e-4, c2 = 0.9, the classic companion of L-BFGS):
+    /// one epoch is one iteration, which may evaluate the loss and gradient several times. It
+    /// has no learning rate: the first step is the steepest-descent direction scaled by the
+    /// line search. (argmin's Hager–Zhang search is not offered: it evaluates both ends of
+    /// its initial bracket [ε, 1e5] before anything else, and a step of 1e5 gradients throws
+    /// a body out of the tank.)
     Lbfgs {
         /// Correction pairs kept. Default 5: the problems here have at most 12 parameters,
         /// and 3 to 7 pairs is the usual range (Nocedal & Wright, section 7.2).
         #[serde(default = "memory")]
         memory: usize,
-        /// Line search. Default `"more_thuente"`.
-        #[serde(default = "more_thuente")]
-        line_search: LineSearchKind,
         /// The run ends (converged) once the gradient norm falls below this. Default √ε ≈
         /// 1.5e-8, argmin's: a gradient that small is round-off of the adjoint.
         #[serde(default = "tolerance_grad")]
@@ -206,22 +207,8 @@ pub enum OptimizerSpec {
     },
 }
 
-/// The line search of L-BFGS (both are argmin's and satisfy the Wolfe conditions).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum LineSearchKind {
-    /// Moré & Thuente 1994 (strong Wolfe conditions, c1 = 1e-4, c2 = 0.9): the classic
-    /// companion of L-BFGS (Nocedal & Wright, section 7.2).
-    MoreThuente,
-    /// Hager & Zhang 2006 (approximate Wolfe conditions), argmin's defaults.
-    HagerZhang,
-}
-
 fn memory() -> usize {
     5
-}
-fn more_thuente() -> LineSearchKind {
-    LineSearchKind::MoreThuente
 }
 fn tolerance_grad() -> f64 {
     f64::EPSILON.sqrt()
