@@ -47,6 +47,9 @@ struct OptimizeArgs {
     /// Continue from DIR/checkpoint.json.
     #[arg(long)]
     resume: bool,
+    /// Also write ParaView frames of the optimised forward run to DIR/vtk/.
+    #[arg(long)]
+    vtk: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -143,6 +146,15 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
         },
     )?;
     pictures(&problem, &problem.initial_params(), &outcome, &out)?;
+    if args.vtk {
+        let mut sim = problem.simulation(&outcome.params);
+        let mut frames = diffluid::vtk::VtkSeries::new(&out.join("vtk"));
+        frames.write_frame(&sim, 0)?;
+        for n in 1..=problem.scene.time.steps {
+            sim.step()?;
+            frames.write_frame(&sim, n)?;
+        }
+    }
     if let Some(reason) = &outcome.stopped {
         return Err(Error::Usage(format!("optimisation stopped at {reason}")));
     }
@@ -353,6 +365,9 @@ struct RunArgs {
     /// Number of steps [default: the scene's time.steps].
     #[arg(long)]
     steps: Option<usize>,
+    /// Also write ParaView frames (every output.every steps) to DIR/vtk/.
+    #[arg(long)]
+    vtk: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -400,7 +415,11 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let write_particles = scene.output.particles;
     let mut sim = Simulation::new(scene)?;
     let initial_volume = sim.liquid_volume();
-    let frame = |sim: &Simulation, n: usize| -> Result<(), Error> {
+    let mut vtk = args.vtk.then(|| diffluid::vtk::VtkSeries::new(&out.join("vtk")));
+    let mut frame = |sim: &Simulation, n: usize| -> Result<(), Error> {
+        if let (Some(v), true) = (vtk.as_mut(), n % every == 0) {
+            v.write_frame(sim, n)?;
+        }
         if write_particles && n % every == 0 {
             write_ply_points(&out.join("particles").join(format!("{n:04}.ply")), &sim.particles)?;
         }
