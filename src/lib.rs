@@ -35,6 +35,7 @@ pub mod scene;
 pub mod shape;
 pub mod sim;
 pub mod surface;
+pub mod vtk;
 
 pub use error::{Error, Result};
 pub use scene::Scene;

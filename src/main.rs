@@ -198,6 +198,9 @@ struct OptimizeArgs {
     /// Continue from DIR/checkpoint.json.
     #[arg(long)]
     resume: bool,
+    /// Also write ParaView frames of the optimised forward run to DIR/vtk/.
+    #[arg(long)]
+    vtk: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -210,8 +213,10 @@ struct OptimizeResult<'a> {
     initial_loss: f64,
     final_loss: f64,
     loss_reduction: f64,
+    evaluations: usize,
     params: &'a diffluid::optimize::BodyParams,
     stopped: Option<&'a str>,
+    converged: Option<&'a str>,
     wall_seconds: f64,
 }
 
@@ -242,16 +247,21 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
     );
     bar.set_position(done as u64);
     let outcome = problem.run(Some(&ck_path), resume, |r| {
-        bar.set_message(format!("loss {:.4e} |g| {:.3e}", r.loss, r.grad_norm));
+        bar.set_message(format!(
+            "loss {:.4e} |g| {:.3e} ({} evaluations)",
+            r.loss, r.grad_norm, r.evaluations
+        ));
         bar.inc(1);
     })?;
     bar.finish_and_clear();
-    let mut csv = String::from("epoch,loss,grad_norm,vx,vy,vz,wx,wy,wz,x,y,z,qw,qx,qy,qz\n");
+    let mut csv =
+        String::from("epoch,evaluations,loss,grad_norm,vx,vy,vz,wx,wy,wz,x,y,z,qw,qx,qy,qz\n");
     for r in &outcome.history {
         let p = &r.params;
         csv.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             r.epoch,
+            r.evaluations,
             r.loss,
             r.grad_norm,
             p.v[0],
@@ -279,19 +289,34 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
             initial_loss,
             final_loss: outcome.final_loss,
             loss_reduction: initial_loss / outcome.final_loss,
+            evaluations: outcome.evaluations,
             params: &outcome.params,
             stopped: outcome.stopped.as_deref(),
+            converged: outcome.converged.as_deref(),
             wall_seconds: start.elapsed().as_secs_f64(),
         },
     )?;
     pictures(&problem, &problem.initial_params(), &outcome, &out)?;
+    if args.vtk {
+        let mut sim = problem.simulation(&outcome.params);
+        let mut frames = diffluid::vtk::VtkSeries::new(&out.join("vtk"));
+        frames.write_frame(&sim, 0)?;
+        for n in 1..=problem.scene.time.steps {
+            sim.step()?;
+            frames.write_frame(&sim, n)?;
+        }
+    }
     if let Some(reason) = &outcome.stopped {
         return Err(Error::Usage(format!("optimisation stopped at {reason}")));
     }
+    if let Some(reason) = &outcome.converged {
+        println!("L-BFGS converged at {reason}");
+    }
     println!(
-        "{}: {} epochs, loss {:.4e} -> {:.4e} ({:.0}x) in {:.1} s; v0 = {:?}; wrote {}",
+        "{}: {} epochs ({} evaluations), loss {:.4e} -> {:.4e} ({:.0}x) in {:.1} s; v0 = {:?}; wrote {}",
         problem.scene.name,
         outcome.history.len(),
+        outcome.evaluations,
         initial_loss,
         outcome.final_loss,
         initial_loss / outcome.final_loss,
@@ -493,6 +518,9 @@ struct RunArgs {
     /// Number of steps [default: the scene's time.steps].
     #[arg(long)]
     steps: Option<usize>,
+    /// Also write ParaView frames (every output.every steps) to DIR/vtk/.
+    #[arg(long)]
+    vtk: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -540,7 +568,11 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let write_particles = scene.output.particles;
     let mut sim = Simulation::new(scene)?;
     let initial_volume = sim.liquid_volume();
-    let frame = |sim: &Simulation, n: usize| -> Result<(), Error> {
+    let mut vtk = args.vtk.then(|| diffluid::vtk::VtkSeries::new(&out.join("vtk")));
+    let mut frame = |sim: &Simulation, n: usize| -> Result<(), Error> {
+        if let (Some(v), true) = (vtk.as_mut(), n % every == 0) {
+            v.write_frame(sim, n)?;
+        }
         if write_particles && n % every == 0 {
             write_ply_points(&out.join("particles").join(format!("{n:04}.ply")), &sim.particles)?;
         }

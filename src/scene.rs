@@ -184,6 +184,37 @@ pub enum OptimizerSpec {
         #[serde(default = "beta2")]
         beta2: f64,
     },
+    /// L-BFGS (Liu & Nocedal 1989) from argmin, with argmin's Moré–Thuente line search
+    /// (strong Wolfe conditions, c1 = 1e-4, c2 = 0.9, the classic companion of L-BFGS):
+    /// one epoch is one iteration, which may evaluate the loss and gradient several times. It
+    /// has no learning rate: the first step is the steepest-descent direction scaled by the
+    /// line search. (argmin's Hager–Zhang search is not offered: it evaluates both ends of
+    /// its initial bracket [ε, 1e5] before anything else, and a step of 1e5 gradients throws
+    /// a body out of the tank.)
+    Lbfgs {
+        /// Correction pairs kept. Default 5: the problems here have at most 12 parameters,
+        /// and 3 to 7 pairs is the usual range (Nocedal & Wright, section 7.2).
+        #[serde(default = "memory")]
+        memory: usize,
+        /// The run ends (converged) once the gradient norm falls below this. Default √ε ≈
+        /// 1.5e-8, argmin's: a gradient that small is round-off of the adjoint.
+        #[serde(default = "tolerance_grad")]
+        tolerance_grad: f64,
+        /// The run ends (converged) once an iteration changes the loss by less than this.
+        /// Default ε ≈ 2.2e-16, argmin's: a change at f64 round-off.
+        #[serde(default = "tolerance_cost")]
+        tolerance_cost: f64,
+    },
+}
+
+fn memory() -> usize {
+    5
+}
+fn tolerance_grad() -> f64 {
+    f64::EPSILON.sqrt()
+}
+fn tolerance_cost() -> f64 {
+    f64::EPSILON
 }
 
 fn beta1() -> f64 {
@@ -814,6 +845,22 @@ impl Scene {
                         }
                     }
                     *learning_rate
+                }
+                OptimizerSpec::Lbfgs { memory, tolerance_grad, tolerance_cost, .. } => {
+                    if *memory == 0 {
+                        return Err(problem("optimize.optimizer.memory", "must be at least 1"));
+                    }
+                    for (k, t) in
+                        [("tolerance_grad", tolerance_grad), ("tolerance_cost", tolerance_cost)]
+                    {
+                        if !(t.is_finite() && *t >= 0.0) {
+                            return Err(problem(
+                                format!("optimize.optimizer.{k}"),
+                                format!("must be a non-negative number, got {t}"),
+                            ));
+                        }
+                    }
+                    1.0
                 }
             };
             if !(lr.is_finite() && lr > 0.0) {

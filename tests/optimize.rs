@@ -1,12 +1,13 @@
 //! Optimisation: recovering a known initial velocity, and resuming an interrupted run.
 //!
 //! Recovery: the target is the final state of a forward run from v*; gradient descent from
-//! rest on the exact gradient (surface held fixed) must find v* again, within 1%.
+//! rest on the exact gradient (surface held fixed) must find v* again, within 1%, and so must
+//! L-BFGS, in fewer loss-and-gradient evaluations than Adam.
 //! Resume: the optimiser writes a checkpoint (parameters, optimiser state, history) after
 //! every epoch, atomically; a run killed with SIGKILL mid-way and resumed must end with the
-//! same parameters, bit for bit, as one never interrupted.
+//! same parameters, bit for bit, as one never interrupted, for gradient descent and L-BFGS.
 
-use diffluid::optimize::Optimization;
+use diffluid::optimize::{BodyParams, Optimization};
 use diffluid::Scene;
 use std::process::Command;
 use std::time::Duration;
@@ -29,9 +30,59 @@ fn recovers_the_initial_velocity_within_one_percent() {
     assert!(err < 0.01, "relative error {err}");
 }
 
-fn run_cli(dir: &std::path::Path, extra: &[&str]) -> std::process::Child {
+/// The recovery scene with another optimiser.
+fn recover_box_with(optimizer: &str) -> String {
+    let base = include_str!("../assets/scenes/recover_box.toml");
+    let from = "optimizer = { kind = \"gd\", learning_rate = 5.0 }";
+    assert!(base.contains(from));
+    base.replacen(from, &format!("optimizer = {optimizer}"), 1)
+}
+
+fn relative_error(p: &BodyParams, vstar: [f64; 3]) -> f64 {
+    ((0..3).map(|d| (p.v[d] - vstar[d]).powi(2)).sum::<f64>()
+        / vstar.iter().map(|x| x * x).sum::<f64>())
+    .sqrt()
+}
+
+/// L-BFGS (argmin, Moré–Thuente) finds v* within 1%, and needs fewer loss-and-gradient
+/// evaluations for it than Adam: Adam run for as many epochs (one evaluation each) as L-BFGS
+/// used evaluations is still more than 1% away. Measured: L-BFGS within 1% after 9
+/// evaluations (epoch 8) and to 1e-9 after 13; Adam first within 1% after 69 (lr 0.2) or 74
+/// (lr 0.05) evaluations, not within 60 at lr 0.1; the scene's GD 5.0 after 39.
+#[test]
+fn lbfgs_recovers_the_initial_velocity_in_fewer_evaluations_than_adam() {
+    let scene = Scene::from_toml(&recover_box_with("{ kind = \"lbfgs\" }"), "<lbfgs>").unwrap();
+    let vstar = scene.optimize.as_ref().unwrap().recover_velocity.unwrap();
+    let lbfgs = Optimization::new(scene).unwrap().run(None, None, |_| {}).unwrap();
+    assert!(lbfgs.stopped.is_none(), "{:?}", lbfgs.stopped);
+    let err = relative_error(&lbfgs.params, vstar);
+    assert!(err < 0.01, "L-BFGS ended {err:e} from v*");
+    // The evaluations spent when the parameters were first within 1%.
+    let needed = lbfgs
+        .history
+        .iter()
+        .find(|r| relative_error(&r.params, vstar) < 0.01)
+        .map(|r| r.evaluations)
+        .unwrap_or(lbfgs.evaluations);
+    let adam_scene =
+        Scene::from_toml(&recover_box_with("{ kind = \"adam\", learning_rate = 0.1 }"), "<adam>")
+            .unwrap();
+    let mut adam = Optimization::new(adam_scene).unwrap();
+    adam.epochs = needed;
+    let out = adam.run(None, None, |_| {}).unwrap();
+    let adam_best =
+        out.history.iter().map(|r| relative_error(&r.params, vstar)).fold(f64::INFINITY, f64::min);
+    eprintln!(
+        "L-BFGS: within 1% after {needed} evaluations, {err:.1e} after {} (loss {:.1e}); \
+         Adam 0.1 after {needed}: best {adam_best:.1e}",
+        lbfgs.evaluations, lbfgs.final_loss
+    );
+    assert!(adam_best >= 0.01, "Adam was within 1% in {needed} evaluations too");
+}
+
+fn run_cli(scene: &str, dir: &std::path::Path, extra: &[&str]) -> std::process::Child {
     Command::new(env!("CARGO_BIN_EXE_diffluid"))
-        .args(["optimize", "recover_box", "--epochs", "8", "--quiet", "--out"])
+        .args(["optimize", scene, "--epochs", "8", "--quiet", "--out"])
         .arg(dir)
         .args(extra)
         .spawn()
@@ -44,14 +95,12 @@ fn params(dir: &std::path::Path) -> serde_json::Value {
     v["params"].clone()
 }
 
-#[test]
-fn a_run_killed_and_resumed_ends_where_an_uninterrupted_one_does() {
-    let base = std::env::temp_dir().join(format!("diffluid-resume-{}", std::process::id()));
+fn killed_and_resumed(scene: &str, base: &std::path::Path) {
     let (a, b) = (base.join("straight"), base.join("killed"));
-    std::fs::create_dir_all(&base).unwrap();
-    assert!(run_cli(&a, &[]).wait().unwrap().success());
+    std::fs::create_dir_all(base).unwrap();
+    assert!(run_cli(scene, &a, &[]).wait().unwrap().success());
     // Kill the second run with SIGKILL once a few epochs are checkpointed.
-    let mut child = run_cli(&b, &[]);
+    let mut child = run_cli(scene, &b, &[]);
     let ck = b.join("checkpoint.json");
     let mut waited = 0;
     loop {
@@ -70,8 +119,28 @@ fn a_run_killed_and_resumed_ends_where_an_uninterrupted_one_does() {
     let status = child.wait().unwrap();
     assert!(!status.success(), "the run must have been killed mid-way");
     assert!(!b.join("result.json").exists(), "killed before the end");
-    assert!(run_cli(&b, &["--resume"]).wait().unwrap().success());
+    assert!(run_cli(scene, &b, &["--resume"]).wait().unwrap().success());
     assert_eq!(params(&a), params(&b), "resumed run ended elsewhere");
+    let csv = |d: &std::path::Path| std::fs::read_to_string(d.join("loss.csv")).unwrap();
+    assert_eq!(csv(&a), csv(&b), "resumed run has another history");
+}
+
+#[test]
+fn a_run_killed_and_resumed_ends_where_an_uninterrupted_one_does() {
+    let base = std::env::temp_dir().join(format!("diffluid-resume-{}", std::process::id()));
+    killed_and_resumed("recover_box", &base);
+    std::fs::remove_dir_all(&base).ok();
+}
+
+/// The same for L-BFGS, whose checkpoint holds argmin's solver (correction pairs, line
+/// search) and iteration state.
+#[test]
+fn an_lbfgs_run_killed_and_resumed_ends_where_an_uninterrupted_one_does() {
+    let base = std::env::temp_dir().join(format!("diffluid-resume-lbfgs-{}", std::process::id()));
+    std::fs::create_dir_all(&base).unwrap();
+    let scene = base.join("recover_lbfgs.toml");
+    std::fs::write(&scene, recover_box_with("{ kind = \"lbfgs\", memory = 5 }")).unwrap();
+    killed_and_resumed(scene.to_str().unwrap(), &base);
     std::fs::remove_dir_all(&base).ok();
 }
 
@@ -83,6 +152,21 @@ fn bad_optimisation_input_is_rejected() {
         ("params = [\"v\"]", "params = [\"speed\"]", "unknown parameter \"speed\""),
         ("learning_rate = 5.0", "learning_rate = -1.0", "optimize.optimizer.learning_rate"),
         ("kind = \"gd\"", "kind = \"newton\"", "unknown variant `newton`"),
+        (
+            "{ kind = \"gd\", learning_rate = 5.0 }",
+            "{ kind = \"lbfgs\", memory = 0 }",
+            "optimize.optimizer.memory",
+        ),
+        (
+            "{ kind = \"gd\", learning_rate = 5.0 }",
+            "{ kind = \"lbfgs\", tolerance_grad = -1.0 }",
+            "optimize.optimizer.tolerance_grad",
+        ),
+        (
+            "{ kind = \"gd\", learning_rate = 5.0 }",
+            "{ kind = \"lbfgs\", learning_rate = 1.0 }",
+            "unknown field `learning_rate`",
+        ),
         ("epochs = 60", "epochs = 0", "optimize.epochs"),
         ("target = [0.4, 0.2, 0.4]", "target = [0.4, 2.0, 0.4]", "outside the tank"),
         ("body = \"box\"", "body = \"crate\"", "no body named \"crate\""),
