@@ -550,21 +550,27 @@ impl Optimization {
             on_epoch(&rec);
             ck.history.push(rec);
             problem.problem.as_ref().expect("the objective").epoch.set(ck.next_epoch);
-            state = solver
-                .next_iter(&mut problem, state)
-                .map_err(|e| Error::Usage(format!("L-BFGS: {e}")))?
-                .0;
+            // argmin ends an iteration whose line search failed with a termination reason; an
+            // error of the gradient after it comes back as an error.
+            let (next, error) = match solver.next_iter(&mut problem, state) {
+                Ok((next, _)) => (next, None),
+                Err(e) => (IterState::new(), Some(e.to_string())),
+            };
+            state = next;
             ck.evaluations = evaluations.get();
-            if state.terminated() {
-                // argmin ends an iteration whose line search failed this way.
-                let reason = failure.borrow().clone().unwrap_or_else(|| {
-                    format!(
-                        "epoch {}: {}",
-                        ck.next_epoch,
-                        state.get_termination_reason().map(|r| r.to_string()).unwrap_or_default()
-                    )
+            if error.is_some() || state.terminated() {
+                let argmin_reason = error.unwrap_or_else(|| {
+                    state.get_termination_reason().map(|r| r.to_string()).unwrap_or_default()
                 });
-                stopped = Some(format!("{reason}; kept the last good parameters"));
+                let reason = failure
+                    .borrow()
+                    .clone()
+                    .unwrap_or_else(|| format!("epoch {}: {argmin_reason}", ck.next_epoch));
+                stopped = Some(if reason.contains("kept the last good parameters") {
+                    reason
+                } else {
+                    format!("{reason}; kept the last good parameters")
+                });
                 break;
             }
             state.update();
@@ -680,7 +686,7 @@ impl Objective<'_> {
             self.problem.evaluate_vector(x).map_err(|e| fail(format!("epoch {epoch}: {e}")))?;
         let norm = g.iter().map(|v| v * v).sum::<f64>().sqrt();
         if let Some(m) = self.problem.stop_message(epoch, f, norm) {
-            return Err(fail(format!("{m} (in the line search)")));
+            return Err(fail(m));
         }
         let mut cache = self.cache.borrow_mut();
         if cache.len() == 4 {
