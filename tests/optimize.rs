@@ -216,8 +216,8 @@ fn block_drop_loss_falls_a_hundredfold_in_fifty_epochs() {
 /// Why the dam break with a ball cannot fall 10×: contact has no restitution and the collapsed
 /// water is about 3.5 cm deep (0.28 m³ over 8 m²), too shallow to float a ball of radius
 /// 0.2 m, so at t = 2.5 s the ball rests on the floor with its centre at y = 0.2, 0.4 m below
-/// the target's 0.6. The loss is then at least 0.4² = 0.16, and the start's 1.496 can fall at
-/// most 9.35×. Checked from rest and from the velocity Adam (lr 0.3) found at loss 0.161.
+/// the target's 0.6. The loss is then at least 0.4² = 0.16, and the start's 1.590 can fall at
+/// most 9.9×. Checked from rest and from a velocity Adam (lr 0.3) found at loss 0.161.
 #[test]
 fn dam_break_ball_ends_on_the_floor_so_its_loss_is_at_least_0_16() {
     let problem = Optimization::new(Scene::builtin("dam_break_ball").unwrap()).unwrap();
