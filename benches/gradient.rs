@@ -13,8 +13,8 @@
 //! --measurement-time 5` for a quicker look, or `-- block_drop/epoch` for one.
 
 use criterion::{criterion_group, criterion_main, Criterion, SamplingMode};
-use diffluid::adjoint::{backward, GradientMode, Loss, Tape};
-use diffluid::optimize::Optimization;
+use diffluid::experiments::optimize::Optimization;
+use diffluid::gradients::{backward, GradientMode, Loss, Tape};
 use diffluid::{Scene, Simulation};
 use std::hint::black_box;
 use std::time::Duration;

@@ -7,13 +7,13 @@
 //! printed once per case before timing.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode};
-use diffluid::body::RigidBody;
-use diffluid::fractions::{body_faces, body_jacobian, face_weights};
-use diffluid::grid::{Grid, Mac};
-use diffluid::pressure::{BodyCoupling, PressureParams, PressureSystem};
-use diffluid::scene::Preconditioner;
-use diffluid::shape::{Placed, ShapeSpec};
-use diffluid::sim::{dt_minv, generalized_velocity};
+use diffluid::experiments::scene::Preconditioner;
+use diffluid::geometry::body::RigidBody;
+use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
+use diffluid::geometry::grid::{Grid, Mac};
+use diffluid::geometry::shape::{Placed, ShapeSpec};
+use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
+use diffluid::world::{dt_minv, generalized_velocity};
 use std::hint::black_box;
 use std::time::Duration;
 

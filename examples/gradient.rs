@@ -1,6 +1,6 @@
 //! Gradient of a loss on a floating box's final position with respect to its initial
 //! state, through the Rust API: `cargo run --release --example gradient`.
-use diffluid::adjoint::{value_and_gradient, BodyTargetLoss, GradientMode};
+use diffluid::gradients::{value_and_gradient, BodyTargetLoss, GradientMode};
 use diffluid::math::Vec3;
 use diffluid::{Scene, Simulation};
 

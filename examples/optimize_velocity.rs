@@ -1,6 +1,6 @@
 //! Optimise a body's initial velocity through the Rust API: a box must end 20 steps later
 //! at a target. `cargo run --release --example optimize_velocity`.
-use diffluid::adjoint::{value_and_gradient, BodyTargetLoss, GradientMode};
+use diffluid::gradients::{value_and_gradient, BodyTargetLoss, GradientMode};
 use diffluid::math::Vec3;
 use diffluid::{Scene, Simulation};
 

@@ -9,34 +9,16 @@
 // Loops over the three axes index several per-axis arrays at once; an index reads better.
 #![allow(clippy::needless_range_loop)]
 
-pub mod adjoint;
-pub mod advect;
-pub mod bench;
-pub mod body;
-pub mod cg;
-#[cfg(feature = "contact")]
-pub mod contact;
-pub mod density;
-pub mod dual;
 pub mod error;
-pub mod extrapolate;
-pub mod forces;
-pub mod fractions;
-pub mod grid;
+pub mod experiments;
+pub mod geometry;
+pub mod gradients;
+pub mod io;
 pub mod math;
-pub mod mesh;
-pub mod mic0;
-pub mod multigrid;
-pub mod optimize;
-pub mod output;
-pub mod plot;
-pub mod pressure;
-pub mod scene;
-pub mod shape;
-pub mod sim;
-pub mod surface;
-pub mod vtk;
+pub mod solvers;
+pub mod stages;
+pub mod world;
 
 pub use error::{Error, Result};
-pub use scene::Scene;
-pub use sim::{Simulation, StepReport};
+pub use experiments::scene::Scene;
+pub use world::{Simulation, StepReport};

@@ -1,7 +1,7 @@
 //! The diffluid command line: thin over the library.
 
 use clap::{Parser, Subcommand};
-use diffluid::output::{write_json, write_ply_points};
+use diffluid::io::output::{write_json, write_ply_points};
 use diffluid::{Error, Scene, Simulation, StepReport};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
@@ -58,12 +58,12 @@ fn write_csv<T: Serialize>(path: &Path, rows: &[T]) -> Result<(), Error> {
         w.serialize(r).map_err(io)?;
     }
     let bytes = w.into_inner().map_err(|e| io(e.into_error().into()))?;
-    diffluid::output::write_atomic(path, &bytes)
+    diffluid::io::output::write_atomic(path, &bytes)
 }
 
 fn bench(args: BenchArgs) -> Result<(), Error> {
-    use diffluid::bench;
-    use diffluid::plot::{line_chart, stability_chart, Series};
+    use diffluid::experiments::bench;
+    use diffluid::io::plot::{line_chart, stability_chart, Series};
     std::fs::create_dir_all(&args.out)
         .map_err(|e| Error::Write { path: args.out.clone(), source: e })?;
     let out = |name: &str| args.out.join(name);
@@ -99,7 +99,7 @@ fn bench(args: BenchArgs) -> Result<(), Error> {
     bar.set_message("stability map");
     let st = bench::stability(args.quick)?;
     write_csv(&out("stability.csv"), &st)?;
-    let panels: Vec<diffluid::plot::StabilityPanel> = ["monolithic", "weak"]
+    let panels: Vec<diffluid::io::plot::StabilityPanel> = ["monolithic", "weak"]
         .iter()
         .map(|c| {
             let cells = st
@@ -214,14 +214,14 @@ struct OptimizeResult<'a> {
     final_loss: f64,
     loss_reduction: f64,
     evaluations: usize,
-    params: &'a diffluid::optimize::BodyParams,
+    params: &'a diffluid::experiments::optimize::BodyParams,
     stopped: Option<&'a str>,
     converged: Option<&'a str>,
     wall_seconds: f64,
 }
 
 fn optimize(args: OptimizeArgs) -> Result<(), Error> {
-    use diffluid::optimize::{Checkpoint, Optimization};
+    use diffluid::experiments::optimize::{Checkpoint, Optimization};
     let mut scene = load_scene(args.scene.as_deref())?;
     if let Some(n) = args.epochs {
         if n == 0 {
@@ -279,7 +279,7 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
             p.q[3]
         ));
     }
-    diffluid::output::write_atomic(&out.join("loss.csv"), csv.as_bytes())?;
+    diffluid::io::output::write_atomic(&out.join("loss.csv"), csv.as_bytes())?;
     let initial_loss = outcome.history.first().map(|r| r.loss).unwrap_or(f64::NAN);
     write_json(
         &out.join("result.json"),
@@ -299,7 +299,7 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
     pictures(&problem, &problem.initial_params(), &outcome, &out)?;
     if args.vtk {
         let mut sim = problem.simulation(&outcome.params);
-        let mut frames = diffluid::vtk::VtkSeries::new(&out.join("vtk"));
+        let mut frames = diffluid::io::vtk::VtkSeries::new(&out.join("vtk"));
         frames.write_frame(&sim, 0)?;
         for n in 1..=problem.scene.time.steps {
             sim.step()?;
@@ -331,18 +331,18 @@ fn optimize(args: OptimizeArgs) -> Result<(), Error> {
 type Recording = (
     Vec<diffluid::math::Vec3>,
     Vec<(String, Vec<diffluid::math::Vec3>)>,
-    Vec<diffluid::plot::Frame>,
+    Vec<diffluid::io::plot::Frame>,
 );
 
 /// loss.png, trajectory.png (the body's path before and after, over the liquid at a few
 /// frames) and optimized.gif (the optimised run).
 fn pictures(
-    problem: &diffluid::optimize::Optimization,
-    start: &diffluid::optimize::BodyParams,
-    outcome: &diffluid::optimize::Outcome,
+    problem: &diffluid::experiments::optimize::Optimization,
+    start: &diffluid::experiments::optimize::BodyParams,
+    outcome: &diffluid::experiments::optimize::Outcome,
     out: &Path,
 ) -> Result<(), Error> {
-    use diffluid::plot::{animation_gif, loss_plot, trajectory_plot, Frame, Track};
+    use diffluid::io::plot::{animation_gif, loss_plot, trajectory_plot, Frame, Track};
     let loss: Vec<f64> = outcome.history.iter().map(|r| r.loss).collect();
     let norms: Vec<f64> = outcome.history.iter().map(|r| r.grad_norm).collect();
     if !loss.is_empty() {
@@ -350,8 +350,10 @@ fn pictures(
     }
     let steps = problem.scene.time.steps;
     let body = problem.body;
-    let (verts, _) = diffluid::mesh::surface_mesh(&problem.initial.bodies[body].shape);
-    let record = |p: &diffluid::optimize::BodyParams, frames: bool| -> Result<Recording, Error> {
+    let (verts, _) = diffluid::geometry::mesh::surface_mesh(&problem.initial.bodies[body].shape);
+    let record = |p: &diffluid::experiments::optimize::BodyParams,
+                  frames: bool|
+     -> Result<Recording, Error> {
         let mut sim = problem.simulation(p);
         let mut path = vec![sim.bodies[body].x];
         let mut snaps = Vec::new();
@@ -429,7 +431,7 @@ struct GradReport {
 }
 
 fn gradcheck(args: GradcheckArgs) -> Result<(), Error> {
-    use diffluid::adjoint::{
+    use diffluid::gradients::{
         central_difference, value_and_gradient, BodyParam, BodyTargetLoss, GradientMode,
     };
     let mut scene = match args.scene.as_deref() {
@@ -532,7 +534,7 @@ fn load_scene(arg: Option<&Path>) -> Result<Scene, Error> {
         None => Ok(Scene::embedded_default()),
         Some(p) if !p.exists() && p.extension().is_none() => {
             let name = p.to_string_lossy();
-            if diffluid::scene::BUILTIN_SCENES.iter().any(|(n, _)| *n == name) {
+            if diffluid::experiments::scene::BUILTIN_SCENES.iter().any(|(n, _)| *n == name) {
                 Scene::builtin(&name)
             } else {
                 Scene::from_file(p)
@@ -568,7 +570,7 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let write_particles = scene.output.particles;
     let mut sim = Simulation::new(scene)?;
     let initial_volume = sim.liquid_volume();
-    let mut vtk = args.vtk.then(|| diffluid::vtk::VtkSeries::new(&out.join("vtk")));
+    let mut vtk = args.vtk.then(|| diffluid::io::vtk::VtkSeries::new(&out.join("vtk")));
     let mut frame = |sim: &Simulation, n: usize| -> Result<(), Error> {
         if let (Some(v), true) = (vtk.as_mut(), n % every == 0) {
             v.write_frame(sim, n)?;
@@ -578,11 +580,11 @@ fn run(args: RunArgs) -> Result<(), Error> {
         }
         if n % every == 0 {
             for b in &sim.bodies {
-                let (verts, tris) = diffluid::mesh::surface_mesh(&b.shape);
+                let (verts, tris) = diffluid::geometry::mesh::surface_mesh(&b.shape);
                 let pose = b.pose();
                 let world: Vec<_> = verts.iter().map(|v| pose.transform_point(*v)).collect();
                 let path = out.join("bodies").join(format!("{}_{n:04}.ply", b.name));
-                diffluid::output::write_ply_mesh(&path, &world, &tris)?;
+                diffluid::io::output::write_ply_mesh(&path, &world, &tris)?;
             }
         }
         Ok(())
@@ -643,7 +645,7 @@ fn run(args: RunArgs) -> Result<(), Error> {
     let total = start.elapsed().as_secs_f64();
     bar.finish_and_clear();
     if !sim.bodies.is_empty() {
-        diffluid::output::write_atomic(&out.join("bodies.csv"), csv.as_bytes())?;
+        diffluid::io::output::write_atomic(&out.join("bodies.csv"), csv.as_bytes())?;
     }
     let grid = *sim.grid();
     write_json(

@@ -7,10 +7,10 @@
 //! walls, no deep interpenetration of colliding bodies, and that fixed bodies stay put.
 #![cfg(feature = "contact")]
 
-use diffluid::body::{quat_step, RigidBody};
-use diffluid::contact::ContactWorld;
+use diffluid::experiments::scene::Contact;
+use diffluid::geometry::body::{quat_step, RigidBody};
 use diffluid::math::{Pose, Rotation, SharedShape, Vec3};
-use diffluid::scene::Contact;
+use diffluid::stages::contact::ContactWorld;
 use parry3d_f64::query;
 
 const G: Vec3 = Vec3::new(0.0, -9.81, 0.0);
@@ -204,7 +204,7 @@ fn fixed_body_is_not_moved() {
 /// to another body, contact is possible.
 #[test]
 fn contact_is_skipped_only_when_no_contact_is_possible() {
-    use diffluid::sim::contact_possible;
+    use diffluid::world::contact_possible;
     let domain = Vec3::ONE;
     let dt = 0.01;
     let mut b = cube(0.05, Vec3::new(0.5, 0.5, 0.5));

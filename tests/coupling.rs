@@ -11,10 +11,10 @@
 
 #![allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 
-use diffluid::fractions::{body_faces, body_jacobian, face_weights};
-use diffluid::grid::Grid;
-use diffluid::pressure::{BodyCoupling, PressureParams, PressureSystem};
-use diffluid::sim::dt_minv;
+use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
+use diffluid::geometry::grid::Grid;
+use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
+use diffluid::world::dt_minv;
 use diffluid::{Scene, Simulation};
 
 fn tank_scene(
@@ -83,7 +83,7 @@ fn coupled_operator_is_symmetric() {
     let (mut ax, mut ay) = (vec![0.0; n], vec![0.0; n]);
     sys.apply(&x, &mut ax);
     sys.apply(&y, &mut ay);
-    let (l, r) = (diffluid::grid::dot(&ax, &y), diffluid::grid::dot(&x, &ay));
+    let (l, r) = (diffluid::geometry::grid::dot(&ax, &y), diffluid::geometry::grid::dot(&x, &ay));
     assert!((l - r).abs() <= 1e-13 * l.abs().max(r.abs()), "⟨Ax,y⟩ = {l}, ⟨x,Ay⟩ = {r}");
     // The body term is not zero: it changes A·x.
     let mut fluid_only = sys.clone();

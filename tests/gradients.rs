@@ -4,10 +4,10 @@
 //! the state away from the places where a face opens or a cell changes kind, and the
 //! backward pass must reproduce its derivative: ⟨∇L, d⟩ = (L(x + εd) − L(x − εd)) / 2ε.
 
-use diffluid::adjoint::{
+use diffluid::geometry::grid::Mac;
+use diffluid::gradients::{
     backward, central_difference, AdjointState, BodyParam, BodyTargetLoss, GradientMode, Loss, Tape,
 };
-use diffluid::grid::Mac;
 use diffluid::math::{Rotation, Vec3};
 use diffluid::{Scene, Simulation};
 
@@ -212,7 +212,7 @@ freeze_surface = true
 
 #[test]
 fn checkpointed_gradient_is_bit_identical() {
-    use diffluid::adjoint::value_and_gradient;
+    use diffluid::gradients::value_and_gradient;
     let body = r#"
 [[body]]
 shape = { kind = "cuboid", half_extents = [0.1, 0.075, 0.1] }

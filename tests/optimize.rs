@@ -7,7 +7,7 @@
 //! every epoch, atomically; a run killed with SIGKILL mid-way and resumed must end with the
 //! same parameters, bit for bit, as one never interrupted, for gradient descent and L-BFGS.
 
-use diffluid::optimize::{BodyParams, Optimization};
+use diffluid::experiments::optimize::{BodyParams, Optimization};
 use diffluid::Scene;
 use std::process::Command;
 use std::time::Duration;

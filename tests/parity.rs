@@ -4,7 +4,7 @@
 //! sequential sweep does, whatever the wave schedule; the multigrid smoother updates one
 //! colour from the other), so the thread count must not change a single bit of the state.
 
-use diffluid::scene::Preconditioner;
+use diffluid::experiments::scene::Preconditioner;
 use diffluid::{Scene, Simulation};
 
 fn run(threads: usize, preconditioner: Preconditioner) -> Simulation {

@@ -9,11 +9,11 @@
 //! correspondingly small. (2) fails if the velocity update and the operator disagree on a
 //! single face weight, θ or sign.
 
-use diffluid::fractions::face_weights;
-use diffluid::grid::{dot, Grid, Mac};
-use diffluid::pressure::{PressureParams, PressureSystem};
-use diffluid::scene::Preconditioner;
-use diffluid::shape::{AxisAngle, Placed, ShapeSpec};
+use diffluid::experiments::scene::Preconditioner;
+use diffluid::geometry::fractions::face_weights;
+use diffluid::geometry::grid::{dot, Grid, Mac};
+use diffluid::geometry::shape::{AxisAngle, Placed, ShapeSpec};
+use diffluid::stages::pressure::{PressureParams, PressureSystem};
 
 fn rough_field(grid: &Grid) -> Mac {
     let mut u = Mac::zeros(grid);

@@ -8,13 +8,13 @@
 //! and semi-definite with the constant pressure as null space in a closed, full tank
 //! (pressure is then defined up to a constant).
 
-use diffluid::body::RigidBody;
-use diffluid::fractions::{body_faces, body_jacobian, face_weights};
-use diffluid::grid::{Grid, Mac};
-use diffluid::pressure::{BodyCoupling, PressureParams, PressureSystem};
-use diffluid::scene::Preconditioner;
-use diffluid::shape::{Placed, ShapeSpec};
-use diffluid::sim::{dt_minv, generalized_velocity};
+use diffluid::experiments::scene::Preconditioner;
+use diffluid::geometry::body::RigidBody;
+use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
+use diffluid::geometry::grid::{Grid, Mac};
+use diffluid::geometry::shape::{Placed, ShapeSpec};
+use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
+use diffluid::world::{dt_minv, generalized_velocity};
 use diffluid::{Error, Scene, Simulation};
 use nalgebra::{DMatrix, DVector};
 

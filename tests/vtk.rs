@@ -2,7 +2,7 @@
 //! had: one vertex cell per liquid particle, the body's surface triangles, one grid cell per
 //! simulation cell with its pressure, and `.pvd` collections listing every frame with its time.
 
-use diffluid::vtk::VtkSeries;
+use diffluid::io::vtk::VtkSeries;
 use diffluid::{Scene, Simulation};
 use std::path::Path;
 use std::process::Command;
@@ -46,7 +46,7 @@ fn frames_parse_back_with_the_simulations_counts() {
     assert_eq!(array_len(&liquid.data.point, "velocity"), 3 * n);
 
     let ball = poly(&dir.join("body_ball_0001.vtp"));
-    let (verts, tris) = diffluid::mesh::surface_mesh(&sim.bodies[0].shape);
+    let (verts, tris) = diffluid::geometry::mesh::surface_mesh(&sim.bodies[0].shape);
     assert_eq!(ball.num_points(), verts.len());
     assert_eq!(ball.polys.as_ref().unwrap().num_cells(), tris.len());
     // The points are the body's surface where it is now: all at the radius from its centre.

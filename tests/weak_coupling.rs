@@ -9,7 +9,7 @@
 //! agrees with the monolithic solve for a heavy body, and blows up for a light one where the
 //! monolithic solve stays bounded.
 
-use diffluid::scene::Coupling;
+use diffluid::experiments::scene::Coupling;
 use diffluid::{Scene, Simulation};
 
 /// A 0.2 m cube of the given density, submerged at rest in a closed-top 0.6 m tank of still

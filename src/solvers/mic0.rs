@@ -9,8 +9,8 @@
 //! the weighted stencil always is (weights in [0, 1], ghost-fluid terms only add to the
 //! diagonal). Rigid-body terms, a low-rank addition, are left out of the factor.
 
-use crate::grid::NONE;
-use crate::pressure::Stencil;
+use crate::geometry::grid::NONE;
+use crate::stages::pressure::Stencil;
 use rayon::prelude::*;
 
 /// Bridson's τ: the fraction of dropped fill-in moved to the diagonal.

@@ -4,6 +4,8 @@
 //! dense blocks (6×6 rigid mass matrices, direct solves in tests). A version bump of either
 //! touches this file only.
 
+pub mod dual;
+
 pub use parry3d_f64::math::{Pose, Rotation, Vector as Vec3};
 pub use parry3d_f64::query::PointQuery;
 pub use parry3d_f64::shape::{Shape, SharedShape};

@@ -16,9 +16,9 @@
 //! The fluid weight of a face is `1 - fraction`; faces on the domain boundary are walls
 //! and have weight 0.
 
-use crate::dual::Scalar;
-use crate::grid::{Grid, Lattice};
-use crate::shape::Solid;
+use crate::geometry::grid::{Grid, Lattice};
+use crate::geometry::shape::Solid;
+use crate::math::dual::Scalar;
 
 /// Fraction of a tetrahedron's volume where the linear interpolant of its vertex values is
 /// negative. It depends on the values only (affine invariance), so their order is free.
@@ -451,7 +451,7 @@ pub fn body_jacobian(
 #[cfg(test)]
 mod derivative_tests {
     use super::*;
-    use crate::body::RigidBody;
+    use crate::geometry::body::RigidBody;
     use crate::math::{Pose, Rotation, SharedShape, Vec3};
 
     /// ∂β/∂pose from dual numbers against central differences of the f64 fractions, for a

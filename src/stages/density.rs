@@ -11,12 +11,12 @@
 //! (`solver.density_correction`).
 
 use crate::error::{Error, Result};
-use crate::extrapolate::correct_velocity;
-use crate::grid::{Grid, Mac};
+use crate::experiments::scene::Solver;
+use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
-use crate::pressure::{PressureParams, PressureSystem};
-use crate::scene::Solver;
-use crate::surface::{self, Bins};
+use crate::stages::extrapolate::correct_velocity;
+use crate::stages::pressure::{PressureParams, PressureSystem};
+use crate::stages::surface::{self, Bins};
 use rayon::prelude::*;
 
 /// What the projection did.

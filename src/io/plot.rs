@@ -6,7 +6,7 @@ use crate::math::Vec3;
 use plotters::prelude::*;
 use std::path::Path;
 
-static FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans.ttf");
+static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 
 fn font() {
     static ONCE: std::sync::Once = std::sync::Once::new();

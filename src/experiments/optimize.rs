@@ -4,7 +4,7 @@
 //!
 //! Orientation steps are rotations: q ← exp(−s)·q for a step s in the world-frame tangent
 //! space, so q stays a unit quaternion and its gradient is the tangent gradient of
-//! [`crate::adjoint`]. L-BFGS needs a vector space: it sees q as a rotation vector r with
+//! [`crate::gradients`]. L-BFGS needs a vector space: it sees q as a rotation vector r with
 //! q = exp(r)·q₀ (q₀ the scene's orientation), and the gradient in r is J_l(r)ᵀ·g, J_l the
 //! left Jacobian of SO(3).
 //!
@@ -13,11 +13,11 @@
 //! checked and checkpointed like a gradient-descent epoch. Its state (correction pairs, line
 //! search, iteration state) is saved with argmin's serde support.
 
-use crate::adjoint::{value_and_gradient, BodyTargetLoss, GradientMode, Loss};
 use crate::error::{Error, Result};
+use crate::experiments::scene::{OptimizerSpec, Scene};
+use crate::gradients::{value_and_gradient, BodyTargetLoss, GradientMode, Loss};
 use crate::math::{Rotation, Vec3};
-use crate::scene::{OptimizerSpec, Scene};
-use crate::sim::Simulation;
+use crate::world::Simulation;
 use argmin::core::{CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus};
 use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
@@ -113,7 +113,7 @@ impl Checkpoint {
 
     /// Writes it atomically (write, then rename): a kill leaves the previous one intact.
     pub fn save(&self, path: &Path) -> Result<()> {
-        crate::output::write_json(path, self)
+        crate::io::output::write_json(path, self)
     }
 }
 

@@ -2,14 +2,14 @@
 //!
 //! Both are passed as closures `y = f(x)`, so the same loop serves the stencil-only
 //! operator, the coupled operator with rigid bodies, and the adjoint solve. Every reduction
-//! is deterministic (see [`crate::grid::dot`]): the iterates do not depend on the number of
+//! is deterministic (see [`crate::geometry::grid::dot`]): the iterates do not depend on the number of
 //! threads.
 //!
 //! A closed tank with no air has the constant pressure as a null space; with
 //! `project_constant` the constant is removed from the right-hand side and from each
 //! preconditioned residual, and the answer has zero mean.
 
-use crate::grid::dot;
+use crate::geometry::grid::dot;
 use rayon::prelude::*;
 
 /// Stopping rule and null-space handling.

@@ -5,7 +5,7 @@
 //! `u_new(x_g) = I(u, x_b)`. The paper picks forward Euler for the backtrace because its
 //! derivative is simple: the map is `W(u)·u`, and its adjoint is `(W + ∂W/∂u·u)ᵀ` (eq. 4).
 
-use crate::grid::{Grid, Mac};
+use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
 
 /// Faces whose advected value the step reads, per axis (see [`needed_faces`]); `None` in the
@@ -20,7 +20,7 @@ pub type FaceMask = [Vec<bool>; 3];
 pub fn needed_faces(
     grid: &Grid,
     phi: &[f64],
-    body_faces: &[crate::fractions::BodyFaces],
+    body_faces: &[crate::geometry::fractions::BodyFaces],
 ) -> FaceMask {
     let cells = grid.cells();
     let mut mask = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
@@ -44,7 +44,7 @@ pub fn needed_faces(
 
 /// The four faces of component `b` whose mean is the velocity component `b` at the centre of
 /// face `ijk` of component `axis` (`b ≠ axis`): exactly the trilinear interpolation there,
-/// with the lattice clamped at the walls as [`crate::grid::Lattice::sample`] clamps it.
+/// with the lattice clamped at the walls as [`crate::geometry::grid::Lattice::sample`] clamps it.
 #[inline]
 fn cross_faces(grid: &Grid, axis: usize, ijk: [usize; 3], b: usize) -> [usize; 4] {
     let lat = grid.faces(b);

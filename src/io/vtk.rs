@@ -8,7 +8,7 @@
 
 use crate::error::{Error, Result};
 use crate::math::Vec3;
-use crate::sim::Simulation;
+use crate::world::Simulation;
 use std::path::{Path, PathBuf};
 use vtkio::model::{
     Attribute, Attributes, ByteOrder, DataSet, Extent, ImageDataPiece, Piece, PolyDataPiece,
@@ -42,7 +42,7 @@ fn write_vtk(path: &Path, title: &str, data: DataSet) -> Result<()> {
     };
     let mut buf = Vec::new();
     vtk.write_xml(&mut buf).map_err(|e| vtk_err(path, e))?;
-    crate::output::write_atomic(path, &buf)
+    crate::io::output::write_atomic(path, &buf)
 }
 
 /// The liquid's marker particles with the grid velocity at each, as PolyData vertices.
@@ -68,7 +68,7 @@ pub fn particles_data(sim: &Simulation) -> DataSet {
 /// vertex.
 pub fn body_data(sim: &Simulation, b: usize) -> DataSet {
     let body = &sim.bodies[b];
-    let (verts, tris) = crate::mesh::surface_mesh(&body.shape);
+    let (verts, tris) = crate::geometry::mesh::surface_mesh(&body.shape);
     let pose = body.pose();
     let world: Vec<Vec3> = verts.iter().map(|v| pose.transform_point(*v)).collect();
     let velocity = flat(world.iter().map(|p| body.velocity_at(*p)));
@@ -170,7 +170,7 @@ impl VtkSeries {
                 ));
             }
             xml.push_str("  </Collection>\n</VTKFile>\n");
-            crate::output::write_atomic(&self.dir.join(format!("{name}.pvd")), xml.as_bytes())?;
+            crate::io::output::write_atomic(&self.dir.join(format!("{name}.pvd")), xml.as_bytes())?;
         }
         Ok(())
     }

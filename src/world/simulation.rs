@@ -19,21 +19,21 @@
 //!
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
-use crate::advect::{advect, needed_faces};
-use crate::body::RigidBody;
-#[cfg(feature = "contact")]
-use crate::contact::ContactWorld;
-use crate::density::{self, DensityInputs};
 use crate::error::{Error, Result};
-use crate::extrapolate::correct_velocity;
-use crate::forces::add_gravity;
-use crate::fractions;
-use crate::grid::{Grid, Mac};
+use crate::experiments::scene::{Coupling, Scene};
+use crate::geometry::body::RigidBody;
+use crate::geometry::fractions;
+use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
-use crate::pressure::BodyCoupling;
-use crate::pressure::{PressureParams, PressureSystem};
-use crate::scene::{Coupling, Scene};
-use crate::surface::{self, Bins};
+use crate::stages::advect::{advect, needed_faces};
+#[cfg(feature = "contact")]
+use crate::stages::contact::ContactWorld;
+use crate::stages::density::{self, DensityInputs};
+use crate::stages::extrapolate::correct_velocity;
+use crate::stages::forces::add_gravity;
+use crate::stages::pressure::BodyCoupling;
+use crate::stages::pressure::{PressureParams, PressureSystem};
+use crate::stages::surface::{self, Bins};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -281,12 +281,12 @@ impl Simulation {
 
     /// Advances one step.
     pub fn step(&mut self) -> Result<StepReport> {
-        crate::grid::on_pool(|| self.step_inner(None))
+        crate::geometry::grid::on_pool(|| self.step_inner(None))
     }
 
     /// Advances one step and records on `tape` what the backward pass needs.
-    pub fn step_taped(&mut self, tape: &mut crate::adjoint::Tape) -> Result<StepReport> {
-        crate::grid::on_pool(|| self.step_inner(Some(tape)))
+    pub fn step_taped(&mut self, tape: &mut crate::gradients::Tape) -> Result<StepReport> {
+        crate::geometry::grid::on_pool(|| self.step_inner(Some(tape)))
     }
 
     /// The liquid signed distance from the particles (before extension into solids): the
@@ -303,10 +303,10 @@ impl Simulation {
         }
     }
 
-    fn step_inner(&mut self, mut tape: Option<&mut crate::adjoint::Tape>) -> Result<StepReport> {
+    fn step_inner(&mut self, mut tape: Option<&mut crate::gradients::Tape>) -> Result<StepReport> {
         let u_start = tape.as_ref().map(|_| self.u.clone());
-        let bodies_start: Vec<crate::adjoint::BodyState> =
-            self.bodies.iter().map(crate::adjoint::BodyState::of).collect();
+        let bodies_start: Vec<crate::gradients::BodyState> =
+            self.bodies.iter().map(crate::gradients::BodyState::of).collect();
         let dt = self.scene.time.dt;
         let grid = self.grid;
         let mut times = StageSeconds::default();
@@ -477,14 +477,14 @@ impl Simulation {
 
         // 5. Velocity correction: the bodies' velocity on the faces they cover (which then
         // count as known), extrapolation into air, zero in static solids and walls.
-        crate::extrapolate::apply_body_velocities(
+        crate::stages::extrapolate::apply_body_velocities(
             &mut u,
             &self.bodies,
             &geo.body_faces,
             &geo.weights,
             &grid,
         );
-        crate::extrapolate::mark_body_faces(&mut valid, &geo.body_faces);
+        crate::stages::extrapolate::mark_body_faces(&mut valid, &geo.body_faces);
         correct_velocity(
             &mut u,
             &mut valid,
@@ -495,7 +495,7 @@ impl Simulation {
         lap(&mut times.correct_velocity);
 
         if let Some(t) = tape.take() {
-            t.steps.push(crate::adjoint::StepRecord {
+            t.steps.push(crate::gradients::StepRecord {
                 u: u_start.expect("cloned when taping"),
                 bodies: bodies_start,
                 v_after: self.bodies.iter().map(generalized_velocity).collect(),

@@ -94,7 +94,7 @@ impl RigidBody {
     /// [δx (3); δθ (3)], the body translated by δx and turned by δθ (world frame) about its
     /// centre of mass: ∂φ/∂x = −n, ∂φ/∂θ = −(p − x) × n, with n the unit gradient of the
     /// distance (from the closest surface point).
-    pub fn sdf_pose_dual(&self, p: Vec3) -> crate::dual::Dual<6> {
+    pub fn sdf_pose_dual(&self, p: Vec3) -> crate::math::dual::Dual<6> {
         let proj = self.shape.project_point(&self.pose(), p, false);
         let diff = p - proj.point;
         let len = diff.length();
@@ -117,7 +117,7 @@ impl RigidBody {
             g.normalize_or_zero()
         };
         let t = (p - self.x).cross(n);
-        crate::dual::Dual::new(phi, [-n.x, -n.y, -n.z, -t.x, -t.y, -t.z])
+        crate::math::dual::Dual::new(phi, [-n.x, -n.y, -n.z, -t.x, -t.y, -t.z])
     }
 
     /// World inertia tensor R·I·Rᵀ about the centre of mass.

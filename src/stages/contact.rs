@@ -24,9 +24,9 @@
 //! `z = 0` and `z = domain.z`. A body that is not dynamic becomes a fixed rapier body: it
 //! pushes the others but is never moved nor written back.
 
-use crate::body::RigidBody;
+use crate::experiments::scene::Contact;
+use crate::geometry::body::RigidBody;
 use crate::math::{Pose, Vec3};
-use crate::scene::Contact;
 use rapier3d_f64::dynamics::{
     CoefficientCombineRule, MassProperties, RigidBodyBuilder, RigidBodyHandle,
 };

@@ -1,26 +1,26 @@
 //! Scene files: TOML read with serde (an unknown key is an error), validated into values a
 //! simulation can trust, with errors that name the key and, where there is one, the line.
 
-use crate::body::RigidBody;
 use crate::error::{Error, Result};
-use crate::grid::Grid;
+use crate::geometry::body::RigidBody;
+use crate::geometry::grid::Grid;
+use crate::geometry::shape::{AxisAngle, Placed, ShapeSpec, Solid};
 use crate::math::{v3, Arr3};
-use crate::shape::{AxisAngle, Placed, ShapeSpec, Solid};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// The scene `cargo run --release` runs when no scene is given.
-pub const DEFAULT_SCENE: &str = include_str!("../assets/scenes/block_drop.toml");
+pub const DEFAULT_SCENE: &str = include_str!("../../assets/scenes/block_drop.toml");
 
 /// Scenes shipped with diffluid, by name, so tests and the CLI can load them anywhere.
 pub const BUILTIN_SCENES: &[(&str, &str)] = &[
-    ("dam_break", include_str!("../assets/scenes/dam_break.toml")),
-    ("still_water", include_str!("../assets/scenes/still_water.toml")),
-    ("block_drop", include_str!("../assets/scenes/block_drop.toml")),
-    ("dam_break_ball", include_str!("../assets/scenes/dam_break_ball.toml")),
-    ("floating_box", include_str!("../assets/scenes/floating_box.toml")),
-    ("gradcheck_box", include_str!("../assets/scenes/gradcheck_box.toml")),
-    ("recover_box", include_str!("../assets/scenes/recover_box.toml")),
+    ("dam_break", include_str!("../../assets/scenes/dam_break.toml")),
+    ("still_water", include_str!("../../assets/scenes/still_water.toml")),
+    ("block_drop", include_str!("../../assets/scenes/block_drop.toml")),
+    ("dam_break_ball", include_str!("../../assets/scenes/dam_break_ball.toml")),
+    ("floating_box", include_str!("../../assets/scenes/floating_box.toml")),
+    ("gradcheck_box", include_str!("../../assets/scenes/gradcheck_box.toml")),
+    ("recover_box", include_str!("../../assets/scenes/recover_box.toml")),
 ];
 
 /// A whole scene.

@@ -12,16 +12,16 @@
 //! the geometry on the body poses (face fractions, J, the world inertia, the rigid velocity
 //! set inside bodies); [`GradientMode::Paper`] drops it, as the paper does.
 
-use crate::advect::advect_adjoint;
-use crate::body::{quat_step_adjoint, quat_tangent_gradient, RigidBody};
 use crate::error::{Error, Result};
-use crate::extrapolate::correct_velocity_adjoint;
-use crate::fractions;
-use crate::grid::Mac;
+use crate::geometry::body::{quat_step_adjoint, quat_tangent_gradient, RigidBody};
+use crate::geometry::fractions;
+use crate::geometry::grid::Mac;
 use crate::math::{Rotation, Vec3};
-use crate::pressure::{BodyCoupling, PressureParams, PressureSystem};
-use crate::sim::{dt_minv, Simulation};
-use crate::surface;
+use crate::stages::advect::advect_adjoint;
+use crate::stages::extrapolate::correct_velocity_adjoint;
+use crate::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
+use crate::stages::surface;
+use crate::world::{dt_minv, Simulation};
 
 /// A body's state at the start of a step.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -197,7 +197,7 @@ pub struct BodyTargetLoss {
 
 impl BodyTargetLoss {
     /// The loss a scene's `[loss]` section describes (None when it has none).
-    pub fn from_scene(scene: &crate::scene::Scene) -> Option<BodyTargetLoss> {
+    pub fn from_scene(scene: &crate::experiments::scene::Scene) -> Option<BodyTargetLoss> {
         let l = scene.loss.as_ref()?;
         let body = (0..scene.body.len()).find(|&i| {
             let n = &scene.body[i].name;
@@ -269,7 +269,7 @@ struct GeometryInputs<'a> {
 fn geometry_gradient(
     g: &GeometryInputs<'_>,
     body: &RigidBody,
-    faces: &[Vec<(usize, crate::dual::Dual<6>)>; 3],
+    faces: &[Vec<(usize, crate::math::dual::Dual<6>)>; 3],
     coupling: usize,
     v_hat: &[f64; 6],
     adj_v: &[f64; 6],
@@ -279,7 +279,7 @@ fn geometry_gradient(
     let area = grid.dx * grid.dx;
     let scale = sys.params.dt * grid.dx / sys.params.density;
     let row_val = |c: Option<usize>, x: &[f64]| match c.map(|c| sys.row_of_cell[c]) {
-        Some(r) if r != crate::grid::NONE => x[r as usize],
+        Some(r) if r != crate::geometry::grid::NONE => x[r as usize],
         _ => 0.0,
     };
     let bc = &sys.bodies[coupling];
@@ -411,7 +411,7 @@ pub fn backward_adjoint(
     final_adjoint: AdjointState,
     mode: GradientMode,
 ) -> Result<AdjointState> {
-    crate::grid::on_pool(|| backward_adjoint_on_pool(initial, tape, final_adjoint, mode))
+    crate::geometry::grid::on_pool(|| backward_adjoint_on_pool(initial, tape, final_adjoint, mode))
 }
 
 fn backward_adjoint_on_pool(
@@ -430,7 +430,7 @@ fn backward_adjoint_on_pool(
                 .into(),
         });
     }
-    if scene.solver.coupling != crate::scene::Coupling::Monolithic {
+    if scene.solver.coupling != crate::experiments::scene::Coupling::Monolithic {
         return Err(Error::InvalidScene {
             origin: scene.name.clone(),
             message: "gradients are only available for solver.coupling = \"monolithic\"".into(),
@@ -459,7 +459,7 @@ fn backward_adjoint_on_pool(
             sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&bodies[i], dt)));
         }
         // The faces the step reads after advection, and the projection's (valid) faces.
-        let needed = crate::advect::needed_faces(&grid, &phi, &geo.body_faces);
+        let needed = crate::stages::advect::needed_faces(&grid, &phi, &geo.body_faces);
         let valid0: [Vec<u8>; 3] = [0, 1, 2].map(|a| {
             let mut v = vec![0u8; grid.faces(a).len()];
             for pf in &sys.faces[a] {
@@ -507,7 +507,7 @@ fn backward_adjoint_on_pool(
         // Recompute the step's intermediate fields: û (advected, with gravity) and the
         // corrected field before the bodies' velocities are set. The backward pass reads them
         // only on the faces the bodies cover, so only those are advected.
-        let mut at_bodies = crate::advect::needed_faces(&grid, &[], &geo.body_faces);
+        let mut at_bodies = crate::stages::advect::needed_faces(&grid, &[], &geo.body_faces);
         for faces in &dual_faces {
             for (a, m) in at_bodies.iter_mut().enumerate() {
                 for (f, _) in &faces[a] {
@@ -515,12 +515,12 @@ fn backward_adjoint_on_pool(
                 }
             }
         }
-        let mut u_hat = crate::advect::advect(&rec.u, &grid, dt, Some(&at_bodies));
-        crate::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
+        let mut u_hat = crate::stages::advect::advect(&rec.u, &grid, dt, Some(&at_bodies));
+        crate::stages::forces::add_gravity(&mut u_hat, scene.fluid.gravity, dt);
         let mut u_corr = u_hat.clone();
         sys.update_velocity(&rec.p, &mut u_corr);
         let mut valid0 = valid0;
-        crate::extrapolate::mark_body_faces(&mut valid0, &geo.body_faces);
+        crate::stages::extrapolate::mark_body_faces(&mut valid0, &geo.body_faces);
         let mut pose_grad = vec![[0.0f64; 6]; bodies.len()];
 
         // 5ᵀ: walls and static solids, extrapolation layers, then the bodies' velocities on
@@ -538,7 +538,7 @@ fn backward_adjoint_on_pool(
             b.v = Vec3::new(va[0], va[1], va[2]);
             b.w = Vec3::new(va[3], va[4], va[5]);
         }
-        let bva = crate::extrapolate::apply_body_velocities_adjoint(
+        let bva = crate::stages::extrapolate::apply_body_velocities_adjoint(
             &mut ubar,
             &u_corr,
             &after,
@@ -610,7 +610,7 @@ fn backward_adjoint_on_pool(
             for &i in &dynamic {
                 let gr = pose_grad[i];
                 new_bodies[i].x += Vec3::new(gr[0], gr[1], gr[2]);
-                let gq = crate::body::quat_from_tangent_gradient(
+                let gq = crate::geometry::body::quat_from_tangent_gradient(
                     bodies[i].q,
                     Vec3::new(gr[3], gr[4], gr[5]),
                 );
@@ -659,7 +659,7 @@ pub fn value_and_gradient(
     mode: GradientMode,
     checkpoint_every: Option<usize>,
 ) -> Result<GradientRun> {
-    crate::grid::on_pool(|| {
+    crate::geometry::grid::on_pool(|| {
         value_and_gradient_on_pool(initial, steps, loss, mode, checkpoint_every)
     })
 }

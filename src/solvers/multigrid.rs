@@ -1,5 +1,5 @@
 //! A geometric multigrid V-cycle as a preconditioner for the pressure CG (MGPCG, McAdams,
-//! Sifakis & Teran 2010), beside [`crate::mic0`].
+//! Sifakis & Teran 2010), beside [`crate::solvers::mic0`].
 //!
 //! **Levels.** The finest level is the pressure stencil on the whole cell lattice: the
 //! unknowns keep their rows, every other cell (air, solid) is absent, which on the fine
@@ -32,8 +32,8 @@
 //! in a fixed order. No reduction depends on the thread count: the cycle is bit-identical
 //! with any number of rayon threads.
 
-use crate::grid::NONE;
-use crate::pressure::Stencil;
+use crate::geometry::grid::NONE;
+use crate::stages::pressure::Stencil;
 use rayon::prelude::*;
 use std::sync::Mutex;
 
@@ -451,8 +451,8 @@ fn relax(level: &Level, colour: usize, w: &mut Work) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::grid::{dot, Grid};
-    use crate::pressure::{PressureParams, PressureSystem};
+    use crate::geometry::grid::{dot, Grid};
+    use crate::stages::pressure::{PressureParams, PressureSystem};
 
     /// A tank of `n` cells filled to `level` (a sloped surface; above 1 it is full and
     /// closed), with a blob of fractional face weights standing in for a body.

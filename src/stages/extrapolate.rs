@@ -7,7 +7,7 @@
 //! zero. For fixed masks this is a fixed linear map C, so its transpose exists for the
 //! backward pass (paper, eq. 10).
 
-use crate::grid::{Grid, Lattice, Mac};
+use crate::geometry::grid::{Grid, Lattice, Mac};
 use rayon::prelude::*;
 
 /// The neighbours of sample `idx` along the 6 lattice directions, in the order −x, +x, −y,
@@ -178,8 +178,8 @@ pub fn correct_velocity_adjoint(
 /// when it closed, which made the step discontinuous in the body's pose.
 pub fn apply_body_velocities(
     u: &mut Mac,
-    bodies: &[crate::body::RigidBody],
-    faces: &[crate::fractions::BodyFaces],
+    bodies: &[crate::geometry::body::RigidBody],
+    faces: &[crate::geometry::fractions::BodyFaces],
     weights: &[Vec<f64>; 3],
     grid: &Grid,
 ) {
@@ -207,7 +207,7 @@ pub fn apply_body_velocities(
 /// Marks every face a body covers as known: the extrapolation reads the bodies' velocities
 /// there and never overwrites them. Whether a face next to a moving body is a source then
 /// does not depend on its fluid weight reaching exactly 0, which made the step jump.
-pub fn mark_body_faces(valid: &mut [Vec<u8>; 3], faces: &[crate::fractions::BodyFaces]) {
+pub fn mark_body_faces(valid: &mut [Vec<u8>; 3], faces: &[crate::geometry::fractions::BodyFaces]) {
     for bf in faces {
         for a in 0..3 {
             for &(f, _) in &bf.faces[a] {
@@ -233,8 +233,8 @@ pub struct BodyVelocityAdjoint {
 pub fn apply_body_velocities_adjoint(
     ubar: &mut Mac,
     u_old: &Mac,
-    bodies: &[crate::body::RigidBody],
-    faces: &[crate::fractions::BodyFaces],
+    bodies: &[crate::geometry::body::RigidBody],
+    faces: &[crate::geometry::fractions::BodyFaces],
     weights: &[Vec<f64>; 3],
     grid: &Grid,
 ) -> Vec<BodyVelocityAdjoint> {

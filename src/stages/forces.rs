@@ -1,7 +1,7 @@
 //! Constant body forces on the liquid (stage 2). They only add an offset to the velocity,
 //! so the adjoint of this stage is the identity (paper, eq. 3).
 
-use crate::grid::Mac;
+use crate::geometry::grid::Mac;
 use rayon::prelude::*;
 
 /// Adds `dt·g` to every face (stage 2, gravity). Its adjoint is the identity.

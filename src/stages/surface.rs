@@ -8,9 +8,9 @@
 //! reconstructed exactly halfway between the cell centres that straddle it
 //! (see [`particle_radius`]).
 
-use crate::grid::{Grid, Mac};
+use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::shape::Solid;
 use crate::math::Vec3;
-use crate::shape::Solid;
 use rayon::prelude::*;
 
 /// Sub-lattice offsets (in cells, relative to the cell's lower corner) for m per axis.
@@ -109,7 +109,11 @@ pub fn advect(pos: &mut [Vec3], u: &Mac, grid: &Grid, dt: f64, node_sdf: &[f64])
 }
 
 /// Moves particles that ended inside a rigid body to its surface, `margin` outside.
-pub fn push_out_of_bodies(pos: &mut [Vec3], bodies: &[crate::body::RigidBody], margin: f64) {
+pub fn push_out_of_bodies(
+    pos: &mut [Vec3],
+    bodies: &[crate::geometry::body::RigidBody],
+    margin: f64,
+) {
     for b in bodies {
         let (lo, hi) = b.bounds();
         let pose = b.pose();
@@ -302,7 +306,7 @@ pub fn particle_density(pos: &[Vec3], grid: &Grid, ppc: usize) -> Vec<f64> {
 pub fn liquid_volume(pos: &[Vec3], grid: &Grid, ppc: usize) -> f64 {
     let dens = particle_density(pos, grid, ppc);
     let parts: Vec<f64> = dens
-        .chunks(crate::grid::REDUCE_CHUNK)
+        .chunks(crate::geometry::grid::REDUCE_CHUNK)
         .map(|c| c.iter().map(|d| d.min(1.0)).sum())
         .collect();
     parts.iter().sum::<f64>() * grid.dx.powi(3)
@@ -320,7 +324,7 @@ mod tests {
 
     #[test]
     fn seeded_box_has_exact_volume_and_flat_surface() {
-        use crate::shape::{Placed, ShapeSpec};
+        use crate::geometry::shape::{Placed, ShapeSpec};
         let grid = Grid { n: [8, 8, 8], dx: 0.125 };
         let region = Placed {
             shape: ShapeSpec::Box { min: [0.0, 0.0, 0.0], max: [1.0, 0.5, 1.0] },

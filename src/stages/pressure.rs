@@ -14,11 +14,11 @@
 //! velocity update, so a relative residual is a relative divergence. The operator is applied
 //! matrix-free from a stored 7-point stencil; rigid bodies add a rank-6 term per body.
 
-use crate::cg::{pcg_from, CgSettings, CgStats};
-use crate::grid::{Grid, Mac, NONE};
-use crate::mic0::Mic0;
-use crate::multigrid::Multigrid;
-use crate::scene::Preconditioner;
+use crate::experiments::scene::Preconditioner;
+use crate::geometry::grid::{Grid, Mac, NONE};
+use crate::solvers::cg::{pcg_from, CgSettings, CgStats};
+use crate::solvers::mic0::Mic0;
+use crate::solvers::multigrid::Multigrid;
 use rayon::prelude::*;
 
 /// The symmetric 7-point stencil over the unknowns.
@@ -546,7 +546,7 @@ impl PressureSystem {
         &self,
         adj_u: &Mac,
         adj_v: &[[f64; 6]],
-        solver: &crate::scene::Solver,
+        solver: &crate::experiments::scene::Solver,
     ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
         let mut pbar = self.update_velocity_adjoint(adj_u);
         for (b, av) in self.bodies.iter().zip(adj_v) {
@@ -685,8 +685,11 @@ mod tests {
         let dv = sys.bodies[0].dt_minv_times(&sys.bodies[0].force(&p));
         let v1: [f64; 6] = std::array::from_fn(|d| vh[d] + dv[d]);
         // Adjoint.
-        let settings =
-            crate::scene::Solver { tolerance: tol, max_iterations: 10_000, ..Default::default() };
+        let settings = crate::experiments::scene::Solver {
+            tolerance: tol,
+            max_iterations: 10_000,
+            ..Default::default()
+        };
         let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &settings);
         let lhs = u1.dot(&ub) + (0..6).map(|d| v1[d] * vb[d]).sum::<f64>();
         let rhs = uh.dot(&ua) + (0..6).map(|d| vh[d] * va[0][d]).sum::<f64>();
@@ -702,7 +705,7 @@ mod tests {
         let (mut ax, mut ay) = (vec![0.0; n], vec![0.0; n]);
         sys.apply(&x, &mut ax);
         sys.apply(&y, &mut ay);
-        let (l, r) = (crate::grid::dot(&ax, &y), crate::grid::dot(&x, &ay));
+        let (l, r) = (crate::geometry::grid::dot(&ax, &y), crate::geometry::grid::dot(&x, &ay));
         assert!((l - r).abs() <= 1e-13 * l.abs().max(r.abs()), "{l} vs {r}");
     }
 }

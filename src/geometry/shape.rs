@@ -187,7 +187,7 @@ impl ShapeSpec {
             ShapeSpec::Mesh { obj, scale } => {
                 positive("mesh scale", *scale)?;
                 let path = base.join(obj);
-                crate::mesh::load_obj(&path, *scale).map(|s| (s, Vec3::ZERO))
+                crate::geometry::mesh::load_obj(&path, *scale).map(|s| (s, Vec3::ZERO))
             }
         }
     }

@@ -1,14 +1,14 @@
 //! `diffluid bench`: speed against accuracy, stability where methods fail, thin bodies, and
 //! what air costs. Each study returns plain rows (written as CSV by the CLI and drawn by
-//! [`crate::plot`]); `quick` shrinks every sweep so a test can run them all.
+//! [`crate::io::plot`]); `quick` shrinks every sweep so a test can run them all.
 //!
 //! Every scene is built here as TOML text, the way a user would write it, and timed in
 //! process with the wall clock: a row's `seconds` is the whole run of that configuration.
 
-use crate::adjoint::{central_difference, value_and_gradient, BodyParam, BodyTargetLoss};
 use crate::error::Result;
+use crate::experiments::scene::Coupling;
+use crate::gradients::{central_difference, value_and_gradient, BodyParam, BodyTargetLoss};
 use crate::math::Vec3;
-use crate::scene::Coupling;
 use crate::{Scene, Simulation};
 use serde::Serialize;
 use std::time::Instant;
@@ -161,7 +161,7 @@ tolerance = 1e-10"#;
         s.solver.tolerance = tol;
         let sim = Simulation::new(s)?;
         let (run, seconds) = clock(|| {
-            value_and_gradient(&sim, steps, &loss, crate::adjoint::GradientMode::Full, None)
+            value_and_gradient(&sim, steps, &loss, crate::gradients::GradientMode::Full, None)
         })?;
         let ad = BodyParam::V(0).of(&run.gradient.bodies[0]);
         rows.push(AccuracyRow {

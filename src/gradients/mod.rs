@@ -1,0 +1,3 @@
+//! Gradients: the backward pass, losses, body parameters.
+mod backward;
+pub use backward::*;

@@ -1,0 +1,4 @@
+//! Writers: PLY, JSON, VTK, pictures.
+pub mod output;
+pub mod plot;
+pub mod vtk;

@@ -1,0 +1,3 @@
+//! A running simulation and its step.
+mod simulation;
+pub use simulation::*;
