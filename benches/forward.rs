@@ -19,7 +19,7 @@ fn bench_scene(c: &mut Criterion, name: &str, steps: usize) {
     group.sampling_mode(SamplingMode::Flat);
     group.bench_function(format!("{name}_{steps}_steps"), |b| {
         b.iter(|| {
-            let mut sim = Simulation::new(black_box(scene.clone())).expect("valid scene");
+            let mut sim = black_box(scene.clone()).build().expect("valid scene");
             for _ in 0..steps {
                 black_box(sim.step().expect("step"));
             }

@@ -14,7 +14,8 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, SamplingMode};
 use diffluid::experiments::optimize::Optimization;
-use diffluid::gradients::{backward, GradientMode, Loss, Tape};
+use diffluid::gradients::{backward, Loss};
+use diffluid::world::Tape;
 use diffluid::{Scene, Simulation};
 use std::hint::black_box;
 use std::time::Duration;
@@ -28,7 +29,7 @@ fn prepared(name: &str) -> (Optimization, Simulation) {
 
 fn passes(c: &mut Criterion, name: &str) {
     let (opt, sim) = prepared(name);
-    let steps = sim.scene().time.steps;
+    let steps = opt.scene.time.steps;
     let mut group = c.benchmark_group(name);
     group.sampling_mode(SamplingMode::Flat);
     group.bench_function(format!("forward_{steps}"), |b| {
@@ -48,7 +49,7 @@ fn passes(c: &mut Criterion, name: &str) {
     }
     let adj = opt.loss.gradient(&last);
     group.bench_function(format!("backward_{steps}"), |b| {
-        b.iter(|| backward(&sim, &tape, adj.clone(), GradientMode::Full).expect("backward"))
+        b.iter(|| backward(&sim, &tape, adj.clone(), &opt.gradient).expect("backward"))
     });
     if name == "block_drop" {
         let p = opt.initial_params();

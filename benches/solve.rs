@@ -7,13 +7,13 @@
 //! printed once per case before timing.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode};
-use diffluid::experiments::scene::Preconditioner;
+use diffluid::experiments::shapes::{Placed, ShapeSpec};
 use diffluid::geometry::body::RigidBody;
 use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
 use diffluid::geometry::grid::{Grid, Mac};
-use diffluid::geometry::shape::{Placed, ShapeSpec};
+use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
-use diffluid::world::{dt_minv, generalized_velocity};
+use diffluid::world::step::{dt_minv, generalized_velocity};
 use std::hint::black_box;
 use std::time::Duration;
 
@@ -76,7 +76,7 @@ fn solve(c: &mut Criterion) {
         for (name, pre) in
             [("mic0", Preconditioner::Mic0), ("multigrid", Preconditioner::Multigrid)]
         {
-            let (_, stats) = sys.solve(&b, pre, TOLERANCE, 5000);
+            let (_, stats) = sys.solve(&b, &LinearSolve::new(pre, TOLERANCE, 5000));
             assert!(stats.converged, "{name} at {n}³: {stats:?}");
             eprintln!(
                 "{n}³ ({} unknowns), {name}: {} iterations, relative residual {:.2e}",
@@ -85,7 +85,9 @@ fn solve(c: &mut Criterion) {
                 stats.relative_residual
             );
             group.bench_with_input(BenchmarkId::new(name, format!("{n}^3")), &pre, |bch, &pre| {
-                bch.iter(|| black_box(sys.solve(black_box(&b), pre, TOLERANCE, 5000)))
+                bch.iter(|| {
+                    black_box(sys.solve(black_box(&b), &LinearSolve::new(pre, TOLERANCE, 5000)))
+                })
             });
         }
     }

@@ -31,9 +31,25 @@ pub enum Error {
         /// What is wrong, naming the key.
         message: String,
     },
-    /// A command-line argument out of range.
-    #[error("{0}")]
-    Usage(String),
+    /// A setting of a world built in code that fails its check (a scene file's settings
+    /// come back as [`Error::InvalidScene`] with the line). `key` names it as a scene file
+    /// would: `domain.dx`, `liquid[0]`, `body[1]`, `solver.theta_min`.
+    #[error("{key}: {message}")]
+    InvalidSettings {
+        /// The setting.
+        key: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A body handle that names no body of the simulation (removed, or from another one).
+    #[error("no body with handle {handle} in this simulation")]
+    UnknownBody {
+        /// The handle's number.
+        handle: u32,
+    },
+    /// A gradient asked of a forward map the backward pass cannot differentiate.
+    #[error("gradient not available: {0}")]
+    Gradient(String),
     /// The pressure solve did not reach its tolerance.
     #[error(
         "pressure solve did not converge at step {step}: relative residual {residual:.3e} after \

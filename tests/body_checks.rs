@@ -13,7 +13,7 @@
 //! - Bad input: every malformed body is rejected with a message naming it.
 
 use diffluid::math::Vec3;
-use diffluid::{Scene, Simulation};
+use diffluid::Scene;
 
 fn tank(body: &str, steps: usize, contact: bool) -> String {
     format!(
@@ -50,11 +50,11 @@ velocity = [0.3, -0.5, 0.1]
 angular_velocity = [0.4, -0.2, 0.6]"#
     );
     let scene = Scene::from_toml(&tank(&body, 30, false), "<test>").unwrap();
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     (0..30)
         .map(|_| {
             sim.step().unwrap();
-            (sim.bodies[0].x, sim.bodies[0].q)
+            (sim.bodies()[0].x, sim.bodies()[0].q)
         })
         .collect()
 }
@@ -84,13 +84,13 @@ shape = { kind = "cuboid", half_extents = [0.1, 0.1, 0.1] }
 density = 3000.0
 position = [0.41, 0.25, 0.38]"#;
     let scene = Scene::from_toml(&tank(body, 300, true), "<test>").unwrap();
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let mut speeds = Vec::new();
     for _ in 0..300 {
         sim.step().unwrap();
-        speeds.push(sim.bodies[0].v.length());
+        speeds.push(sim.bodies()[0].v.length());
     }
-    let (lo, _) = sim.bodies[0].bounds();
+    let (lo, _) = sim.bodies()[0].bounds();
     let tail = speeds[280..].iter().cloned().fold(0.0, f64::max);
     eprintln!(
         "heavy body: lowest point {:.4} m, max speed over the last 20 steps {tail:.2e} m/s",
@@ -104,7 +104,7 @@ fn rejected(body: &str, needles: &[&str]) {
     let text = tank(body, 5, false);
     let err = match Scene::from_toml(&text, "<test>") {
         Err(e) => e.to_string(),
-        Ok(s) => match Simulation::new(s) {
+        Ok(s) => match s.build() {
             Err(e) => e.to_string(),
             Ok(_) => panic!("accepted: {body}"),
         },
@@ -175,14 +175,14 @@ shape = { kind = "cuboid", half_extents = [0.1, 0.1, 0.1] }
 density = 3000.0
 position = [0.41, 0.1001, 0.38]"#;
     let scene = Scene::from_toml(&tank(body, 200, true), "<test>").unwrap();
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let mut liquid: f64 = 0.0;
     let mut body_speed: f64 = 0.0;
     let mut solves = 0;
     for _ in 0..200 {
         let r = sim.step().unwrap();
         liquid = liquid.max(r.max_speed);
-        body_speed = body_speed.max(sim.bodies[0].v.length());
+        body_speed = body_speed.max(sim.bodies()[0].v.length());
         solves += r.contact_iterations;
     }
     eprintln!(

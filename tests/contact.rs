@@ -7,10 +7,10 @@
 //! walls, no deep interpenetration of colliding bodies, and that fixed bodies stay put.
 #![cfg(feature = "contact")]
 
-use diffluid::experiments::scene::Contact;
 use diffluid::geometry::body::{quat_step, RigidBody};
 use diffluid::math::{Pose, Rotation, SharedShape, Vec3};
 use diffluid::stages::contact::ContactWorld;
+use diffluid::world::ContactSettings as Contact;
 use parry3d_f64::query;
 
 const G: Vec3 = Vec3::new(0.0, -9.81, 0.0);
@@ -181,7 +181,7 @@ fn colliding_boxes_do_not_interpenetrate() {
 fn fixed_body_is_not_moved() {
     let dt = 0.005;
     let mut block = cube(0.1, Vec3::new(0.5, 0.2, 0.5));
-    block.dynamic = false;
+    block.motion = diffluid::geometry::body::Motion::Fixed;
     let r = 0.05;
     let mut bodies = vec![block, ball(r, Vec3::new(0.5, 0.5, 0.5))];
     let before = bodies[0].clone();
@@ -204,7 +204,7 @@ fn fixed_body_is_not_moved() {
 /// to another body, contact is possible.
 #[test]
 fn contact_is_skipped_only_when_no_contact_is_possible() {
-    use diffluid::world::contact_possible;
+    use diffluid::stages::contact::contact_possible;
     let domain = Vec3::ONE;
     let dt = 0.01;
     let mut b = cube(0.05, Vec3::new(0.5, 0.5, 0.5));
@@ -241,13 +241,12 @@ fn contact_on_changes_nothing_away_from_walls() {
     scene.optimize = None;
     let mut on = scene.clone();
     on.contact.enabled = true;
-    let (mut a, mut b) =
-        (diffluid::Simulation::new(scene).unwrap(), diffluid::Simulation::new(on).unwrap());
+    let (mut a, mut b) = (scene.build().unwrap(), on.build().unwrap());
     for _ in 0..10 {
         a.step().unwrap();
         b.step().unwrap();
     }
-    let (x, y) = (&a.bodies[0], &b.bodies[0]);
+    let (x, y) = (&a.bodies()[0], &b.bodies()[0]);
     assert_eq!((x.x, x.q, x.v, x.w), (y.x, y.q, y.v, y.w));
     assert_eq!(a.u, b.u);
 }

@@ -14,7 +14,7 @@
 use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
 use diffluid::geometry::grid::Grid;
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
-use diffluid::world::dt_minv;
+use diffluid::world::step::dt_minv;
 use diffluid::{Scene, Simulation};
 
 fn tank_scene(
@@ -54,10 +54,10 @@ position = [{}, {}, {}]
 #[test]
 fn coupled_operator_is_symmetric() {
     let scene = tank_scene(0.6, 0.05, 0.4, [0.1, 0.08, 0.12], [0.31, 0.37, 0.29], 600.0, 0.01, 1);
-    let sim = Simulation::new(scene).unwrap();
+    let sim = scene.build().unwrap();
     let grid: Grid = *sim.grid();
     let weights0 = face_weights(&grid, &[]);
-    let body = sim.bodies[0].clone();
+    let body = sim.bodies()[0].clone();
     let faces = body_faces(&grid, body.bounds(), |p| body.sdf(p), Some(body.volume()));
     let mut weights = weights0.clone();
     for a in 0..3 {
@@ -98,7 +98,7 @@ fn coupled_operator_is_symmetric() {
 fn mean_surface(sim: &Simulation) -> f64 {
     let g = *sim.grid();
     let phi = sim.liquid_phi();
-    let (lo, hi) = sim.bodies[0].bounds();
+    let (lo, hi) = sim.bodies()[0].bounds();
     let (mut sum, mut n) = (0.0, 0);
     for k in 0..g.n[2] {
         for i in 0..g.n[0] {
@@ -136,12 +136,12 @@ fn settled_draft(ratio: f64) -> (f64, f64) {
     // The particle density projection pumps energy into the sloshing around a floating
     // body (it lifts the surface where particles bunch against the body); see README.
     scene.solver.density_correction = false;
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let (mut sum, mut n) = (0.0, 0);
     for s in 0..300 {
         sim.step().unwrap();
         if s >= 150 {
-            sum += mean_surface(&sim) - (sim.bodies[0].x.y - hh);
+            sum += mean_surface(&sim) - (sim.bodies()[0].x.y - hh);
             n += 1;
         }
     }
@@ -164,12 +164,12 @@ fn archimedes_draft_matches_density_ratio() {
 #[test]
 fn neutrally_buoyant_body_stays_put() {
     let scene = tank_scene(0.6, 0.05, 0.45, [0.1, 0.1, 0.1], [0.3, 0.22, 0.3], 1000.0, 0.01, 200);
-    let mut sim = Simulation::new(scene).unwrap();
-    let x0 = sim.bodies[0].x;
+    let mut sim = scene.build().unwrap();
+    let x0 = sim.bodies()[0].x;
     for _ in 0..200 {
         sim.step().unwrap();
     }
-    let drift = (sim.bodies[0].x - x0).length();
+    let drift = (sim.bodies()[0].x - x0).length();
     eprintln!("neutral body drift after 200 steps: {drift:.2e} m");
     assert!(drift < 0.01 * 0.2, "drift {drift} m is over 1% of the body size");
 }
@@ -187,11 +187,11 @@ fn very_light_body_stays_stable() {
     let mut scene =
         tank_scene(0.6, 0.05, 0.35, [0.1, 0.05, 0.1], [0.3, 0.399, 0.3], 10.0, 0.01, 1000);
     scene.contact.enabled = true;
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let mut max_ke: f64 = 0.0;
     for _ in 0..1000 {
         let r = sim.step().unwrap();
-        let b = &sim.bodies[0];
+        let b = &sim.bodies()[0];
         let ke = r.kinetic_energy
             + 0.5 * b.mass * b.v.length_squared()
             + 0.5 * b.w.dot(b.world_inertia() * b.w);

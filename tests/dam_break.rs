@@ -14,7 +14,7 @@ use diffluid::{Scene, Simulation};
 fn dam_break_keeps_volume_and_the_front_advances_to_the_wall() {
     let scene = Scene::builtin("dam_break").unwrap();
     let dx = scene.domain.dx;
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let v0 = sim.liquid_volume();
     assert!((v0 - 0.4 * 0.7 * 1.0).abs() < 1e-9, "seeded volume {v0}");
     let front = |sim: &Simulation| sim.particles.iter().map(|p| p.x).fold(f64::MAX, f64::min);

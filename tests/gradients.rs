@@ -6,9 +6,11 @@
 
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::{
-    backward, central_difference, AdjointState, BodyParam, BodyTargetLoss, GradientMode, Loss, Tape,
+    backward, gradcheck, AdjointState, BodyTargetLoss, GradcheckSettings, GradientMode,
+    GradientOptions, GradientSettings,
 };
 use diffluid::math::{Rotation, Vec3};
+use diffluid::world::Tape;
 use diffluid::{Scene, Simulation};
 
 fn small_tank(body: &str, steps: usize) -> Scene {
@@ -47,7 +49,7 @@ fn weights_for(sim: &Simulation) -> Mac {
 }
 
 fn run(scene: &Scene, u0: &Mac, c: &Mac) -> f64 {
-    let mut sim = Simulation::new(scene.clone()).unwrap();
+    let mut sim = scene.build().unwrap();
     sim.u = u0.clone();
     for _ in 0..scene.time.steps {
         sim.step().unwrap();
@@ -58,7 +60,7 @@ fn run(scene: &Scene, u0: &Mac, c: &Mac) -> f64 {
 #[test]
 fn fluid_velocity_gradient_matches_central_differences() {
     let scene = small_tank("", 10);
-    let sim0 = Simulation::new(scene.clone()).unwrap();
+    let sim0 = scene.build().unwrap();
     // A swirling initial field.
     let mut u0 = Mac::zeros(sim0.grid());
     let g = *sim0.grid();
@@ -79,7 +81,7 @@ fn fluid_velocity_gradient_matches_central_differences() {
     let adj = AdjointState { u: c.clone(), bodies: vec![] };
     let mut init = sim0.clone();
     init.u = u0.clone();
-    let grad = backward(&init, &tape, adj, GradientMode::Full).unwrap();
+    let grad = backward(&init, &tape, adj, &GradientOptions::new(GradientMode::Full)).unwrap();
     // A smooth direction.
     let mut d = Mac::zeros(&g);
     for a in 0..3 {
@@ -109,45 +111,37 @@ fn fluid_velocity_gradient_matches_central_differences() {
     assert!(rel < 1e-7, "relative error {rel:e}");
 }
 
-/// Every body parameter: (name, full adjoint, paper's approximation, central difference of
-/// the same forward map).
-fn body_gradcheck(scene: &Scene, eps: f64) -> Vec<(String, f64, f64, f64)> {
+/// Every body parameter of body 0 against central differences of the same forward map
+/// (ε = 1e-6), with the library's gradient check: |adjoint − fd| ≤ 1e-12 + 1e-4·|fd|. The
+/// issue asked for 1e-3; measured 3e-7 to 3e-5.
+fn check(name: &str, scene: &Scene) {
     let loss = BodyTargetLoss {
         body: 0,
         position: Some((Vec3::new(0.35, 0.2, 0.45), 1.0)),
         orientation: Some((Rotation::from_axis_angle(Vec3::new(0.0, 1.0, 0.0), 0.3), 0.5)),
         velocity: Some((Vec3::new(0.1, -0.2, 0.0), 0.2)),
     };
-    let sim0 = Simulation::new(scene.clone()).unwrap();
-    let mut sim = sim0.clone();
-    let mut tape = Tape::default();
-    for _ in 0..scene.time.steps {
-        sim.step_taped(&mut tape).unwrap();
-    }
-    let full = backward(&sim0, &tape, loss.gradient(&sim), GradientMode::Full).unwrap().bodies[0];
-    let paper = backward(&sim0, &tape, loss.gradient(&sim), GradientMode::Paper).unwrap().bodies[0];
-    BodyParam::all()
-        .into_iter()
-        .map(|p| {
-            let fd = central_difference(&sim0, scene.time.steps, &loss, 0, p, eps).unwrap();
-            (p.name(), p.of(&full), p.of(&paper), fd)
-        })
-        .collect()
-}
-
-fn check(name: &str, scene: &Scene) {
-    let mut worst: f64 = 0.0;
-    for (p, ad, pad, fd) in body_gradcheck(scene, 1e-6) {
-        let rel = (ad - fd).abs() / fd.abs().max(1e-8);
-        let prel = (pad - fd).abs() / fd.abs().max(1e-8);
+    let sim = scene.build().unwrap();
+    let settings = GradcheckSettings {
+        eps: 1e-6,
+        atol: 1e-12,
+        rtol: 1e-4,
+        compare_paper: true,
+        ..Default::default()
+    };
+    let report = gradcheck(&sim, scene.time.steps, &loss, &settings).unwrap();
+    for r in &report.params {
+        let prel = (r.paper.unwrap() - r.fd).abs() / r.fd.abs().max(1e-8);
         eprintln!(
-            "{name} {p:6} adjoint {ad:+.8e} fd {fd:+.8e} rel {rel:.2e} | paper rel {prel:.2e}"
+            "{name} {:10} adjoint {:+.8e} fd {:+.8e} rel {:.2e} (fd at 10ε {:+.8e}) | paper rel {prel:.2e}",
+            r.name, r.adjoint, r.fd, r.rel_error, r.fd_coarse
         );
-        worst = worst.max(rel);
     }
-    eprintln!("{name}: worst relative error {worst:.2e}");
-    // The issue asks for 1e-3; measured 3e-7 to 3e-5 (ε = 1e-6 central differences).
-    assert!(worst < 1e-4, "{name}: worst relative error {worst:e}");
+    eprintln!("{name}: worst relative error {:.2e}", report.worst_rel_error());
+    assert!(report.params.len() == 12, "{name}: {} parameters", report.params.len());
+    for r in &report.params {
+        assert!(r.pass, "{name} {}: adjoint {:e}, fd {:e}", r.name, r.adjoint, r.fd);
+    }
 }
 
 #[test]
@@ -221,15 +215,21 @@ position = [0.41, 0.33, 0.38]
 velocity = [0.2, -0.3, 0.1]
 "#;
     let scene = small_tank(body, 10);
-    let sim = Simulation::new(scene).unwrap();
+    let sim = scene.build().unwrap();
     let loss = BodyTargetLoss {
         body: 0,
         position: Some((Vec3::new(0.3, 0.2, 0.4), 1.0)),
         orientation: None,
         velocity: None,
     };
-    let plain = value_and_gradient(&sim, 10, &loss, GradientMode::Full, None).unwrap();
-    let ckpt = value_and_gradient(&sim, 10, &loss, GradientMode::Full, Some(3)).unwrap();
+    let plain = value_and_gradient(&sim, 10, &loss, &GradientSettings::default()).unwrap();
+    let ckpt = value_and_gradient(
+        &sim,
+        10,
+        &loss,
+        &GradientSettings { checkpoint_every: Some(3), ..Default::default() },
+    )
+    .unwrap();
     let (a, b) = (plain.gradient.bodies[0], ckpt.gradient.bodies[0]);
     assert_eq!(a, b, "checkpointed gradient differs");
     assert!(plain.gradient.u.c.iter().zip(&ckpt.gradient.u.c).all(|(x, y)| x == y));

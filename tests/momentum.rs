@@ -12,7 +12,7 @@
 //! the right-hand side, or a body update that did not use the same pressure would all
 //! leave momentum behind.
 
-use diffluid::{Scene, Simulation};
+use diffluid::Scene;
 
 #[test]
 fn closed_full_box_conserves_zero_momentum() {
@@ -39,15 +39,15 @@ tolerance = 1e-10
 "#;
     let scene = Scene::from_toml(text, "<test>").unwrap();
     let rho = scene.fluid.density;
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let dx3 = sim.grid().dx.powi(3);
-    let v0 = sim.bodies[0].v.length();
+    let v0 = sim.bodies()[0].v.length();
     let (mut worst_discrete, mut worst_physical): (f64, f64) = (0.0, 0.0);
     for _ in 0..40 {
         let geo = sim.geometry();
-        let com = sim.bodies[0].x;
+        let com = sim.bodies()[0].x;
         let r = sim.step().unwrap();
-        let b = &sim.bodies[0];
+        let b = &sim.bodies()[0];
         let grid = *sim.grid();
         let mut mixture = [0.0; 3];
         let mut solid = [0.0; 3];

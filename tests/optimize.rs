@@ -7,7 +7,8 @@
 //! every epoch, atomically; a run killed with SIGKILL mid-way and resumed must end with the
 //! same parameters, bit for bit, as one never interrupted, for gradient descent and L-BFGS.
 
-use diffluid::experiments::optimize::{BodyParams, Optimization};
+use diffluid::experiments::optimize::Optimization;
+use diffluid::geometry::body::BodyState;
 use diffluid::Scene;
 use std::process::Command;
 use std::time::Duration;
@@ -38,7 +39,7 @@ fn recover_box_with(optimizer: &str) -> String {
     base.replacen(from, &format!("optimizer = {optimizer}"), 1)
 }
 
-fn relative_error(p: &BodyParams, vstar: [f64; 3]) -> f64 {
+fn relative_error(p: &BodyState, vstar: [f64; 3]) -> f64 {
     ((0..3).map(|d| (p.v[d] - vstar[d]).powi(2)).sum::<f64>()
         / vstar.iter().map(|x| x * x).sum::<f64>())
     .sqrt()
@@ -223,12 +224,12 @@ fn dam_break_ball_ends_on_the_floor_so_its_loss_is_at_least_0_16() {
     let problem = Optimization::new(Scene::builtin("dam_break_ball").unwrap()).unwrap();
     for v in [[0.0; 3], [2.356917571565773, 2.453500736110804, -0.7403118479015697]] {
         let mut p = problem.initial_params();
-        p.v = v;
+        p.v = v.into();
         let mut sim = problem.simulation(&p);
         for _ in 0..problem.scene.time.steps {
             sim.step().unwrap();
         }
-        let y = sim.bodies[problem.body].x.y;
+        let y = sim.bodies()[problem.body].x.y;
         let loss = problem.loss_at(&p).unwrap();
         eprintln!("v0 {v:?}: final y {y:.5}, loss {loss:.4}");
         assert!((y - 0.2).abs() < 1e-3, "v0 {v:?}: the ball ends at y = {y}");

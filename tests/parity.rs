@@ -4,7 +4,7 @@
 //! sequential sweep does, whatever the wave schedule; the multigrid smoother updates one
 //! colour from the other), so the thread count must not change a single bit of the state.
 
-use diffluid::experiments::scene::Preconditioner;
+use diffluid::solvers::Preconditioner;
 use diffluid::{Scene, Simulation};
 
 fn run(threads: usize, preconditioner: Preconditioner) -> Simulation {
@@ -12,7 +12,7 @@ fn run(threads: usize, preconditioner: Preconditioner) -> Simulation {
     pool.install(|| {
         let mut scene = Scene::builtin("dam_break").unwrap();
         scene.solver.preconditioner = preconditioner;
-        let mut sim = Simulation::new(scene).unwrap();
+        let mut sim = scene.build().unwrap();
         for _ in 0..15 {
             sim.step().unwrap();
         }

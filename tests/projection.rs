@@ -9,10 +9,10 @@
 //! correspondingly small. (2) fails if the velocity update and the operator disagree on a
 //! single face weight, θ or sign.
 
-use diffluid::experiments::scene::Preconditioner;
+use diffluid::experiments::shapes::{AxisAngle, Placed, ShapeSpec};
 use diffluid::geometry::fractions::face_weights;
 use diffluid::geometry::grid::{dot, Grid, Mac};
-use diffluid::geometry::shape::{AxisAngle, Placed, ShapeSpec};
+use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{PressureParams, PressureSystem};
 
 fn rough_field(grid: &Grid) -> Mac {
@@ -55,7 +55,7 @@ fn projection_leaves_divergence_at_solver_tolerance() {
     let mut u = rough_field(&grid);
     let b = sys.rhs(&u, &weights, &[]);
     let tol = 1e-8;
-    let (p, stats) = sys.solve(&b, Preconditioner::Mic0, tol, 1000);
+    let (p, stats) = sys.solve(&b, &LinearSolve::new(Preconditioner::Mic0, tol, 1000));
     assert!(stats.converged && stats.relative_residual <= tol, "{stats:?}");
     sys.update_velocity(&p, &mut u);
     let flux = sys.fluid_flux(&u, &weights);

@@ -8,14 +8,14 @@
 //! and semi-definite with the constant pressure as null space in a closed, full tank
 //! (pressure is then defined up to a constant).
 
-use diffluid::experiments::scene::Preconditioner;
+use diffluid::experiments::shapes::{Placed, ShapeSpec};
 use diffluid::geometry::body::RigidBody;
 use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
 use diffluid::geometry::grid::{Grid, Mac};
-use diffluid::geometry::shape::{Placed, ShapeSpec};
+use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
-use diffluid::world::{dt_minv, generalized_velocity};
-use diffluid::{Error, Scene, Simulation};
+use diffluid::world::step::{dt_minv, generalized_velocity};
+use diffluid::{Error, Scene};
 use nalgebra::{DMatrix, DVector};
 
 /// A tank with a ball obstacle (partial weights) and a sloped free surface at height `level`.
@@ -87,7 +87,7 @@ fn pcg_matches_a_direct_solve() {
     let b = rhs(&sys, &weights);
     let direct = a.clone().cholesky().expect("SPD with air").solve(&DVector::from_column_slice(&b));
     for pre in [Preconditioner::Mic0, Preconditioner::Multigrid, Preconditioner::None] {
-        let (p, stats) = sys.solve(&b, pre, 1e-12, 5000);
+        let (p, stats) = sys.solve(&b, &LinearSolve::new(pre, 1e-12, 5000));
         assert!(stats.converged, "{pre:?}: {stats:?}");
         let err = (DVector::from_column_slice(&p) - &direct).norm() / direct.norm();
         assert!(err < 1e-9, "{pre:?}: relative error {err:e} against Cholesky");
@@ -98,8 +98,8 @@ fn pcg_matches_a_direct_solve() {
 fn mic0_takes_fewer_iterations_than_plain_cg() {
     let (sys, weights) = system([32, 32, 32], 0.7);
     let b = rhs(&sys, &weights);
-    let (_, mic) = sys.solve(&b, Preconditioner::Mic0, 1e-8, 5000);
-    let (_, plain) = sys.solve(&b, Preconditioner::None, 1e-8, 5000);
+    let (_, mic) = sys.solve(&b, &LinearSolve::new(Preconditioner::Mic0, 1e-8, 5000));
+    let (_, plain) = sys.solve(&b, &LinearSolve::new(Preconditioner::None, 1e-8, 5000));
     assert!(mic.converged && plain.converged);
     eprintln!(
         "32³ free surface: MIC(0) {} iterations, plain CG {}",
@@ -122,14 +122,15 @@ fn a_warm_start_meets_the_same_tolerance_in_fewer_iterations() {
     for level in [0.6, 10.0] {
         let (sys, weights) = system([16, 14, 12], level);
         let b = rhs(&sys, &weights);
-        let (exact, cold) = sys.solve(&b, Preconditioner::Mic0, 1e-12, 5000);
+        let (exact, cold) = sys.solve(&b, &LinearSolve::new(Preconditioner::Mic0, 1e-12, 5000));
         let near: Vec<f64> = exact
             .iter()
             .enumerate()
             .map(|(i, x)| x * (1.0 + 0.01 * ((i % 7) as f64 - 3.0) / 3.0))
             .collect();
-        let (p, warm) = sys.solve_from(&b, near, Preconditioner::Mic0, 1e-8, 5000);
-        let (_, cold8) = sys.solve(&b, Preconditioner::Mic0, 1e-8, 5000);
+        let (p, warm) =
+            sys.solve_from(&b, near, &LinearSolve::new(Preconditioner::Mic0, 1e-8, 5000));
+        let (_, cold8) = sys.solve(&b, &LinearSolve::new(Preconditioner::Mic0, 1e-8, 5000));
         assert!(warm.converged && warm.relative_residual <= 1e-8, "{warm:?}");
         let err = p.iter().zip(&exact).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
         let scale = exact.iter().fold(0.0f64, |m, x| m.max(x.abs()));
@@ -140,7 +141,8 @@ fn a_warm_start_meets_the_same_tolerance_in_fewer_iterations() {
             warm.iterations,
             cold8.iterations
         );
-        let (_, none) = sys.solve_from(&b, exact.clone(), Preconditioner::Mic0, 1e-8, 5000);
+        let (_, none) =
+            sys.solve_from(&b, exact.clone(), &LinearSolve::new(Preconditioner::Mic0, 1e-8, 5000));
         assert_eq!(none.iterations, 0, "level {level}: from the solution ({cold:?})");
     }
 }
@@ -159,7 +161,7 @@ fn closed_tank_without_air_solves_up_to_a_constant() {
     let bp = DVector::from_iterator(b.len(), b.iter().map(|x| x - mean));
     let reference = (&a + &ones * ones.transpose() * a.amax()).lu().solve(&bp).unwrap();
     for pre in [Preconditioner::Mic0, Preconditioner::Multigrid] {
-        let (p, stats) = sys.solve(&b, pre, 1e-10, 2000);
+        let (p, stats) = sys.solve(&b, &LinearSolve::new(pre, 1e-10, 2000));
         assert!(stats.converged, "{pre:?}: {stats:?}");
         let pv = DVector::from_column_slice(&p);
         assert!(
@@ -222,8 +224,8 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
 
 /// Solves with MIC(0) and with multigrid to 1e-12 and checks the answers agree to 1e-8.
 fn multigrid_agrees_with_mic0(name: &str, sys: &PressureSystem, b: &[f64]) {
-    let (p_mic, s_mic) = sys.solve(b, Preconditioner::Mic0, 1e-12, 5000);
-    let (p_mg, s_mg) = sys.solve(b, Preconditioner::Multigrid, 1e-12, 5000);
+    let (p_mic, s_mic) = sys.solve(b, &LinearSolve::new(Preconditioner::Mic0, 1e-12, 5000));
+    let (p_mg, s_mg) = sys.solve(b, &LinearSolve::new(Preconditioner::Multigrid, 1e-12, 5000));
     assert!(s_mic.converged && s_mg.converged, "{name}: {s_mic:?} {s_mg:?}");
     let diff: f64 = p_mic.iter().zip(&p_mg).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
     let norm: f64 = p_mic.iter().map(|a| a * a).sum::<f64>().sqrt();
@@ -262,7 +264,7 @@ fn multigrid_iterations_hardly_grow_with_resolution() {
     // plain CG, ×2 per doubling.
     let iterations = |n: usize| {
         let (sys, b) = coupled_system(n);
-        let (_, stats) = sys.solve(&b, Preconditioner::Multigrid, 1e-8, 500);
+        let (_, stats) = sys.solve(&b, &LinearSolve::new(Preconditioner::Multigrid, 1e-8, 500));
         assert!(stats.converged, "{n}³: {stats:?}");
         stats.iterations
     };
@@ -275,7 +277,7 @@ fn multigrid_iterations_hardly_grow_with_resolution() {
 fn failure_to_converge_is_an_error() {
     let mut scene = Scene::builtin("dam_break").unwrap();
     scene.solver.max_iterations = 2;
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     match sim.step() {
         Err(Error::NotConverged { step, iterations, residual, .. }) => {
             assert_eq!((step, iterations), (1, 2));

@@ -8,7 +8,7 @@
 //! the ghost-fluid θ, the surface reconstruction or the velocity update shows up as motion
 //! or as a pressure off the hydrostatic line.
 
-use diffluid::{Scene, Simulation};
+use diffluid::Scene;
 
 #[test]
 fn still_water_stays_still_with_hydrostatic_pressure() {
@@ -18,7 +18,7 @@ fn still_water_stays_still_with_hydrostatic_pressure() {
     let surface = 0.5; // the liquid box's top in still_water.toml
     let steps = scene.time.steps;
     assert_eq!(steps, 100);
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let v0 = sim.liquid_volume();
     for _ in 0..steps {
         let r = sim.step().unwrap();

@@ -3,7 +3,7 @@
 //! simulation cell with its pressure, and `.pvd` collections listing every frame with its time.
 
 use diffluid::io::vtk::VtkSeries;
-use diffluid::{Scene, Simulation};
+use diffluid::Scene;
 use std::path::Path;
 use std::process::Command;
 use vtkio::model::{Attribute, DataSet, Piece, PolyDataPiece, Vtk};
@@ -32,8 +32,8 @@ fn array_len(attrs: &[Attribute], name: &str) -> usize {
 #[test]
 fn frames_parse_back_with_the_simulations_counts() {
     let dir = std::env::temp_dir().join(format!("diffluid-vtk-{}", std::process::id()));
-    let mut sim = Simulation::new(Scene::builtin("dam_break_ball").unwrap()).unwrap();
-    let mut series = VtkSeries::new(&dir);
+    let mut sim = Scene::builtin("dam_break_ball").unwrap().build().unwrap();
+    let mut series = VtkSeries::new(&dir, "dam_break_ball");
     series.write_frame(&sim, 0).unwrap();
     sim.step().unwrap();
     series.write_frame(&sim, 1).unwrap();
@@ -46,12 +46,12 @@ fn frames_parse_back_with_the_simulations_counts() {
     assert_eq!(array_len(&liquid.data.point, "velocity"), 3 * n);
 
     let ball = poly(&dir.join("body_ball_0001.vtp"));
-    let (verts, tris) = diffluid::geometry::mesh::surface_mesh(&sim.bodies[0].shape);
+    let (verts, tris) = diffluid::geometry::mesh::surface_mesh(&sim.bodies()[0].shape);
     assert_eq!(ball.num_points(), verts.len());
     assert_eq!(ball.polys.as_ref().unwrap().num_cells(), tris.len());
     // The points are the body's surface where it is now: all at the radius from its centre.
     let pts: Vec<f64> = ball.points.cast_into().unwrap();
-    let c = sim.bodies[0].x.to_array();
+    let c = sim.bodies()[0].x.to_array();
     for p in pts.chunks(3) {
         let r = ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
         assert!((r - 0.2).abs() < 1e-9, "vertex at {r} from the centre");

@@ -9,8 +9,8 @@
 //! agrees with the monolithic solve for a heavy body, and blows up for a light one where the
 //! monolithic solve stays bounded.
 
-use diffluid::experiments::scene::Coupling;
-use diffluid::{Scene, Simulation};
+use diffluid::stages::pressure::Coupling;
+use diffluid::Scene;
 
 /// A 0.2 m cube of the given density, submerged at rest in a closed-top 0.6 m tank of still
 /// water 0.5 m deep, at 0.05 m cells.
@@ -46,7 +46,7 @@ density_correction = false
 /// (a non-finite state or the body leaving the tank: both count as blowing up).
 fn speeds(scene: Scene) -> Vec<f64> {
     let steps = scene.time.steps;
-    let mut sim = Simulation::new(scene).unwrap();
+    let mut sim = scene.build().unwrap();
     let mut out = Vec::new();
     for _ in 0..steps {
         if let Err(e) = sim.step() {
@@ -54,7 +54,7 @@ fn speeds(scene: Scene) -> Vec<f64> {
             out.push(f64::INFINITY);
             break;
         }
-        out.push(sim.bodies[0].v.length());
+        out.push(sim.bodies()[0].v.length());
     }
     out
 }

@@ -6,10 +6,12 @@
 //! process with the wall clock: a row's `seconds` is the whole run of that configuration.
 
 use crate::error::Result;
-use crate::experiments::scene::Coupling;
-use crate::gradients::{central_difference, value_and_gradient, BodyParam, BodyTargetLoss};
+use crate::experiments::scene::Scene;
+use crate::geometry::body::Param;
+use crate::gradients::{central_difference, value_and_gradient, Coordinate, GradientSettings};
 use crate::math::Vec3;
-use crate::{Scene, Simulation};
+use crate::stages::pressure::Coupling;
+use crate::world::Simulation;
 use serde::Serialize;
 use std::time::Instant;
 
@@ -131,9 +133,9 @@ tolerance = 1e-10"#;
         // make the force exact to round-off at every resolution.
         let text = tank([0.8, 0.8, 0.8], dx, 0.005, 1, 0.437, body);
         let ((force, weight), seconds) = clock(|| {
-            let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+            let mut sim = Scene::from_toml(&text, "<bench>")?.build()?;
             let report = sim.step()?;
-            Ok((report.bodies[0].force[1], sim.bodies[0].mass * 9.81))
+            Ok((report.bodies[0].force[1], sim.bodies()[0].mass * 9.81))
         })?;
         let area = 0.4 * 0.4;
         let draft_error = (force - weight).abs() / (1000.0 * 9.81 * area) / 0.1;
@@ -145,25 +147,23 @@ tolerance = 1e-10"#;
         });
     }
 
-    let mut scene = Scene::builtin("gradcheck_box")?;
-    scene.solver.freeze_surface = true;
+    let scene = Scene::builtin("gradcheck_box")?.with_frozen_surface();
     let steps = scene.time.steps;
-    let loss = BodyTargetLoss::from_scene(&scene).expect("gradcheck_box has a loss");
+    let loss = scene.loss().expect("gradcheck_box has a loss");
     let mut tight = scene.clone();
     tight.solver.tolerance = 1e-12;
     let reference = {
-        let sim = Simulation::new(tight)?;
-        central_difference(&sim, steps, &loss, 0, BodyParam::V(0), 1e-6)?
+        let sim = tight.build()?;
+        central_difference(&sim, steps, &loss, 0, Coordinate { param: Param::V, axis: 0 }, 1e-6)?
     };
     let tols: &[f64] = if quick { &[1e-4, 1e-8] } else { &[1e-4, 1e-6, 1e-8, 1e-10] };
     for &tol in tols {
         let mut s = scene.clone();
         s.solver.tolerance = tol;
-        let sim = Simulation::new(s)?;
-        let (run, seconds) = clock(|| {
-            value_and_gradient(&sim, steps, &loss, crate::gradients::GradientMode::Full, None)
-        })?;
-        let ad = BodyParam::V(0).of(&run.gradient.bodies[0]);
+        let sim = s.build()?;
+        let (run, seconds) =
+            clock(|| value_and_gradient(&sim, steps, &loss, &GradientSettings::default()))?;
+        let ad = Coordinate { param: Param::V, axis: 0 }.of(&run.gradient.bodies[0]);
         rows.push(AccuracyRow {
             quantity: "gradient".into(),
             setting: format!("tol={tol:e}"),
@@ -182,7 +182,7 @@ tolerance = 1e-10"#;
         scene.time.steps = 20;
         scene.output.particles = false;
         let (front, seconds) = clock(|| {
-            let mut sim = Simulation::new(scene.clone())?;
+            let mut sim = scene.build()?;
             for _ in 0..20 {
                 sim.step()?;
             }
@@ -241,12 +241,12 @@ density_correction = false"#,
                 let mass = 1000.0 * ratio * volume;
                 let bound =
                     2.0 * (0.5 * mass * v0 * v0 + (mass - 1000.0 * volume).abs() * 9.81 * size);
-                let mut sim = Simulation::new(scene)?;
+                let mut sim = scene.build()?;
                 let mut worst: f64 = 0.0;
                 for _ in 0..steps {
                     match sim.step() {
                         Ok(r) => {
-                            let b = &sim.bodies[0];
+                            let b = &sim.bodies()[0];
                             let e = r.kinetic_energy
                                 + 0.5 * b.mass * b.v.length_squared()
                                 + 0.5 * b.w.dot(b.world_inertia() * b.w);
@@ -316,7 +316,7 @@ shape = {{ kind = "box", min = [0.55, 0.0, 0.0], max = [1.0, 0.1, 0.3] }}
 particles = false
 "#
         );
-        let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+        let mut sim = Scene::from_toml(&text, "<bench>")?.build()?;
         let count = |s: &Simulation| s.particles.iter().filter(|p| p.x > 0.55).count() as f64;
         let before = count(&sim);
         for _ in 0..30 {
@@ -340,7 +340,7 @@ tolerance = 1e-10"#,
             t * dx / 2.0
         );
         let text = tank([1.0, 0.7, 0.6], dx, 0.005, 1, 0.6, &body);
-        let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+        let mut sim = Scene::from_toml(&text, "<bench>")?.build()?;
         let r = sim.step()?;
         let volume = 0.4 * 0.3 * t * dx;
         let buoyancy = 1000.0 * 9.81 * volume;
@@ -364,7 +364,7 @@ pub fn cost(quick: bool) -> Result<Vec<CostRow>> {
     let steps = if quick { 6 } else { 25 };
     let run = |height: f64, depth: f64| -> Result<(usize, usize, f64)> {
         let text = tank([1.0, height, 1.0], dx, 0.01, steps, depth, "");
-        let mut sim = Simulation::new(Scene::from_toml(&text, "<bench>")?)?;
+        let mut sim = Scene::from_toml(&text, "<bench>")?.build()?;
         let mut times = Vec::new();
         let mut cells = 0;
         for n in 0..steps {

@@ -1,11 +1,15 @@
 //! Scene files: TOML read with serde (an unknown key is an error), validated into values a
 //! simulation can trust, with errors that name the key and, where there is one, the line.
 
+use super::shapes::{AxisAngle, Placed, ShapeSpec};
 use crate::error::{Error, Result};
-use crate::geometry::body::RigidBody;
-use crate::geometry::grid::Grid;
-use crate::geometry::shape::{AxisAngle, Placed, ShapeSpec, Solid};
-use crate::math::{v3, Arr3};
+use crate::geometry::body::{Motion, Param, RigidBody};
+use crate::gradients::BodyTargetLoss;
+use crate::math::{v3, Arr3, Rotation};
+use crate::world::settings::{check_finite, check_positive, SettingError};
+use crate::world::{
+    ContactSettings, Fluid, Simulation, SimulationBuilder, SolverSettings, WorldSettings,
+};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -46,13 +50,13 @@ pub struct Scene {
     pub obstacle: Vec<Placed>,
     /// Solver settings.
     #[serde(default)]
-    pub solver: Solver,
+    pub solver: SolverSettings,
     /// Rigid bodies coupled to the liquid.
     #[serde(default)]
     pub body: Vec<BodySpec>,
-    /// Rigid contact (body–wall, body–body), resolved after the fluid step.
+    /// Rigid contact (body–wall, body–body), held inside the projection.
     #[serde(default)]
-    pub contact: Contact,
+    pub contact: ContactSettings,
     /// What to optimise and how (for `diffluid optimize`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub optimize: Option<OptimizeSpec>,
@@ -109,6 +113,15 @@ fn yes() -> bool {
 }
 
 impl BodySpec {
+    /// The body's name: its `name`, or `body<i>` for the i-th body when it has none.
+    pub fn name_or_default(&self, i: usize) -> String {
+        if self.name.is_empty() {
+            format!("body{i}")
+        } else {
+            self.name.clone()
+        }
+    }
+
     /// The shape and pose part.
     pub fn placed(&self) -> Placed {
         Placed {
@@ -229,7 +242,7 @@ fn beta2() -> f64 {
 #[serde(deny_unknown_fields)]
 pub struct OptimizeSpec {
     /// Initial parameters of the loss body to optimise: any of "v", "w", "x", "q".
-    pub params: Vec<String>,
+    pub params: Vec<Param>,
     /// The optimiser.
     pub optimizer: OptimizerSpec,
     /// Epochs (forward + backward + update each).
@@ -257,25 +270,6 @@ fn max_grad() -> f64 {
     1e6
 }
 
-/// Rigid contact settings.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Contact {
-    /// Resolve body–wall and body–body contact with rapier after each fluid step. Default
-    /// false: then a body that would leave the tank is an error.
-    pub enabled: bool,
-    /// Coulomb friction coefficient. Default 0.5.
-    pub friction: f64,
-    /// Restitution. Default 0 (bodies in water do not bounce much).
-    pub restitution: f64,
-}
-
-impl Default for Contact {
-    fn default() -> Self {
-        Contact { enabled: false, friction: 0.5, restitution: 0.0 }
-    }
-}
-
 /// The tank: a box `[0, size]` with solid walls, cut into cubes of side `dx`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -294,123 +288,6 @@ pub struct Time {
     pub dt: f64,
     /// Number of steps a run takes.
     pub steps: usize,
-}
-
-/// Liquid properties.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Fluid {
-    /// Density in kg/m³.
-    pub density: f64,
-    /// Gravity in m/s².
-    pub gravity: Arr3,
-}
-
-/// Preconditioner for the pressure CG.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Preconditioner {
-    /// Modified incomplete Cholesky, level 0 (Bridson's τ = 0.97, σ = 0.25).
-    Mic0,
-    /// One multigrid V-cycle (MGPCG, see `multigrid.rs`).
-    Multigrid,
-    /// Plain conjugate gradients (for comparison).
-    None,
-    /// MIC(0) for systems of fewer than [`Preconditioner::AUTO_CROSSOVER`] unknowns,
-    /// multigrid from there on.
-    Auto,
-}
-
-impl Preconditioner {
-    /// Unknowns from which `auto` picks multigrid over MIC(0). Measured on the pressure
-    /// solve of `benches/solve.rs` (tank, wavy free surface, floating ball) to 1e-8 on a
-    /// 2-core machine, median of repeated solves with the preconditioner's set-up included:
-    /// 312 unknowns (8³) MIC(0) 0.11 ms (20 iterations) vs multigrid 0.15 ms (8); 1034
-    /// (12³) a tie, 0.33 vs 0.35 ms; 2452 (16³) 0.87 vs 0.76 ms; 19.5k (32³) 11 vs 7 ms;
-    /// 1.24M (128³, to 1e-6) 94 vs 8 iterations and about 6× the time. MIC(0)'s iterations
-    /// grow with the grid, multigrid's hardly do, so the crossover sits between 12³ and 16³
-    /// for a cold solve. Inside a time step the solve starts from the last step's pressure
-    /// and MIC(0) needs fewer iterations: on block_drop (3,519 unknowns) a whole epoch took
-    /// 0.317–0.325 s with MIC(0) and 0.327–0.331 s with multigrid (2 threads), so the
-    /// switch sits above that, at 4,000.
-    pub const AUTO_CROSSOVER: usize = 4_000;
-
-    /// The preconditioner to use for `unknowns` unknowns: itself, unless `Auto`.
-    pub fn resolve(self, unknowns: usize) -> Preconditioner {
-        match self {
-            Preconditioner::Auto if unknowns < Self::AUTO_CROSSOVER => Preconditioner::Mic0,
-            Preconditioner::Auto => Preconditioner::Multigrid,
-            other => other,
-        }
-    }
-}
-
-/// How the liquid and the bodies exchange momentum in a step.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Coupling {
-    /// One pressure solve for liquid and bodies together (Batty et al. 2007): the body's
-    /// response to the pressure is part of the system, so it is stable for any density ratio.
-    #[default]
-    Monolithic,
-    /// The partitioned baseline: the liquid is solved around each body moving at its current
-    /// velocity (held fixed), then the body is pushed by the resulting pressure force. Light
-    /// bodies go unstable (the added-mass instability); kept to show where, not for use.
-    Weak,
-}
-
-/// Solver settings. Every field has a default, given with its reason.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Solver {
-    /// CG stops when ‖r‖₂ ≤ tolerance·‖b‖₂. Default 1e-8: the still-water and Archimedes
-    /// checks need pressure to well under 1%, and MIC(0) reaches 1e-8 in a few dozen
-    /// iterations on the shipped grids.
-    pub tolerance: f64,
-    /// CG iteration cap; reaching it is an error, never a silent answer. Default 2000.
-    pub max_iterations: usize,
-    /// Preconditioner: `mic0`, `multigrid`, `none` or `auto`. Default `auto`: whichever of
-    /// MIC(0) and multigrid solves faster for the number of unknowns (measured crossover in
-    /// [`Preconditioner::AUTO_CROSSOVER`]).
-    pub preconditioner: Preconditioner,
-    /// Layers of velocity extrapolated into air after projection. Default 3 (the paper's
-    /// choice; advection reads at most Δt·|u|/dx cells beyond the surface).
-    pub extrapolation_layers: usize,
-    /// Marker particles seeded per liquid cell, on a regular sub-lattice: 1, 8, 27 or 64.
-    /// Default 8.
-    pub particles_per_cell: usize,
-    /// Smallest ghost-fluid fraction θ at a liquid–air face. Default 0.01 (Gibou et al.;
-    /// bounds the diagonal at 100× a full face).
-    pub theta_min: f64,
-    /// Push marker particles out of over-full cells after advecting them (particle density
-    /// projection, see `density.rs`). Default true: without it the dam break loses about
-    /// 10% of its volume to particles bunching at the floor.
-    pub density_correction: bool,
-    /// Hold the free surface fixed: the marker particles do not move and the liquid signed
-    /// distance keeps its initial value (extended into the solids where they are now). The
-    /// backward pass always holds the surface fixed (as the paper does); with this switch the
-    /// forward pass is exactly the map the adjoint differentiates, which gradient checks need.
-    /// It also skips all particle work. Default false.
-    pub freeze_surface: bool,
-    /// Liquid–body coupling. Default `monolithic`; `weak` is the partitioned baseline the
-    /// stability map compares against (no gradients through it).
-    pub coupling: Coupling,
-}
-
-impl Default for Solver {
-    fn default() -> Self {
-        Solver {
-            tolerance: 1e-8,
-            max_iterations: 2000,
-            preconditioner: Preconditioner::Auto,
-            extrapolation_layers: 3,
-            particles_per_cell: 8,
-            theta_min: 0.01,
-            density_correction: true,
-            freeze_surface: false,
-            coupling: Coupling::Monolithic,
-        }
-    }
 }
 
 /// What a run writes.
@@ -480,35 +357,31 @@ fn locate(src: &str, path: &str) -> Option<usize> {
     Some(start + 1)
 }
 
-/// Bounds for messages, without floating-point noise (3.5999999999999996 → 3.6).
-fn round6(a: [f64; 3]) -> [f64; 3] {
-    a.map(|x| (x * 1e6).round() / 1e6)
+/// `table.key` of a `key = value` line `l` (1-based) under a `[table]` or `[[table]]`
+/// header (`key` alone at the top level).
+fn dotted_key(src: &str, l: usize) -> Option<String> {
+    let lines: Vec<&str> = src.lines().collect();
+    let key = lines.get(l - 1)?.split_once('=')?.0.trim();
+    if key.is_empty() || key.contains(['[', '{', '"']) {
+        return None;
+    }
+    let table = lines[..l - 1]
+        .iter()
+        .rev()
+        .map(|s| s.trim())
+        .find(|s| s.starts_with('[') && s.ends_with(']'))
+        .map(|h| h.trim_matches(|c| c == '[' || c == ']'));
+    Some(match table {
+        Some(t) => format!("{t}.{key}"),
+        None => key.to_string(),
+    })
 }
 
 /// A validation failure: the key it concerns and what is wrong.
-struct Problem {
-    key: String,
-    message: String,
-}
+type Problem = SettingError;
 
 fn problem(key: impl Into<String>, message: impl Into<String>) -> Problem {
-    Problem { key: key.into(), message: message.into() }
-}
-
-fn check_positive(key: &str, x: f64) -> std::result::Result<(), Problem> {
-    if x.is_finite() && x > 0.0 {
-        Ok(())
-    } else {
-        Err(problem(key, format!("must be a positive number, got {x}")))
-    }
-}
-
-fn check_finite(key: &str, xs: &[f64]) -> std::result::Result<(), Problem> {
-    if xs.iter().all(|x| x.is_finite()) {
-        Ok(())
-    } else {
-        Err(problem(key, format!("must be finite, got {xs:?}")))
-    }
+    SettingError::new(key, message)
 }
 
 impl Scene {
@@ -549,6 +422,8 @@ impl Scene {
                         let header = text.lines().nth(l - 1).map(str::trim).unwrap_or("");
                         if header.starts_with('[') && header.ends_with(']') {
                             format!("line {l}: in {header}: {msg}")
+                        } else if let Some(key) = dotted_key(text, l) {
+                            format!("line {l}: {key}: {msg}")
                         } else {
                             format!("line {l}: {msg}")
                         }
@@ -595,43 +470,57 @@ impl Scene {
         })
     }
 
-    /// The grid the domain is cut into.
-    pub fn grid(&self) -> Grid {
-        let n = self.domain.size.map(|s| (s / self.domain.dx).round() as usize);
-        Grid { n, dx: self.domain.dx }
-    }
-
     /// Folder relative mesh paths start from.
     pub fn base(&self) -> PathBuf {
         self.base_dir.clone().unwrap_or_else(|| PathBuf::from("."))
     }
 
-    /// Built static obstacles.
-    pub fn obstacles(&self) -> Vec<Solid> {
+    /// The scene with its liquid surface held fixed (`solver.freeze_surface`): the map the
+    /// frozen-surface gradient is exact for.
+    pub fn with_frozen_surface(mut self) -> Scene {
+        self.solver.freeze_surface = true;
+        self
+    }
+
+    /// The world settings the scene asks for.
+    pub fn settings(&self) -> WorldSettings {
+        WorldSettings {
+            dt: self.time.dt,
+            fluid: self.fluid,
+            solver: self.solver.clone(),
+            contact: self.contact.clone(),
+        }
+    }
+
+    /// The simulation the scene describes, in its initial state.
+    pub fn build(&self) -> Result<Simulation> {
+        let invalid = |p: Problem| Error::InvalidScene {
+            origin: self.name.clone(),
+            message: format!("{}: {}", p.key, p.message),
+        };
+        self.builder().map_err(invalid)?.build().map_err(|e| match e {
+            Error::InvalidSettings { key, message } => invalid(problem(key, message)),
+            e => e,
+        })
+    }
+
+    /// The world builder with every part of the scene in it (shapes built, meshes loaded).
+    fn builder(&self) -> std::result::Result<SimulationBuilder, Problem> {
         let base = self.base();
-        self.obstacle.iter().map(|p| p.build(&base).expect("validated")).collect()
+        let mut b = Simulation::builder(self.domain.size, self.domain.dx).settings(self.settings());
+        for (i, l) in self.liquid.iter().enumerate() {
+            b = b.liquid(l.build(&base).map_err(|m| problem(format!("liquid[{i}]"), m))?);
+        }
+        for (i, o) in self.obstacle.iter().enumerate() {
+            b = b.obstacle(o.build(&base).map_err(|m| problem(format!("obstacle[{i}]"), m))?);
+        }
+        for (i, spec) in self.body.iter().enumerate() {
+            b = b.body(self.build_body(i, spec)?);
+        }
+        Ok(b)
     }
 
-    /// Built liquid regions.
-    pub fn liquid_regions(&self) -> Vec<Solid> {
-        let base = self.base();
-        self.liquid.iter().map(|p| p.build(&base).expect("validated")).collect()
-    }
-
-    /// Built rigid bodies in their initial state.
-    pub fn bodies(&self) -> Result<Vec<RigidBody>> {
-        self.body
-            .iter()
-            .enumerate()
-            .map(|(i, b)| {
-                self.build_body(i, b).map_err(|p| Error::InvalidScene {
-                    origin: self.name.clone(),
-                    message: format!("{}: {}", p.key, p.message),
-                })
-            })
-            .collect()
-    }
-
+    /// The i-th body in its initial state.
     fn build_body(&self, i: usize, b: &BodySpec) -> std::result::Result<RigidBody, Problem> {
         let key = format!("body[{i}]");
         let solid = b.placed().build(&self.base()).map_err(|m| problem(&key, m))?;
@@ -648,8 +537,7 @@ impl Scene {
         };
         check_finite(&format!("{key}.velocity"), &b.velocity)?;
         check_finite(&format!("{key}.angular_velocity"), &b.angular_velocity)?;
-        let name = if b.name.is_empty() { format!("body{i}") } else { b.name.clone() };
-        let mut body = RigidBody::new(name, solid.shape, solid.pose, density);
+        let mut body = RigidBody::new(b.name_or_default(i), solid.shape, solid.pose, density);
         if !(body.mass.is_finite() && body.mass > 0.0) {
             return Err(problem(&key, "the shape has no volume (degenerate shape)"));
         }
@@ -658,110 +546,38 @@ impl Scene {
         }
         body.v = v3(b.velocity);
         body.w = v3(b.angular_velocity);
-        body.dynamic = b.dynamic;
-        let (lo, hi) = body.bounds();
-        let size = v3(self.domain.size);
-        if lo.min_element() <= 0.0 || (hi - size).max_element() >= 0.0 {
-            return Err(problem(
-                &key,
-                format!(
-                    "body spans {:?}..{:?}: it must start inside the tank [0, 0, 0]..{:?} \
-                     without touching a wall",
-                    round6(lo.to_array()),
-                    round6(hi.to_array()),
-                    self.domain.size
-                ),
-            ));
-        }
+        body.motion = if b.dynamic { Motion::Dynamic } else { Motion::Fixed };
         Ok(body)
     }
 
+    /// The loss the `[loss]` section describes (None when there is none).
+    pub fn loss(&self) -> Option<BodyTargetLoss> {
+        let l = self.loss.as_ref()?;
+        let body = self.body_index(&l.body)?;
+        Some(BodyTargetLoss {
+            body,
+            position: l.position.as_ref().map(|t| (v3(t.target), t.weight)),
+            orientation: l.orientation.as_ref().map(|t| {
+                let q = t.target;
+                (Rotation::from_xyzw(q[1], q[2], q[3], q[0]).normalize(), t.weight)
+            }),
+            velocity: l.velocity.as_ref().map(|t| (v3(t.target), t.weight)),
+        })
+    }
+
+    /// The index of the body named `name`.
+    pub fn body_index(&self, name: &str) -> Option<usize> {
+        (0..self.body.len()).find(|&i| self.body[i].name_or_default(i) == name)
+    }
+
     fn validate(&self) -> std::result::Result<(), Problem> {
-        let d = &self.domain;
-        check_positive("domain.dx", d.dx)?;
-        for (a, s) in d.size.iter().enumerate() {
-            check_positive(&format!("domain.size[{a}]"), *s)?;
-            let n = (s / d.dx).round();
-            if n < 1.0 || (n * d.dx - s).abs() > 1e-6 * s {
-                return Err(problem(
-                    "domain.size",
-                    format!(
-                        "size {s} along axis {a} is not a whole number of cells of dx = {}",
-                        d.dx
-                    ),
-                ));
-            }
-        }
-        let cells: f64 = d.size.iter().map(|s| (s / d.dx).round()).product();
-        if cells > 512.0f64.powi(3) {
-            return Err(problem("domain", format!("{cells} cells is more than 512³; raise dx")));
-        }
-        check_positive("time.dt", self.time.dt)?;
         if self.time.steps == 0 {
             return Err(problem("time.steps", "must be at least 1"));
         }
-        check_positive("fluid.density", self.fluid.density)?;
-        check_finite("fluid.gravity", &self.fluid.gravity)?;
-        let size = v3(d.size);
-        let tol = 1e-9 * size.max_element();
-        for (i, l) in self.liquid.iter().enumerate() {
-            let key = format!("liquid[{i}]");
-            let s = l.build(&self.base()).map_err(|m| problem(&key, m))?;
-            let (lo, hi) = s.bounds();
-            if lo.min_element() < -tol || (hi - size).max_element() > tol {
-                return Err(problem(
-                    &key,
-                    format!(
-                        "liquid region spans {:?}..{:?}, outside the domain [0, 0, 0]..{:?}",
-                        round6(lo.to_array()),
-                        round6(hi.to_array()),
-                        d.size
-                    ),
-                ));
-            }
-        }
-        for (i, o) in self.obstacle.iter().enumerate() {
-            o.build(&self.base()).map_err(|m| problem(format!("obstacle[{i}]"), m))?;
-        }
-        let s = &self.solver;
-        if !(s.tolerance.is_finite() && s.tolerance > 0.0 && s.tolerance < 1.0) {
-            return Err(problem(
-                "solver.tolerance",
-                format!("must be in (0, 1), got {}", s.tolerance),
-            ));
-        }
-        if s.max_iterations == 0 {
-            return Err(problem("solver.max_iterations", "must be at least 1"));
-        }
-        let m = (s.particles_per_cell as f64).cbrt().round() as usize;
-        if !(1..=4).contains(&m) || m * m * m != s.particles_per_cell {
-            return Err(problem(
-                "solver.particles_per_cell",
-                format!(
-                    "must be 1, 8, 27 or 64 (a regular sub-lattice), got {}",
-                    s.particles_per_cell
-                ),
-            ));
-        }
-        if !(s.theta_min.is_finite() && s.theta_min > 0.0 && s.theta_min <= 0.5) {
-            return Err(problem(
-                "solver.theta_min",
-                format!("must be in (0, 0.5], got {}", s.theta_min),
-            ));
-        }
-        for (i, b) in self.body.iter().enumerate() {
-            self.build_body(i, b)?;
-        }
+        self.builder()?.check()?;
         if let Some(l) = &self.loss {
-            let names: Vec<String> = (0..self.body.len())
-                .map(|i| {
-                    if self.body[i].name.is_empty() {
-                        format!("body{i}")
-                    } else {
-                        self.body[i].name.clone()
-                    }
-                })
-                .collect();
+            let names: Vec<String> =
+                self.body.iter().enumerate().map(|(i, b)| b.name_or_default(i)).collect();
             if !names.contains(&l.body) {
                 return Err(problem(
                     "loss.body",
@@ -825,14 +641,6 @@ impl Scene {
                     "name at least one of \"v\", \"w\", \"x\", \"q\"",
                 ));
             }
-            for p in &o.params {
-                if !["v", "w", "x", "q"].contains(&p.as_str()) {
-                    return Err(problem(
-                        "optimize.params",
-                        format!("unknown parameter {p:?}: use \"v\", \"w\", \"x\" or \"q\""),
-                    ));
-                }
-            }
             let lr = match &o.optimizer {
                 OptimizerSpec::Gd { learning_rate } => *learning_rate,
                 OptimizerSpec::Adam { learning_rate, beta1, beta2 } => {
@@ -878,26 +686,6 @@ impl Scene {
             if let Some(v) = &o.recover_velocity {
                 check_finite("optimize.recover_velocity", v)?;
             }
-            if self.contact.enabled && !o.through_contact {
-                return Err(problem(
-                    "optimize",
-                    "gradients do not pass through contact: set [contact] enabled = false, or \
-                     optimize.through_contact = true to take contact as free flight in the gradient",
-                ));
-            }
-        }
-        let c = &self.contact;
-        if !(c.friction.is_finite() && c.friction >= 0.0) {
-            return Err(problem(
-                "contact.friction",
-                format!("must be a non-negative number, got {}", c.friction),
-            ));
-        }
-        if !(c.restitution.is_finite() && (0.0..=1.0).contains(&c.restitution)) {
-            return Err(problem(
-                "contact.restitution",
-                format!("must be in [0, 1], got {}", c.restitution),
-            ));
         }
         if self.output.every == 0 {
             return Err(problem("output.every", "must be at least 1"));

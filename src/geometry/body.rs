@@ -21,9 +21,8 @@ pub struct RigidBody {
     pub mass: f64,
     /// Inertia tensor about the centre of mass, in the shape frame, kg·m².
     pub local_inertia: Mat3,
-    /// False for a body that does not move (an obstacle that still couples through J with
-    /// zero velocity).
-    pub dynamic: bool,
+    /// Who moves the body.
+    pub motion: Motion,
     /// World position of the centre of mass.
     pub x: Vec3,
     /// Orientation of the shape frame (unit quaternion).
@@ -32,6 +31,152 @@ pub struct RigidBody {
     pub v: Vec3,
     /// Angular velocity, world frame.
     pub w: Vec3,
+    /// External force on the centre of mass (world frame, N), applied every step with
+    /// gravity until changed.
+    pub force: Vec3,
+    /// External torque about the centre of mass (world frame, N·m).
+    pub torque: Vec3,
+}
+
+/// Who moves a body.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Motion {
+    /// Moved by the liquid, gravity and external forces, and integrated by diffluid.
+    #[default]
+    Dynamic,
+    /// Held still: an obstacle that still couples through J, with zero velocity.
+    Fixed,
+    /// In the coupled solve like a dynamic body, but moved by the caller (its own rigid-body
+    /// engine): diffluid sets its velocity after the solve and leaves its pose alone. See
+    /// [`crate::world::Simulation::set_body_state`].
+    External,
+}
+
+/// A body's state: the centre of mass `x`, the orientation `q` of the shape frame, the
+/// linear velocity `v` and the angular velocity `ω` (world frame). The one state type of the
+/// tape, the gradients, the optimiser and the scene; serialised as
+/// `{"v": [..], "w": [..], "x": [..], "q": [w, x, y, z]}`.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(from = "StateRepr", into = "StateRepr")]
+pub struct BodyState {
+    /// Centre of mass.
+    pub x: Vec3,
+    /// Orientation.
+    pub q: Rotation,
+    /// Linear velocity.
+    pub v: Vec3,
+    /// Angular velocity (world).
+    pub w: Vec3,
+}
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct StateRepr {
+    v: [f64; 3],
+    w: [f64; 3],
+    x: [f64; 3],
+    q: [f64; 4],
+}
+
+impl From<StateRepr> for BodyState {
+    fn from(r: StateRepr) -> Self {
+        BodyState {
+            x: crate::math::v3(r.x),
+            q: Rotation::from_xyzw(r.q[1], r.q[2], r.q[3], r.q[0]).normalize(),
+            v: crate::math::v3(r.v),
+            w: crate::math::v3(r.w),
+        }
+    }
+}
+
+impl From<BodyState> for StateRepr {
+    fn from(s: BodyState) -> Self {
+        StateRepr {
+            v: s.v.to_array(),
+            w: s.w.to_array(),
+            x: s.x.to_array(),
+            q: [s.q.w, s.q.x, s.q.y, s.q.z],
+        }
+    }
+}
+
+/// One part of a body's initial state, a 3-vector each: the one name for a body parameter
+/// in scene files (`"v"`, `"w"`, `"x"`, `"q"`), gradients, the optimiser and the gradient
+/// check. The orientation is perturbed in the world-frame tangent space, q → exp(θ)·q.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub enum Param {
+    /// Linear velocity.
+    V,
+    /// Angular velocity.
+    W,
+    /// Centre of mass.
+    X,
+    /// Orientation, as a rotation vector in the world frame.
+    Q,
+}
+
+impl Param {
+    /// All four, in order v, ω, x, q.
+    pub const ALL: [Param; 4] = [Param::V, Param::W, Param::X, Param::Q];
+
+    /// `"v"`, `"w"`, `"x"` or `"q"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Param::V => "v",
+            Param::W => "w",
+            Param::X => "x",
+            Param::Q => "q",
+        }
+    }
+
+    /// The state moved by `h` along axis `axis` of this parameter.
+    pub fn perturbed(self, s: &BodyState, axis: usize, h: f64) -> BodyState {
+        let e = h * crate::math::unit(axis);
+        let mut s = *s;
+        match self {
+            Param::V => s.v += e,
+            Param::W => s.w += e,
+            Param::X => s.x += e,
+            Param::Q => s.q = (Rotation::from_scaled_axis(e) * s.q).normalize(),
+        }
+        s
+    }
+}
+
+impl Motion {
+    /// Whether diffluid integrates a body that moves this way (only dynamic ones).
+    pub fn integrated_here(self) -> bool {
+        self == Motion::Dynamic
+    }
+}
+
+impl std::str::FromStr for Param {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Param, String> {
+        Param::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| format!("unknown parameter {s:?}: use \"v\", \"w\", \"x\" or \"q\""))
+    }
+}
+
+impl TryFrom<String> for Param {
+    type Error = String;
+    fn try_from(s: String) -> Result<Param, String> {
+        s.parse()
+    }
+}
+
+impl From<Param> for String {
+    fn from(p: Param) -> String {
+        p.name().into()
+    }
+}
+
+impl std::fmt::Display for Param {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 impl std::fmt::Debug for RigidBody {
@@ -61,10 +206,31 @@ impl RigidBody {
             mass: mp.mass(),
             local_inertia,
             shape,
-            dynamic: true,
+            motion: Motion::Dynamic,
             v: Vec3::ZERO,
             w: Vec3::ZERO,
+            force: Vec3::ZERO,
+            torque: Vec3::ZERO,
         }
+    }
+
+    /// Whether the body moves under the liquid's forces: it is one of the coupled solve's
+    /// bodies (dynamic or external).
+    pub fn moves(&self) -> bool {
+        self.motion != Motion::Fixed
+    }
+
+    /// The state.
+    pub fn state(&self) -> BodyState {
+        BodyState { x: self.x, q: self.q, v: self.v, w: self.w }
+    }
+
+    /// Sets the state.
+    pub fn set_state(&mut self, s: &BodyState) {
+        self.x = s.x;
+        self.q = s.q;
+        self.v = s.v;
+        self.w = s.w;
     }
 
     /// Scales mass and inertia so the body weighs `mass` kg.
@@ -140,7 +306,7 @@ impl RigidBody {
 
     /// Stage 6: x += Δt·v; q += Δt/2·[0, ω]⊗q, then normalised (the paper's f_x).
     pub fn integrate(&mut self, dt: f64) {
-        if !self.dynamic {
+        if self.motion != Motion::Dynamic {
             return;
         }
         self.x += dt * self.v;
@@ -181,19 +347,6 @@ pub fn quat_step_adjoint(q: Rotation, w: Vec3, dt: f64, qbar_out: Rotation) -> (
     let qbar = rbar - wr * (0.5 * dt);
     let t = rbar * q.conjugate();
     (qbar, Vec3::new(t.x, t.y, t.z) * (0.5 * dt))
-}
-
-/// The world-frame tangent of an orientation: δq = ½·[0, δθ]⊗q. Returns ∂L/∂θ from an
-/// adjoint ∂L/∂q in the quaternion embedding (the transpose of that map).
-pub fn quat_tangent_gradient(q: Rotation, qbar: Rotation) -> Vec3 {
-    let t = qbar * q.conjugate();
-    Vec3::new(t.x, t.y, t.z) * 0.5
-}
-
-/// The adjoint in the quaternion embedding whose tangent part is `g` = ∂L/∂θ (the inverse
-/// of [`quat_tangent_gradient`] on the tangent space): 2·[0, g]⊗q.
-pub fn quat_from_tangent_gradient(q: Rotation, g: Vec3) -> Rotation {
-    (Rotation::from_xyzw(g.x, g.y, g.z, 0.0) * q) * 2.0
 }
 
 #[cfg(test)]
@@ -269,14 +422,6 @@ mod tests {
             let an = qbar.to_array()[d];
             assert!((fd - an).abs() < 1e-9, "q[{d}]: {fd} vs {an}");
         }
-    }
-
-    #[test]
-    fn tangent_gradient_round_trips() {
-        let q = Rotation::from_axis_angle(Vec3::new(1.0, 2.0, -1.0).normalize(), 1.3);
-        let g = Vec3::new(0.4, -0.7, 1.9);
-        let back = quat_tangent_gradient(q, quat_from_tangent_gradient(q, g));
-        assert!((back - g).length() < 1e-12);
     }
 
     #[test]

@@ -1,4 +1,5 @@
-//! Writers: binary PLY point clouds for particles and the run summary as JSON.
+//! Writers: binary PLY point clouds and triangle meshes, JSON, CSV tables (feature `csv`),
+//! all written atomically.
 
 use crate::error::{Error, Result};
 use crate::math::Vec3;
@@ -74,6 +75,21 @@ pub fn write_ply_mesh(path: &Path, vertices: &[Vec3], triangles: &[[u32; 3]]) ->
 pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     let text = serde_json::to_vec_pretty(value).expect("serialisable");
     write_atomic(path, &text)
+}
+
+/// Writes `rows` as a CSV table with a header (the field names), atomically.
+#[cfg(feature = "csv")]
+pub fn write_csv<T: Serialize>(path: &Path, rows: &[T]) -> Result<()> {
+    let fail = |e: csv::Error| Error::Write {
+        path: path.to_path_buf(),
+        source: std::io::Error::other(e.to_string()),
+    };
+    let mut w = csv::Writer::from_writer(Vec::new());
+    for r in rows {
+        w.serialize(r).map_err(fail)?;
+    }
+    let bytes = w.into_inner().map_err(|e| fail(e.into_error().into()))?;
+    write_atomic(path, &bytes)
 }
 
 /// Writes a file through a temporary and a rename, so a reader never sees half a file.

@@ -19,6 +19,8 @@ use vtkio::model::{
 #[derive(Debug)]
 pub struct VtkSeries {
     dir: PathBuf,
+    /// The run's name, in each file's title.
+    name: String,
     /// Per series name ("liquid", "grid", "body_<name>"): (time, file name) of each frame.
     series: Vec<(String, Vec<(f64, String)>)>,
 }
@@ -67,7 +69,7 @@ pub fn particles_data(sim: &Simulation) -> DataSet {
 /// Body `b`'s surface in world space as PolyData triangles, with the rigid velocity at each
 /// vertex.
 pub fn body_data(sim: &Simulation, b: usize) -> DataSet {
-    let body = &sim.bodies[b];
+    let body = &sim.bodies()[b];
     let (verts, tris) = crate::geometry::mesh::surface_mesh(&body.shape);
     let pose = body.pose();
     let world: Vec<Vec3> = verts.iter().map(|v| pose.transform_point(*v)).collect();
@@ -125,9 +127,9 @@ pub fn grid_data(sim: &Simulation) -> DataSet {
 }
 
 impl VtkSeries {
-    /// A series written into `dir`.
-    pub fn new(dir: &Path) -> VtkSeries {
-        VtkSeries { dir: dir.to_path_buf(), series: Vec::new() }
+    /// A series of the run `name` written into `dir`.
+    pub fn new(dir: &Path, name: &str) -> VtkSeries {
+        VtkSeries { dir: dir.to_path_buf(), name: name.into(), series: Vec::new() }
     }
 
     fn add(&mut self, name: &str, time: f64, file: String) {
@@ -141,12 +143,12 @@ impl VtkSeries {
     /// a run that fails part-way still leaves a playable series.
     pub fn write_frame(&mut self, sim: &Simulation, n: usize) -> Result<()> {
         let time = sim.time();
-        let title = format!("diffluid {} frame {n} t = {time} s", sim.scene().name);
+        let title = format!("diffluid {} frame {n} t = {time} s", self.name);
         let mut files = vec![
             ("liquid".to_string(), format!("liquid_{n:04}.vtp"), particles_data(sim)),
             ("grid".to_string(), format!("grid_{n:04}.vti"), grid_data(sim)),
         ];
-        for (b, body) in sim.bodies.iter().enumerate() {
+        for (b, body) in sim.bodies().iter().enumerate() {
             let name = format!("body_{}", body.name);
             files.push((name.clone(), format!("{name}_{n:04}.vtp"), body_data(sim, b)));
         }

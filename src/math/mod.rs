@@ -5,6 +5,7 @@
 //! touches this file only.
 
 pub mod dual;
+pub mod so3;
 
 pub use parry3d_f64::math::{Pose, Rotation, Vector as Vec3};
 pub use parry3d_f64::query::PointQuery;

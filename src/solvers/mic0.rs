@@ -10,7 +10,7 @@
 //! diagonal). Rigid-body terms, a low-rank addition, are left out of the factor.
 
 use crate::geometry::grid::NONE;
-use crate::stages::pressure::Stencil;
+use crate::solvers::stencil::Stencil;
 use rayon::prelude::*;
 
 /// Bridson's τ: the fraction of dropped fill-in moved to the diagonal.

@@ -33,7 +33,7 @@
 //! with any number of rayon threads.
 
 use crate::geometry::grid::NONE;
-use crate::stages::pressure::Stencil;
+use crate::solvers::stencil::Stencil;
 use rayon::prelude::*;
 use std::sync::Mutex;
 

@@ -11,9 +11,9 @@
 //! (`solver.density_correction`).
 
 use crate::error::{Error, Result};
-use crate::experiments::scene::Solver;
 use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
+use crate::solvers::LinearSolve;
 use crate::stages::extrapolate::correct_velocity;
 use crate::stages::pressure::{PressureParams, PressureSystem};
 use crate::stages::surface::{self, Bins};
@@ -40,24 +40,26 @@ pub struct DensityInputs<'a> {
     pub centre_in_solid: &'a [bool],
     /// Particle radius for φ_L.
     pub radius: f64,
+    /// Marker particles seeded per cell (the density of a full cell).
+    pub particles_per_cell: usize,
+    /// The ghost-fluid θ clamp of the projection's operator.
+    pub theta_min: f64,
+    /// How to solve it (the tolerance is raised to at least 1e-6: a volume to a millionth
+    /// of the excess is plenty).
+    pub solve: LinearSolve,
 }
 
 /// Pushes particles out of over-full cells. `step` names the step in errors.
-pub fn correct(
-    particles: &mut [Vec3],
-    g: &DensityInputs<'_>,
-    solver: &Solver,
-    step: usize,
-) -> Result<DensityStats> {
+pub fn correct(particles: &mut [Vec3], g: &DensityInputs<'_>, step: usize) -> Result<DensityStats> {
     let grid = g.grid;
-    let ppc = solver.particles_per_cell;
+    let ppc = g.particles_per_cell;
     let bins = Bins::new(particles, grid);
     let mut phi = surface::liquid_sdf(particles, &bins, grid, g.radius);
     surface::extend_into_solids(&mut phi, grid, g.centre_in_solid);
     let dens = surface::particle_density(particles, grid, ppc);
     // Unit Δt and density: the "velocity" update below is then a displacement in metres
     // whose volume flux out of each cell equals the right-hand side.
-    let params = PressureParams { dt: 1.0, density: 1.0, theta_min: solver.theta_min };
+    let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
     let sys = PressureSystem::build(grid, &phi, g.weights, params);
     let vol = grid.dx.powi(3);
     // Densities within 1e-6 of full are full: round-off in the deposit must not start a solve.
@@ -70,14 +72,14 @@ pub fn correct(
     if excess_volume == 0.0 {
         return Ok(DensityStats::default());
     }
-    let (q, stats) =
-        sys.solve(&b, solver.preconditioner, solver.tolerance.max(1e-6), solver.max_iterations);
+    let how = LinearSolve { tolerance: g.solve.tolerance.max(1e-6), ..g.solve };
+    let (q, stats) = sys.solve(&b, &how);
     if !stats.converged {
         return Err(Error::NotConverged {
             step,
             iterations: stats.iterations,
             residual: stats.relative_residual,
-            tolerance: solver.tolerance.max(1e-6),
+            tolerance: how.tolerance,
         });
     }
     let mut d = Mac::zeros(grid);

@@ -1,6 +1,5 @@
 //! The stages of a step, each forward function with its adjoint beside it.
 pub mod advect;
-#[cfg(feature = "contact")]
 pub mod contact;
 pub mod density;
 pub mod extrapolate;

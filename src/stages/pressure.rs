@@ -14,23 +14,15 @@
 //! velocity update, so a relative residual is a relative divergence. The operator is applied
 //! matrix-free from a stored 7-point stencil; rigid bodies add a rank-6 term per body.
 
-use crate::experiments::scene::Preconditioner;
 use crate::geometry::grid::{Grid, Mac, NONE};
+use crate::math::Vec3;
 use crate::solvers::cg::{pcg_from, CgSettings, CgStats};
 use crate::solvers::mic0::Mic0;
 use crate::solvers::multigrid::Multigrid;
+use crate::solvers::stencil::Stencil;
+use crate::solvers::{LinearSolve, Preconditioner};
 use rayon::prelude::*;
-
-/// The symmetric 7-point stencil over the unknowns.
-#[derive(Clone, Debug, Default)]
-pub struct Stencil {
-    /// Diagonal entries.
-    pub diag: Vec<f64>,
-    /// Coupling to the +x, +y, +z neighbour row (A_ij = −plus; 0 when there is none).
-    pub plus: Vec<[f64; 3]>,
-    /// Rows of the −x, +x, −y, +y, −z, +z neighbours, [`NONE`] when not an unknown.
-    pub nbr: Vec<[u32; 6]>,
-}
+use serde::{Deserialize, Serialize};
 
 /// The pressure gradient across one face in terms of the rows beside it (see
 /// [`PressureSystem::face_gradient`]).
@@ -53,6 +45,20 @@ impl FaceGradient {
         let at = |r: u32, c: f64| if c != 0.0 { c * p[r as usize] } else { 0.0 };
         at(self.rp, self.cp) - at(self.rm, self.cm)
     }
+}
+
+/// How the liquid and the bodies exchange momentum in a step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Coupling {
+    /// One pressure solve for liquid and bodies together (Batty et al. 2007): the body's
+    /// response to the pressure is part of the system, so it is stable for any density ratio.
+    #[default]
+    Monolithic,
+    /// The partitioned baseline: the liquid is solved around each body moving at its current
+    /// velocity (held fixed), then the body is pushed by the resulting pressure force. Light
+    /// bodies go unstable (the added-mass instability); kept to show where, not for use.
+    Weak,
 }
 
 /// Everything the pressure stage needs besides the velocities.
@@ -335,21 +341,7 @@ impl PressureSystem {
 
     /// y = A x (the fluid stencil).
     pub fn apply(&self, x: &[f64], y: &mut [f64]) {
-        let a = &self.stencil;
-        y.par_iter_mut().enumerate().for_each(|(r, yr)| {
-            let mut v = a.diag[r] * x[r];
-            for axis in 0..3 {
-                let m = a.nbr[r][2 * axis];
-                if m != NONE {
-                    v -= a.plus[m as usize][axis] * x[m as usize];
-                }
-                let p = a.nbr[r][2 * axis + 1];
-                if p != NONE {
-                    v -= a.plus[r][axis] * x[p as usize];
-                }
-            }
-            *yr = v;
-        });
+        self.stencil.apply(x, y);
         for b in &self.bodies {
             let s = b.dt_minv_times(&b.force(x));
             b.add_jt(&s, y);
@@ -390,34 +382,25 @@ impl PressureSystem {
         b
     }
 
-    /// Solves A p = b with the chosen preconditioner ([`Preconditioner::Auto`] picks one by the
+    /// Solves A p = b from p = 0 ([`Preconditioner::Auto`] picks the preconditioner by the
     /// number of unknowns).
-    pub fn solve(
-        &self,
-        b: &[f64],
-        preconditioner: Preconditioner,
-        tolerance: f64,
-        max_iterations: usize,
-    ) -> (Vec<f64>, CgStats) {
-        self.solve_from(b, vec![0.0; self.len()], preconditioner, tolerance, max_iterations)
+    pub fn solve(&self, b: &[f64], how: &LinearSolve) -> (Vec<f64>, CgStats) {
+        self.solve_from(b, vec![0.0; self.len()], how)
     }
 
     /// [`PressureSystem::solve`] from the initial guess `p` (one value per unknown).
-    pub fn solve_from(
-        &self,
-        b: &[f64],
-        mut p: Vec<f64>,
-        preconditioner: Preconditioner,
-        tolerance: f64,
-        max_iterations: usize,
-    ) -> (Vec<f64>, CgStats) {
+    pub fn solve_from(&self, b: &[f64], mut p: Vec<f64>, how: &LinearSolve) -> (Vec<f64>, CgStats) {
         assert_eq!(p.len(), self.len());
-        let settings = CgSettings { tolerance, max_iterations, project_constant: !self.has_air };
+        let settings = CgSettings {
+            tolerance: how.tolerance,
+            max_iterations: how.max_iterations,
+            project_constant: !self.has_air,
+        };
         let apply = |x: &[f64], y: &mut [f64]| self.apply(x, y);
         // The solve runs as one task on a rayon worker, so its many small parallel loops
         // (dozens per wavefront-scheduled MIC(0) or per V-cycle) are forked from inside the
         // pool instead of each waking a worker from outside (two thread switches apiece).
-        let stats = rayon::scope(|_| match preconditioner {
+        let stats = rayon::scope(|_| match how.preconditioner.resolve(self.len()) {
             Preconditioner::Mic0 => {
                 let m = Mic0::new(&self.stencil, self.grid.n, &self.cell_of_row);
                 pcg_from(
@@ -432,20 +415,13 @@ impl PressureSystem {
                 let m = Multigrid::new(self.grid.n, &self.cell_of_row, &self.stencil);
                 pcg_from(apply, |r: &[f64], z: &mut [f64]| m.apply(r, z), b, &mut p, &settings)
             }
-            Preconditioner::None => pcg_from(
+            Preconditioner::None | Preconditioner::Auto => pcg_from(
                 apply,
                 |r: &[f64], z: &mut [f64]| z.copy_from_slice(r),
                 b,
                 &mut p,
                 &settings,
             ),
-            Preconditioner::Auto => {
-                let chosen = preconditioner.resolve(self.len());
-                let (q, stats) =
-                    self.solve_from(b, std::mem::take(&mut p), chosen, tolerance, max_iterations);
-                p = q;
-                stats
-            }
         });
         (p, stats)
     }
@@ -546,7 +522,7 @@ impl PressureSystem {
         &self,
         adj_u: &Mac,
         adj_v: &[[f64; 6]],
-        solver: &crate::experiments::scene::Solver,
+        how: &LinearSolve,
     ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
         let mut pbar = self.update_velocity_adjoint(adj_u);
         for (b, av) in self.bodies.iter().zip(adj_v) {
@@ -554,8 +530,7 @@ impl PressureSystem {
         }
         // No warm start here: the adjoint pressure of the step after this one saves half an
         // iteration of 18 on block_drop.
-        let (s, stats) =
-            self.solve(&pbar, solver.preconditioner, solver.tolerance, solver.max_iterations);
+        let (s, stats) = self.solve(&pbar, how);
         let ft = self.fluid_flux_adjoint(&s);
         let mut u_hat = adj_u.clone();
         for a in 0..3 {
@@ -583,6 +558,145 @@ impl PressureSystem {
         }
         out
     }
+}
+
+/// What the pose part of the projection adjoint ([`projection_pose_adjoint`]) reads.
+pub struct PoseAdjointInputs<'a> {
+    /// The step's system (its `bodies` the coupled bodies' terms).
+    pub sys: &'a PressureSystem,
+    /// The combined fluid weights.
+    pub weights: &'a [Vec<f64>; 3],
+    /// φ_L (extended into the solids).
+    pub phi: &'a [f64],
+    /// The static solids' weights.
+    pub static_weights: &'a [Vec<f64>; 3],
+    /// The fluid velocity before the projection.
+    pub u_hat: &'a Mac,
+    /// The step's pressure.
+    pub p: &'a [f64],
+    /// The adjoint solve's solution.
+    pub s: &'a [f64],
+    /// The step.
+    pub dt: f64,
+}
+
+/// ∂L/∂[δx; δθ] of one body through the projection's geometry, for fixed velocities: with
+/// the adjoint solve's s and the adjoint V′ of the body's velocity after the solve,
+/// `dL = sᵀ(δb − δA·p) + V′·(δMi·J p + Mi·δJ p)` where b = −F(w)·û − Jᵀ v̂,
+/// A = S(w) + Jᵀ Mi J and Mi = Δt·M⁻¹. δw = −δβ on faces the clamp leaves alone, δJ comes
+/// from δβ and from the torque arms (δr = −δx), δMi from the rotation of the inertia.
+pub fn projection_pose_adjoint(
+    g: &PoseAdjointInputs<'_>,
+    body: &crate::geometry::body::RigidBody,
+    faces: &[Vec<(usize, crate::math::dual::Dual<6>)>; 3],
+    coupling: usize,
+    v_hat: &[f64; 6],
+    adj_v: &[f64; 6],
+) -> [f64; 6] {
+    let sys = g.sys;
+    let grid = sys.grid;
+    let area = grid.dx * grid.dx;
+    let scale = sys.params.dt * grid.dx / sys.params.density;
+    let row_val = |c: Option<usize>, x: &[f64]| match c.map(|c| sys.row_of_cell[c]) {
+        Some(r) if r != crate::geometry::grid::NONE => x[r as usize],
+        _ => 0.0,
+    };
+    let bc = &sys.bodies[coupling];
+    let (js, jp) = (bc.force(g.s), bc.force(g.p));
+    let mi = bc.dt_minv;
+    let mi_jp = bc.dt_minv_times(&jp);
+    let mut out = [0.0; 6];
+    // δJ·x for x = s and x = p, per direction: [direction][component].
+    let mut djs = [[0.0; 6]; 6];
+    let mut djp = [[0.0; 6]; 6];
+    for axis in 0..3 {
+        let lat = grid.faces(axis);
+        let e = crate::math::unit(axis);
+        for (f, beta) in faces[axis].iter() {
+            let f = *f;
+            let ijk = lat.ijk(f);
+            let (m, pl) = grid.face_cells(axis, ijk);
+            // Fluid weight: w = clamp(w_static − β): its derivative is −δβ inside the clamp.
+            let raw = g.static_weights[axis][f] - beta.v;
+            if raw > 0.0 && raw < 1.0 && g.weights[axis][f] > 0.0 {
+                let uh = g.u_hat.c[axis][f];
+                let flux = area * uh * (row_val(m, g.s) - row_val(pl, g.s));
+                let stencil = match sys.face_gradient(axis, f, g.weights, g.phi) {
+                    Some(fg) => {
+                        // θ·(g·s)(g·p), with g carrying 1/θ on a ghost-fluid face.
+                        let theta = if fg.cp == 0.0 {
+                            1.0 / fg.cm
+                        } else if fg.cm == 0.0 {
+                            1.0 / fg.cp
+                        } else {
+                            1.0
+                        };
+                        scale * theta * fg.apply(g.s) * fg.apply(g.p)
+                    }
+                    None => 0.0,
+                };
+                // sᵀδb ∋ −sᵀ δF û = −Σ dx²·δw·û·(s_m − s_p), δw = −δβ; −sᵀ δS p likewise.
+                for k in 0..6 {
+                    out[k] += beta.d[k] * (flux + stencil);
+                }
+            }
+            // δJ columns on the two cells beside the face.
+            let r = lat.position(ijk[0], ijk[1], ijk[2]) - body.x;
+            let t = r.cross(e);
+            let col = [e.x, e.y, e.z, t.x, t.y, t.z];
+            let (sm, sp) = (row_val(m, g.s), row_val(pl, g.s));
+            let (pm, pp) = (row_val(m, g.p), row_val(pl, g.p));
+            let (ns, np) = (area * (sm - sp), area * (pm - pp));
+            for k in 0..6 {
+                for c in 0..6 {
+                    djs[k][c] += ns * beta.d[k] * col[c];
+                    djp[k][c] += np * beta.d[k] * col[c];
+                }
+                if k < 3 {
+                    // δr = −e_k: δ(r × e) = −e_k × e.
+                    let dt_ = -crate::math::unit(k).cross(e);
+                    for c in 0..3 {
+                        djs[k][3 + c] += ns * beta.v * crate::math::comp(dt_, c);
+                        djp[k][3 + c] += np * beta.v * crate::math::comp(dt_, c);
+                    }
+                }
+            }
+        }
+    }
+    let dot6 = |a: &[f64; 6], b: &[f64; 6]| (0..6).map(|i| a[i] * b[i]).sum::<f64>();
+    let mv = |m: &[[f64; 6]; 6], x: &[f64; 6]| -> [f64; 6] {
+        std::array::from_fn(|r| (0..6).map(|c| m[r][c] * x[c]).sum())
+    };
+    // δMi for the rotation directions: Δt·([e]×·I⁻¹ − I⁻¹·[e]×) on the angular block.
+    let inv = body.world_inertia().inverse();
+    let inv_a: [[f64; 3]; 3] =
+        std::array::from_fn(|r| std::array::from_fn(|c| inv.col(c).to_array()[r]));
+    for k in 0..6 {
+        let mut dmi = [[0.0; 6]; 6];
+        if k >= 3 {
+            let ax = crate::math::unit(k - 3);
+            let cross = |v: [f64; 3]| {
+                let w = ax.cross(Vec3::new(v[0], v[1], v[2]));
+                [w.x, w.y, w.z]
+            };
+            // [e]× I⁻¹: columns of I⁻¹ crossed; I⁻¹ [e]×: I⁻¹ applied to e × unit columns.
+            for c in 0..3 {
+                let colc = [inv_a[0][c], inv_a[1][c], inv_a[2][c]];
+                let left = cross(colc);
+                let ec = ax.cross(crate::math::unit(c));
+                for r in 0..3 {
+                    let right = (0..3).map(|q| inv_a[r][q] * crate::math::comp(ec, q)).sum::<f64>();
+                    dmi[3 + r][3 + c] = g.dt * (left[r] - right);
+                }
+            }
+        }
+        let dmi_jp = mv(&dmi, &jp);
+        let mi_djp = mv(&mi, &djp[k]);
+        let lhs = -dot6(&djs[k], v_hat)
+            - (dot6(&djs[k], &mi_jp) + dot6(&js, &dmi_jp) + dot6(&js, &mi_djp));
+        out[k] += lhs + dot6(adj_v, &dmi_jp) + dot6(adj_v, &mi_djp);
+    }
+    out
 }
 
 #[cfg(test)]
@@ -679,18 +793,18 @@ mod tests {
         let tol = 1e-14;
         // Forward.
         let b = sys.rhs(&uh, &weights, &[vh]);
-        let (p, _) = sys.solve(&b, Preconditioner::Mic0, tol, 10_000);
+        let how = LinearSolve {
+            preconditioner: Preconditioner::Mic0,
+            tolerance: tol,
+            max_iterations: 10_000,
+        };
+        let (p, _) = sys.solve(&b, &how);
         let mut u1 = uh.clone();
         sys.update_velocity(&p, &mut u1);
         let dv = sys.bodies[0].dt_minv_times(&sys.bodies[0].force(&p));
         let v1: [f64; 6] = std::array::from_fn(|d| vh[d] + dv[d]);
         // Adjoint.
-        let settings = crate::experiments::scene::Solver {
-            tolerance: tol,
-            max_iterations: 10_000,
-            ..Default::default()
-        };
-        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &settings);
+        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &how);
         let lhs = u1.dot(&ub) + (0..6).map(|d| v1[d] * vb[d]).sum::<f64>();
         let rhs = uh.dot(&ua) + (0..6).map(|d| vh[d] * va[0][d]).sum::<f64>();
         assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");

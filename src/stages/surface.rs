@@ -324,16 +324,9 @@ mod tests {
 
     #[test]
     fn seeded_box_has_exact_volume_and_flat_surface() {
-        use crate::geometry::shape::{Placed, ShapeSpec};
+        use crate::geometry::shape::Solid;
         let grid = Grid { n: [8, 8, 8], dx: 0.125 };
-        let region = Placed {
-            shape: ShapeSpec::Box { min: [0.0, 0.0, 0.0], max: [1.0, 0.5, 1.0] },
-            position: [0.0; 3],
-            quaternion: None,
-            axis_angle: None,
-        }
-        .build(std::path::Path::new("."))
-        .unwrap();
+        let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0));
         let sdf = vec![1e3; grid.nodes().len()];
         let pos = seed(&grid, &[region], 8, &sdf);
         assert_eq!(pos.len(), 8 * 8 * 4 * 8);

@@ -1,10 +1,14 @@
-//! One step of the liquid, as a pipeline of named stages (the paper's Algorithm 2):
+//! A running simulation: the liquid on a MAC grid, its marker particles, and the rigid bodies
+//! coupled to it, with the step as a pipeline of named stages (the paper's Algorithm 2):
 //!
+//! 3a. where the solids are: the bodies' face fractions, J, the combined weights;
 //! 0. advect the marker particles through uₜ (RK2), pushed out of solids;
-//! 1. advect the velocity semi-Lagrangianly;
-//! 2. add gravity;
-//! 3. rebuild the liquid signed distance φ_L from the particles;
-//! 4. project: build the pressure system, solve it, update the velocity;
+//! 3. rebuild the liquid signed distance φ_L from the particles, and assemble the step's
+//!    system ([`StepSystem::assemble`]);
+//! 1. advect the velocity semi-Lagrangianly, on the faces the step reads;
+//! 2. add gravity (and the bodies' external forces);
+//! 4. project: solve the coupled pressure system (with contact held inside it), update the
+//!    velocity and the bodies;
 //! 5. correct the velocity: extrapolate into air, zero it inside static solids, give faces
 //!    inside a body the body's velocity;
 //! 6. integrate the bodies (x += Δt·v, quaternion update), or let rapier resolve contact.
@@ -19,123 +23,53 @@
 //!
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
+use super::settings::{check_finite, check_positive, SettingError, SolverSettings, WorldSettings};
+use super::step::{
+    body_faces, generalized_velocity, kinetic_energy, predicted_velocity, BodyForce, Geometry,
+    StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
+};
+use super::tape::{StepRecord, Tape};
 use crate::error::{Error, Result};
-use crate::experiments::scene::{Coupling, Scene};
-use crate::geometry::body::RigidBody;
+use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::fractions;
-use crate::geometry::grid::{Grid, Mac};
-use crate::math::Vec3;
-use crate::stages::advect::{advect, needed_faces};
-#[cfg(feature = "contact")]
-use crate::stages::contact::ContactWorld;
+use crate::geometry::grid::{on_pool, Grid, Mac};
+use crate::geometry::shape::Solid;
+use crate::math::{v3, Vec3};
+use crate::stages::contact::{contact_possible, hold_contact, ContactHold};
 use crate::stages::density::{self, DensityInputs};
-use crate::stages::extrapolate::correct_velocity;
-use crate::stages::forces::add_gravity;
-use crate::stages::pressure::BodyCoupling;
-use crate::stages::pressure::{PressureParams, PressureSystem};
+use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
+use crate::stages::forces::body_velocity;
+use crate::stages::pressure::PressureParams;
 use crate::stages::surface::{self, Bins};
-use serde::Serialize;
 use std::time::Instant;
 
-/// Wall time of each stage of one step, in seconds.
-#[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
-pub struct StageSeconds {
-    /// Stage 0: marker particles.
-    pub advect_particles: f64,
-    /// Stage 1: velocity advection.
-    pub advect_velocity: f64,
-    /// Stage 2: gravity.
-    pub forces: f64,
-    /// Stage 3: liquid signed distance (binning + φ_L).
-    pub surface: f64,
-    /// Stage 4: pressure system, solve and velocity update.
-    pub pressure: f64,
-    /// Stage 5: extrapolation and solid velocities.
-    pub correct_velocity: f64,
-    /// Stage 3 (bodies): face fractions, J, combined weights.
-    pub geometry: f64,
-    /// Stage 6: rigid integration or contact.
-    pub rigid: f64,
-}
+/// A body's name in a [`Simulation`], stable while other bodies come and go.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct BodyHandle(u32);
 
-/// Pressure force and torque on one body in one step, as written to `summary.json`.
-#[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct BodyForce {
-    /// Body name.
-    pub name: String,
-    /// Pressure force J·p (first three rows), N.
-    pub force: [f64; 3],
-    /// Pressure torque about the centre of mass, N·m.
-    pub torque: [f64; 3],
-}
-
-/// What one step did, as written to `summary.json`.
-#[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct StepReport {
-    /// Step number, from 1.
-    pub step: usize,
-    /// Simulated time at the end of the step, s.
-    pub time: f64,
-    /// Unknowns of the pressure solve (liquid cells).
-    pub liquid_cells: usize,
-    /// CG iterations.
-    pub cg_iterations: usize,
-    /// ‖b − A p‖₂ / ‖b‖₂ at the end of the solve.
-    pub cg_relative_residual: f64,
-    /// Largest |∇·u| over liquid cells after projection, 1/s.
-    pub max_divergence: f64,
-    /// Liquid volume from the marker particles, m³ (see [`surface::liquid_volume`]).
-    pub liquid_volume: f64,
-    /// Largest liquid speed at a liquid cell centre, m/s.
-    pub max_speed: f64,
-    /// Kinetic energy of the liquid, ½ Σ ρ·w_f·dx³·u_f² over faces next to liquid, J.
-    pub kinetic_energy: f64,
-    /// Pressure force and torque on each dynamic body.
-    pub bodies: Vec<BodyForce>,
-    /// Extra pressure solves made to hold contact impulses (0 without contact).
-    pub contact_iterations: usize,
-    /// Largest velocity change contact still made after the last solve, m/s (0 when it
-    /// converged or contact was off).
-    pub contact_residual: f64,
-    /// Wall time per stage.
-    pub stage_seconds: StageSeconds,
-}
-
-/// Where the solids are this step: combined face weights and the bodies' faces.
-#[derive(Clone, Debug)]
-pub struct Geometry {
-    /// Fluid weight of every face: static weight minus the bodies' fractions, in [0, 1].
-    pub weights: [Vec<f64>; 3],
-    /// Cells whose centre is inside a static solid or a body.
-    pub centre_in_solid: Vec<bool>,
-    /// Faces covered by each body.
-    pub body_faces: Vec<fractions::BodyFaces>,
-}
-
-/// Geometry that does not move: tank walls and obstacles.
-#[derive(Clone, Debug)]
-pub struct StaticGeometry {
-    /// Signed distance of the obstacles at grid nodes.
-    pub node_sdf: Vec<f64>,
-    /// Fluid weight of every face (0 on walls).
-    pub weights: [Vec<f64>; 3],
-    /// Cells whose centre lies inside an obstacle.
-    pub centre_in_solid: Vec<bool>,
+impl BodyHandle {
+    /// The handle's number (handles are never reused).
+    pub fn id(self) -> u32 {
+        self.0
+    }
 }
 
 /// A running simulation.
 #[derive(Clone, Debug)]
 pub struct Simulation {
-    scene: Scene,
     grid: Grid,
+    settings: WorldSettings,
     statics: StaticGeometry,
     radius: f64,
     /// Fluid velocity on faces.
     pub u: Mac,
     /// Marker particle positions.
     pub particles: Vec<Vec3>,
-    /// Rigid bodies.
-    pub bodies: Vec<RigidBody>,
+    bodies: Vec<RigidBody>,
+    handles: Vec<BodyHandle>,
+    next_handle: u32,
+    /// Per body, the pressure force and torque of the last step's solve.
+    fluid_forces: Vec<[f64; 6]>,
     pressure: Vec<f64>,
     phi: Vec<f64>,
     /// φ_L of the initial particles, when the surface is frozen.
@@ -143,35 +77,155 @@ pub struct Simulation {
     /// Liquid volume of the frozen particles.
     frozen_volume: f64,
     step: usize,
+    time: f64,
 }
 
-impl Simulation {
-    /// Sets up a scene: static geometry, particles seeded in the liquid regions, fluid at rest.
-    pub fn new(scene: Scene) -> Result<Simulation> {
-        scene.check()?;
-        let grid = scene.grid();
-        let obstacles = scene.obstacles();
-        let node_sdf = fractions::node_sdf(&grid, &obstacles);
-        let weights = fractions::face_weights(&grid, &obstacles);
+/// Builds a [`Simulation`] from plain parts: the tank, the settings, the liquid's initial
+/// regions, static obstacles and bodies. Everything has a default but the tank.
+///
+/// ```
+/// use diffluid::geometry::body::RigidBody;
+/// use diffluid::geometry::shape::Solid;
+/// use diffluid::math::{Pose, SharedShape, Vec3};
+/// use diffluid::world::Simulation;
+///
+/// let pool = Solid::aabb(Vec3::ZERO, Vec3::new(0.6, 0.2, 0.4));
+/// let ball = RigidBody::new(
+///     "ball".into(),
+///     SharedShape::ball(0.06),
+///     Pose::from_translation(Vec3::new(0.3, 0.3, 0.2)),
+///     500.0,
+/// );
+/// let mut sim = Simulation::builder([0.6, 0.4, 0.4], 0.05).dt(0.01).liquid(pool).body(ball).build()?;
+/// let ball = sim.handles()[0];
+/// for _ in 0..5 {
+///     sim.step()?;
+/// }
+/// assert!(sim.body(ball).unwrap().v.y < 0.0, "the ball falls toward the water");
+/// # Ok::<(), diffluid::Error>(())
+/// ```
+#[derive(Clone, Debug)]
+pub struct SimulationBuilder {
+    size: [f64; 3],
+    dx: f64,
+    settings: WorldSettings,
+    liquid: Vec<Solid>,
+    obstacles: Vec<Solid>,
+    bodies: Vec<RigidBody>,
+}
+
+impl SimulationBuilder {
+    /// All settings at once.
+    pub fn settings(mut self, settings: WorldSettings) -> Self {
+        self.settings = settings;
+        self
+    }
+
+    /// The fixed step, s (default 0.01).
+    pub fn dt(mut self, dt: f64) -> Self {
+        self.settings.dt = dt;
+        self
+    }
+
+    /// The liquid's density and gravity (default water, g = 9.81 m/s² down y).
+    pub fn fluid(mut self, fluid: super::settings::Fluid) -> Self {
+        self.settings.fluid = fluid;
+        self
+    }
+
+    /// Solver settings.
+    pub fn solver(mut self, solver: SolverSettings) -> Self {
+        self.settings.solver = solver;
+        self
+    }
+
+    /// Contact settings.
+    pub fn contact(mut self, contact: super::settings::ContactSettings) -> Self {
+        self.settings.contact = contact;
+        self
+    }
+
+    /// A region that starts full of liquid (the liquid is the union of all of them).
+    pub fn liquid(mut self, region: Solid) -> Self {
+        self.liquid.push(region);
+        self
+    }
+
+    /// A static obstacle.
+    pub fn obstacle(mut self, solid: Solid) -> Self {
+        self.obstacles.push(solid);
+        self
+    }
+
+    /// A rigid body in its initial state.
+    pub fn body(mut self, body: RigidBody) -> Self {
+        self.bodies.push(body);
+        self
+    }
+
+    /// The checks of [`SimulationBuilder::build`], without building: the grid the tank is cut
+    /// into, or the first setting that fails.
+    pub fn check(&self) -> std::result::Result<Grid, SettingError> {
+        let grid = tank_grid(self.size, self.dx)?;
+        self.settings.validate()?;
+        let size = grid.size();
+        let tol = 1e-9 * size.max_element();
+        for (i, l) in self.liquid.iter().enumerate() {
+            let (lo, hi) = l.bounds();
+            if !(lo.is_finite() && hi.is_finite()) {
+                return Err(SettingError::new(
+                    format!("liquid[{i}]"),
+                    "liquid region bounds must be finite",
+                ));
+            }
+            if lo.min_element() < -tol || (hi - size).max_element() > tol {
+                return Err(SettingError::new(
+                    format!("liquid[{i}]"),
+                    format!(
+                        "liquid region spans {:?}..{:?}, outside the domain [0, 0, 0]..{:?}",
+                        round6(lo.to_array()),
+                        round6(hi.to_array()),
+                        round6(size.to_array())
+                    ),
+                ));
+            }
+        }
+        for (i, b) in self.bodies.iter().enumerate() {
+            check_body(b, size).map_err(|m| SettingError::new(format!("body[{i}]"), m))?;
+        }
+        Ok(grid)
+    }
+
+    /// Checks everything and sets up the simulation: static geometry, particles seeded in
+    /// the liquid regions (outside obstacles and bodies), fluid at rest. A failed check is
+    /// [`Error::InvalidSettings`] naming the key as a scene file would (`domain.dx`,
+    /// `liquid[0]`, `body[1]`, `solver.theta_min`).
+    pub fn build(self) -> Result<Simulation> {
+        let grid =
+            self.check().map_err(|e| Error::InvalidSettings { key: e.key, message: e.message })?;
+        let node_sdf = fractions::node_sdf(&grid, &self.obstacles);
+        let weights = fractions::face_weights(&grid, &self.obstacles);
         let centre_in_solid = fractions::cell_centre_in_solid(&grid, &node_sdf);
-        let ppc = scene.solver.particles_per_cell;
-        let particles = surface::seed(&grid, &scene.liquid_regions(), ppc, &node_sdf);
+        let ppc = self.settings.solver.particles_per_cell;
+        let mut particles = surface::seed(&grid, &self.liquid, ppc, &node_sdf);
         let radius = surface::particle_radius(grid.dx, surface::per_axis(ppc));
-        let bodies = scene.bodies()?;
-        let mut particles = particles;
         let margin = 1e-3 * grid.dx;
-        particles.retain(|x| bodies.iter().all(|b| b.sdf(*x) > margin));
-        let (frozen_phi, frozen_volume) = if scene.solver.freeze_surface {
+        particles.retain(|x| self.bodies.iter().all(|b| b.sdf(*x) > margin));
+        let (frozen_phi, frozen_volume) = if self.settings.solver.freeze_surface {
             let bins = Bins::new(&particles, &grid);
             let vol = surface::liquid_volume(&particles, &grid, ppc);
             (Some(surface::liquid_sdf(&particles, &bins, &grid, radius)), vol)
         } else {
             (None, 0.0)
         };
+        let n = self.bodies.len();
         Ok(Simulation {
             frozen_phi,
             frozen_volume,
-            bodies,
+            handles: (0..n as u32).map(BodyHandle).collect(),
+            next_handle: n as u32,
+            fluid_forces: vec![[0.0; 6]; n],
+            bodies: self.bodies,
             u: Mac::zeros(&grid),
             particles,
             pressure: vec![0.0; grid.num_cells()],
@@ -179,14 +233,107 @@ impl Simulation {
             statics: StaticGeometry { node_sdf, weights, centre_in_solid },
             radius,
             grid,
-            scene,
+            settings: self.settings,
             step: 0,
+            time: 0.0,
         })
     }
+}
 
-    /// The scene.
-    pub fn scene(&self) -> &Scene {
-        &self.scene
+/// The grid of a tank of `size` metres cut into cells of `dx`.
+fn tank_grid(size: [f64; 3], dx: f64) -> std::result::Result<Grid, SettingError> {
+    check_positive("domain.dx", dx)?;
+    for (a, s) in size.iter().enumerate() {
+        check_positive(&format!("domain.size[{a}]"), *s)?;
+        let n = (s / dx).round();
+        if n < 1.0 || (n * dx - s).abs() > 1e-6 * s {
+            return Err(SettingError::new(
+                "domain.size",
+                format!("size {s} along axis {a} is not a whole number of cells of dx = {dx}"),
+            ));
+        }
+    }
+    let cells: f64 = size.iter().map(|s| (s / dx).round()).product();
+    if cells > 512.0f64.powi(3) {
+        return Err(SettingError::new(
+            "domain",
+            format!("{cells} cells is more than 512³; raise dx"),
+        ));
+    }
+    Ok(Grid { n: size.map(|s| (s / dx).round() as usize), dx })
+}
+
+/// Bounds for messages, without floating-point noise (3.5999999999999996 → 3.6).
+pub(crate) fn round6(a: [f64; 3]) -> [f64; 3] {
+    a.map(|x| (x * 1e6).round() / 1e6)
+}
+
+/// A body a simulation can take: a positive finite mass, a finite state, inside the tank.
+fn check_body(b: &RigidBody, size: Vec3) -> std::result::Result<(), String> {
+    if !(b.mass.is_finite() && b.mass > 0.0) {
+        return Err(format!("mass must be a positive number, got {}", b.mass));
+    }
+    let finite = |key: &str, v: Vec3| {
+        check_finite(key, &v.to_array()).map_err(|e| format!("{} {}", e.key, e.message))
+    };
+    finite("velocity", b.v)?;
+    finite("angular_velocity", b.w)?;
+    finite("force", b.force)?;
+    finite("torque", b.torque)?;
+    finite("position", b.x)?;
+    let (lo, hi) = b.bounds();
+    if !(lo.min_element() > 0.0 && (hi - size).max_element() < 0.0) {
+        return Err(format!(
+            "body spans {:?}..{:?}: it must start inside the tank [0, 0, 0]..{:?} without \
+             touching a wall",
+            round6(lo.to_array()),
+            round6(hi.to_array()),
+            round6(size.to_array())
+        ));
+    }
+    Ok(())
+}
+
+/// A contact velocity change below this (a thousandth of what gravity adds in a step) is
+/// taken as none.
+fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
+    1e-3 * v3(gravity).length().max(1.0) * dt
+}
+
+/// What the projection (stage 4) leaves.
+struct Projection {
+    p: Vec<f64>,
+    stats: crate::solvers::cg::CgStats,
+    u: Mac,
+    /// Per coupled body: [v; ω] the solve started from (with the contact kick) and after it,
+    /// and the pressure force and torque J·p.
+    v_hat: Vec<[f64; 6]>,
+    v_after: Vec<[f64; 6]>,
+    forces: Vec<[f64; 6]>,
+    hold: ContactHold,
+}
+
+impl Simulation {
+    /// A builder for a tank of `size` metres (x, y up, z) cut into cubes of side `dx`.
+    pub fn builder(size: [f64; 3], dx: f64) -> SimulationBuilder {
+        SimulationBuilder {
+            size,
+            dx,
+            settings: WorldSettings::default(),
+            liquid: Vec::new(),
+            obstacles: Vec::new(),
+            bodies: Vec::new(),
+        }
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &WorldSettings {
+        &self.settings
+    }
+
+    /// The fixed step of [`Simulation::step`], s.
+    pub fn dt(&self) -> f64 {
+        self.settings.dt
     }
 
     /// The grid.
@@ -204,9 +351,9 @@ impl Simulation {
         self.step
     }
 
-    /// Simulated time.
+    /// Simulated time, s.
     pub fn time(&self) -> f64 {
-        self.step as f64 * self.scene.time.dt
+        self.time
     }
 
     /// Pressure at cell centres from the last solve (Pa, zero outside the liquid).
@@ -219,79 +366,171 @@ impl Simulation {
         &self.phi
     }
 
+    /// Cells that are liquid in the last step's φ_L.
+    pub fn liquid_cells(&self) -> impl Iterator<Item = usize> + '_ {
+        self.phi.iter().enumerate().filter(|(_, p)| **p < 0.0).map(|(c, _)| c)
+    }
+
     /// Liquid volume of the current particles, m³.
     pub fn liquid_volume(&self) -> f64 {
         if self.frozen_phi.is_some() {
             return self.frozen_volume;
         }
-        surface::liquid_volume(&self.particles, &self.grid, self.scene.solver.particles_per_cell)
+        surface::liquid_volume(&self.particles, &self.grid, self.settings.solver.particles_per_cell)
     }
 
-    /// Where the solids are now: static weights minus each body's face fractions.
-    pub fn geometry(&self) -> Geometry {
-        self.geometry_of(&self.bodies)
+    /// The bodies, in the order they were added.
+    pub fn bodies(&self) -> &[RigidBody] {
+        &self.bodies
     }
 
-    /// Where the solids are with the bodies in the given states.
-    pub fn geometry_of(&self, bodies: &[RigidBody]) -> Geometry {
-        let faces = bodies
+    /// The bodies, to change their state in place (their number and order stay).
+    pub fn bodies_mut(&mut self) -> &mut [RigidBody] {
+        &mut self.bodies
+    }
+
+    /// Each body's handle, in the order of [`Simulation::bodies`].
+    pub fn handles(&self) -> &[BodyHandle] {
+        &self.handles
+    }
+
+    /// Where body `h` is in [`Simulation::bodies`].
+    pub fn index_of(&self, h: BodyHandle) -> Option<usize> {
+        self.handles.iter().position(|&x| x == h)
+    }
+
+    fn index(&self, h: BodyHandle) -> Result<usize> {
+        self.index_of(h).ok_or(Error::UnknownBody { handle: h.0 })
+    }
+
+    /// Body `h`.
+    pub fn body(&self, h: BodyHandle) -> Option<&RigidBody> {
+        self.index_of(h).map(|i| &self.bodies[i])
+    }
+
+    /// Body `h`, to change it.
+    pub fn body_mut(&mut self, h: BodyHandle) -> Option<&mut RigidBody> {
+        self.index_of(h).map(|i| &mut self.bodies[i])
+    }
+
+    /// Adds a body at runtime. It must lie inside the tank, with a finite state and a
+    /// positive mass; marker particles inside it are removed (the body displaces that
+    /// liquid).
+    pub fn add_body(&mut self, body: RigidBody) -> Result<BodyHandle> {
+        check_body(&body, self.grid.size()).map_err(|message| Error::InvalidSettings {
+            key: format!("body {:?}", body.name),
+            message,
+        })?;
+        let margin = 1e-3 * self.grid.dx;
+        self.particles.retain(|x| body.sdf(*x) > margin);
+        let h = BodyHandle(self.next_handle);
+        self.next_handle += 1;
+        self.bodies.push(body);
+        self.handles.push(h);
+        self.fluid_forces.push([0.0; 6]);
+        Ok(h)
+    }
+
+    /// Removes body `h` and returns it. The space it held is left to the liquid and air.
+    pub fn remove_body(&mut self, h: BodyHandle) -> Result<RigidBody> {
+        let i = self.index(h)?;
+        self.handles.remove(i);
+        self.fluid_forces.remove(i);
+        Ok(self.bodies.remove(i))
+    }
+
+    /// Sets the external force (N, on the centre of mass) and torque (N·m) on body `h`, both
+    /// in the world frame; they act every step, with gravity, until changed.
+    pub fn set_external_force(&mut self, h: BodyHandle, force: Vec3, torque: Vec3) -> Result<()> {
+        let i = self.index(h)?;
+        check_finite("force", &force.to_array())
+            .and_then(|()| check_finite("torque", &torque.to_array()))
+            .map_err(|e| Error::InvalidSettings { key: e.key, message: e.message })?;
+        self.bodies[i].force = force;
+        self.bodies[i].torque = torque;
+        Ok(())
+    }
+
+    /// Sets body `h`'s pose and velocity: how a program whose own rigid-body engine moves an
+    /// [`crate::geometry::body::Motion::External`] body hands it over each step. The pose must lie inside the tank.
+    pub fn set_body_state(&mut self, h: BodyHandle, state: &BodyState) -> Result<()> {
+        let i = self.index(h)?;
+        let mut b = self.bodies[i].clone();
+        b.set_state(state);
+        check_body(&b, self.grid.size()).map_err(|message| Error::InvalidSettings {
+            key: format!("body {:?}", b.name),
+            message,
+        })?;
+        self.bodies[i] = b;
+        Ok(())
+    }
+
+    /// The pressure force (N) and torque (N·m, about the centre of mass) of the last step's
+    /// solve on body `h` (zero before the first step and for fixed bodies).
+    pub fn fluid_force(&self, h: BodyHandle) -> Option<(Vec3, Vec3)> {
+        let f = self.fluid_forces[self.index_of(h)?];
+        Some((Vec3::new(f[0], f[1], f[2]), Vec3::new(f[3], f[4], f[5])))
+    }
+
+    /// The largest step [`Simulation::advance`] takes now: the fixed step, or less where the
+    /// fastest liquid sample or body point, plus what gravity can add within a cell
+    /// (√(dx·|g|), after Bridson), would cross more than `solver.cfl` cells.
+    pub fn stable_dt(&self) -> f64 {
+        let dx = self.grid.dx;
+        let body_speed = self
+            .bodies
             .iter()
-            .map(|b| fractions::body_faces(&self.grid, b.bounds(), |p| b.sdf(p), Some(b.volume())))
-            .collect();
-        self.geometry_with(bodies, faces)
-    }
-
-    /// [`Simulation::geometry_of`] with the bodies' face fractions already known (the
-    /// backward pass has them on the tape).
-    pub fn geometry_with(
-        &self,
-        bodies: &[RigidBody],
-        faces_of: Vec<fractions::BodyFaces>,
-    ) -> Geometry {
-        assert_eq!(bodies.len(), faces_of.len());
-        let grid = &self.grid;
-        let mut weights = self.statics.weights.clone();
-        let mut centre_in_solid = self.statics.centre_in_solid.clone();
-        let mut body_faces = Vec::with_capacity(bodies.len());
-        let cells = grid.cells();
-        for (b, faces) in bodies.iter().zip(faces_of) {
-            for a in 0..3 {
-                for &(f, beta) in &faces.faces[a] {
-                    // β is already snapped to 0 or 1 where it is within round-off of
-                    // them, so w + β = 1 holds exactly on every face a body alone covers.
-                    weights[a][f] = (weights[a][f] - beta).clamp(0.0, 1.0);
-                }
-            }
-            let (lo, hi) = b.bounds();
-            let lo = lo.to_array().map(|x| ((x / grid.dx).floor().max(0.0)) as usize);
-            let hi = hi.to_array();
-            for k in lo[2]..grid.n[2].min((hi[2] / grid.dx).ceil() as usize + 1) {
-                for j in lo[1]..grid.n[1].min((hi[1] / grid.dx).ceil() as usize + 1) {
-                    for i in lo[0]..grid.n[0].min((hi[0] / grid.dx).ceil() as usize + 1) {
-                        if b.sdf(cells.position(i, j, k)) < 0.0 {
-                            centre_in_solid[grid.cell(i, j, k)] = true;
-                        }
-                    }
-                }
-            }
-            body_faces.push(faces);
+            .map(|b| {
+                let (lo, hi) = b.bounds();
+                b.v.length() + b.w.length() * 0.5 * (hi - lo).length()
+            })
+            .fold(0.0, f64::max);
+        let g = v3(self.settings.fluid.gravity).length();
+        let speed = self.u.max_abs().max(body_speed) + (dx * g).sqrt();
+        let limit = self.settings.solver.cfl * dx / speed;
+        if limit.is_finite() {
+            self.settings.dt.min(limit)
+        } else {
+            self.settings.dt
         }
-        Geometry { weights, centre_in_solid, body_faces }
     }
 
-    /// Advances one step.
+    /// Advances by `frame_dt` seconds in as many steps as [`Simulation::stable_dt`] asks for
+    /// (a game or robot loop's frame). Each step is a step of the same map as
+    /// [`Simulation::step`] with a shorter Δt; gradients use the fixed-Δt path.
+    pub fn advance(&mut self, frame_dt: f64) -> Result<Vec<StepReport>> {
+        if !(frame_dt.is_finite() && frame_dt > 0.0) {
+            return Err(Error::InvalidSettings {
+                key: "frame_dt".into(),
+                message: format!("must be a positive number, got {frame_dt}"),
+            });
+        }
+        let mut left = frame_dt;
+        let mut reports = Vec::new();
+        while left > 1e-12 * frame_dt {
+            let n = (left / self.stable_dt()).ceil().max(1.0);
+            let h = left / n;
+            reports.push(on_pool(|| self.step_inner(h, None))?);
+            left -= h;
+        }
+        Ok(reports)
+    }
+
+    /// Advances one step of the fixed Δt.
     pub fn step(&mut self) -> Result<StepReport> {
-        crate::geometry::grid::on_pool(|| self.step_inner(None))
+        let dt = self.settings.dt;
+        on_pool(|| self.step_inner(dt, None))
     }
 
     /// Advances one step and records on `tape` what the backward pass needs.
-    pub fn step_taped(&mut self, tape: &mut crate::gradients::Tape) -> Result<StepReport> {
-        crate::geometry::grid::on_pool(|| self.step_inner(Some(tape)))
+    pub fn step_taped(&mut self, tape: &mut Tape) -> Result<StepReport> {
+        let dt = self.settings.dt;
+        on_pool(|| self.step_inner(dt, Some(tape)))
     }
 
     /// The liquid signed distance from the particles (before extension into solids): the
     /// frozen one, or the current particles'.
-    pub(crate) fn particle_phi(&self) -> Vec<f64> {
+    pub fn particle_phi(&self) -> Vec<f64> {
         match &self.frozen_phi {
             Some(phi) => phi.clone(),
             None => surface::liquid_sdf(
@@ -303,11 +542,43 @@ impl Simulation {
         }
     }
 
-    fn step_inner(&mut self, mut tape: Option<&mut crate::gradients::Tape>) -> Result<StepReport> {
-        let u_start = tape.as_ref().map(|_| self.u.clone());
-        let bodies_start: Vec<crate::gradients::BodyState> =
-            self.bodies.iter().map(crate::gradients::BodyState::of).collect();
-        let dt = self.scene.time.dt;
+    /// Where the solids are now.
+    pub fn geometry(&self) -> Geometry {
+        self.geometry_with(&self.bodies, body_faces(&self.grid, &self.bodies))
+    }
+
+    /// Where the solids are with `bodies` in place of this simulation's, whose face fractions
+    /// are `faces` (the backward pass has them on its tape).
+    pub fn geometry_with(
+        &self,
+        bodies: &[RigidBody],
+        faces: Vec<fractions::BodyFaces>,
+    ) -> Geometry {
+        Geometry::new(&self.grid, &self.statics, bodies, faces)
+    }
+
+    /// What the step's system is assembled with for a step of `dt`.
+    pub fn step_params(&self, dt: f64) -> StepParams {
+        let s = &self.settings;
+        StepParams {
+            pressure: PressureParams {
+                dt,
+                density: s.fluid.density,
+                theta_min: s.solver.theta_min,
+            },
+            coupling: s.solver.coupling,
+        }
+    }
+
+    /// Whether rapier contact is on and could act this step (see [`contact_possible`]).
+    fn contact_on(&self, dt: f64) -> bool {
+        self.settings.contact.enabled && contact_possible(&self.bodies, self.grid.size(), dt)
+    }
+
+    fn step_inner(&mut self, dt: f64, tape: Option<&mut Tape>) -> Result<StepReport> {
+        let start = tape
+            .as_ref()
+            .map(|_| (self.u.clone(), self.bodies.iter().map(RigidBody::state).collect()));
         let grid = self.grid;
         let mut times = StageSeconds::default();
         let mut clock = Instant::now();
@@ -318,199 +589,90 @@ impl Simulation {
         };
 
         // 3a. The solids where they are at the start of the step (bodies move in stage 6).
-        let geo = self.geometry();
+        let geometry = self.geometry();
         lap(&mut times.geometry);
 
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
-        let frozen = self.frozen_phi.is_some();
-        if !frozen {
-            surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
-            surface::push_out_of_bodies(&mut self.particles, &self.bodies, 1e-3 * grid.dx);
-        }
-        if !frozen && self.scene.solver.density_correction {
-            let inputs = DensityInputs {
-                grid: &grid,
-                weights: &geo.weights,
-                node_sdf: &self.statics.node_sdf,
-                centre_in_solid: &geo.centre_in_solid,
-                radius: self.radius,
-            };
-            density::correct(&mut self.particles, &inputs, &self.scene.solver, self.step + 1)?;
-            surface::push_out_of_bodies(&mut self.particles, &self.bodies, 1e-3 * grid.dx);
-        }
+        self.advect_particles(&geometry, dt)?;
         lap(&mut times.advect_particles);
 
         // 3. Where the liquid is now (with a frozen surface: where it was at the start). It
         // depends on the particles only, and tells advection which faces the step reads.
         let particle_phi = self.particle_phi();
-        let mut phi = particle_phi.clone();
-        surface::extend_into_solids(&mut phi, &grid, &geo.centre_in_solid);
         lap(&mut times.surface);
+        let taped_phi = match (&start, &self.frozen_phi) {
+            (Some(_), None) => particle_phi.clone(),
+            _ => Vec::new(),
+        };
+        let sys =
+            StepSystem::assemble(&grid, &self.bodies, geometry, particle_phi, self.step_params(dt));
+        lap(&mut times.assemble);
 
-        // 1. Self-advection of the velocity, on the faces the rest of the step reads.
-        let needed = needed_faces(&grid, &phi, &geo.body_faces);
-        let mut u = advect(&self.u, &grid, dt, Some(&needed));
+        // 1–2. Self-advection of the velocity on the faces the rest of the step reads, and
+        // gravity; gravity and the external forces on the bodies.
+        let gravity = self.settings.fluid.gravity;
+        let u_hat = predicted_velocity(&self.u, &grid, dt, gravity, &sys.needed);
         lap(&mut times.advect_velocity);
-
-        // 2. Gravity, on the liquid and on the bodies.
-        let gravity = self.scene.fluid.gravity;
-        add_gravity(&mut u, gravity, dt);
-        for b in self.bodies.iter_mut().filter(|b| b.dynamic) {
-            b.v += dt * crate::math::v3(gravity);
-        }
+        let v_hat: Vec<[f64; 6]> =
+            sys.coupled.iter().map(|&i| body_velocity(&self.bodies[i], v3(gravity), dt)).collect();
         lap(&mut times.forces);
 
-        // 4. Projection, coupled with the dynamic bodies.
-        let solver = self.scene.solver.clone();
-        let params =
-            PressureParams { dt, density: self.scene.fluid.density, theta_min: solver.theta_min };
-        let mut sys = PressureSystem::build(&grid, &phi, &geo.weights, params);
-        let dynamic: Vec<usize> =
-            (0..self.bodies.len()).filter(|&i| self.bodies[i].dynamic).collect();
-        let mut couplings: Vec<BodyCoupling> = dynamic
-            .iter()
-            .map(|&i| {
-                let b = &self.bodies[i];
-                let jac = fractions::body_jacobian(&grid, &geo.body_faces[i], b.x);
-                BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(b, dt))
-            })
-            .collect();
-        let weak = solver.coupling == Coupling::Weak;
-        if !weak {
-            sys.bodies = std::mem::take(&mut couplings);
+        // 4. Projection, coupled with the bodies, contact held inside it.
+        let contact = self.contact_on(dt);
+        let proj = self.project(&sys, &u_hat, &v_hat, dt, contact)?;
+        for ((&i, v), f) in sys.coupled.iter().zip(&proj.v_after).zip(&proj.forces) {
+            let b = &mut self.bodies[i];
+            b.v = Vec3::new(v[0], v[1], v[2]);
+            b.w = Vec3::new(v[3], v[4], v[5]);
+            self.fluid_forces[i] = *f;
         }
-        let couplings = if weak { &couplings } else { &sys.bodies };
-        let v_start: Vec<[f64; 6]> =
-            dynamic.iter().map(|&i| generalized_velocity(&self.bodies[i])).collect();
-        // Contact inside the solve. Resolving contact only after the projection would leave
-        // the liquid divergence-free around a body velocity that contact then changes (a
-        // heavy body resting on the floor pumped (1 − ρ/ρ_b)·g·Δt of flow into the liquid
-        // every step). So: solve, ask rapier what contact does to the bodies' new velocities,
-        // and solve again with that change (`kick`) held as an impulse on the bodies, until
-        // contact changes nothing; the liquid then moves with the body velocity that stands.
-        let contact_on = self.contact_enabled();
-        let mut kick = vec![[0.0f64; 6]; dynamic.len()];
-        let mut contact_iterations = 0;
-        let mut contact_residual = 0.0;
-        let mut last_p: Option<Vec<f64>> = None;
-        let u_advected = u;
-        let (p, stats, mut u, mut valid, forces) = loop {
-            let vel: Vec<[f64; 6]> = v_start
-                .iter()
-                .zip(&kick)
-                .map(|(v, k)| std::array::from_fn(|d| v[d] + k[d]))
-                .collect();
-            let b = if weak {
-                // Partitioned: the bodies are boundaries moving at their current velocity.
-                let mut b = sys.rhs(&u_advected, &geo.weights, &[]);
-                for (c, v) in couplings.iter().zip(&vel) {
-                    c.add_jt(&v.map(|x| -x), &mut b);
-                }
-                b
-            } else {
-                sys.rhs(&u_advected, &geo.weights, &vel)
-            };
-            // Warm start: the last solve's pressure (this step's previous contact iteration,
-            // or the last step's).
-            let guess = match &last_p {
-                Some(p) => p.clone(),
-                None => sys.cell_of_row.iter().map(|&c| self.pressure[c as usize]).collect(),
-            };
-            let (p, stats) = sys.solve_from(
-                &b,
-                guess,
-                solver.preconditioner,
-                solver.tolerance,
-                solver.max_iterations,
-            );
-            if !stats.converged {
-                return Err(Error::NotConverged {
-                    step: self.step + 1,
-                    iterations: stats.iterations,
-                    residual: stats.relative_residual,
-                    tolerance: solver.tolerance,
-                });
-            }
-            let mut u = u_advected.clone();
-            let valid = sys.update_velocity(&p, &mut u);
-            let mut forces = Vec::with_capacity(dynamic.len());
-            for ((coupling, &i), v) in couplings.iter().zip(&dynamic).zip(&vel) {
-                let f = coupling.force(&p);
-                let dv = coupling.dt_minv_times(&f);
-                let body = &mut self.bodies[i];
-                body.v = Vec3::new(v[0] + dv[0], v[1] + dv[1], v[2] + dv[2]);
-                body.w = Vec3::new(v[3] + dv[3], v[4] + dv[4], v[5] + dv[5]);
-                forces.push(BodyForce {
-                    name: body.name.clone(),
-                    force: [f[0], f[1], f[2]],
-                    torque: [f[3], f[4], f[5]],
-                });
-            }
-            if contact_on {
-                let change = self.contact_change(&dynamic, dt);
-                let largest = change.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs()));
-                if largest > self.contact_tolerance(dt) {
-                    if contact_iterations == MAX_CONTACT_ITERATIONS {
-                        contact_residual = largest;
-                        break (p, stats, u, valid, forces);
-                    }
-                    for (k, c) in kick.iter_mut().zip(&change) {
-                        for d in 0..6 {
-                            k[d] += c[d];
-                        }
-                    }
-                    contact_iterations += 1;
-                    last_p = Some(p);
-                    continue;
-                }
-            }
-            break (p, stats, u, valid, forces);
-        };
-        let mut flux = sys.fluid_flux(&u, &geo.weights);
-        for (coupling, &i) in couplings.iter().zip(&dynamic) {
-            coupling.add_jt(&generalized_velocity(&self.bodies[i]), &mut flux);
+        let mut flux = sys.pressure.fluid_flux(&proj.u, &sys.geometry.weights);
+        for (coupling, v) in sys.couplings().iter().zip(&proj.v_after) {
+            coupling.add_jt(v, &mut flux);
         }
         let max_divergence = flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / grid.dx.powi(3);
-        let kinetic_energy =
-            kinetic_energy(&u, &valid, &geo.weights, self.scene.fluid.density, grid.dx);
+        let kinetic_energy = kinetic_energy(
+            &proj.u,
+            &sys.pressure,
+            &sys.geometry.weights,
+            self.settings.fluid.density,
+        );
         lap(&mut times.pressure);
 
         // 5. Velocity correction: the bodies' velocity on the faces they cover (which then
         // count as known), extrapolation into air, zero in static solids and walls.
-        crate::stages::extrapolate::apply_body_velocities(
+        let mut u = proj.u;
+        apply_body_velocities(
             &mut u,
             &self.bodies,
-            &geo.body_faces,
-            &geo.weights,
+            &sys.geometry.body_faces,
+            &sys.geometry.weights,
             &grid,
         );
-        crate::stages::extrapolate::mark_body_faces(&mut valid, &geo.body_faces);
-        correct_velocity(
-            &mut u,
-            &mut valid,
-            &self.statics.weights,
-            &grid,
-            solver.extrapolation_layers,
-        );
+        let mut valid = sys.known_faces();
+        let layers = self.settings.solver.extrapolation_layers;
+        correct_velocity(&mut u, &mut valid, &self.statics.weights, &grid, layers);
         lap(&mut times.correct_velocity);
 
-        if let Some(t) = tape.take() {
-            t.steps.push(crate::gradients::StepRecord {
-                u: u_start.expect("cloned when taping"),
-                bodies: bodies_start,
+        if let (Some(t), Some((u0, bodies))) = (tape, start) {
+            t.steps.push(StepRecord {
+                u: u0,
+                bodies,
+                v_hat: proj.v_hat,
                 v_after: self.bodies.iter().map(generalized_velocity).collect(),
-                p: p.clone(),
-                phi: if self.frozen_phi.is_some() { Vec::new() } else { particle_phi },
-                contact_kick: kick.clone(),
-                body_faces: geo.body_faces.clone(),
+                p: proj.p.clone(),
+                phi: taped_phi,
+                body_faces: sys.geometry.body_faces.clone(),
+                contact,
             });
         }
 
         // 6. Rigid integration (or contact).
-        self.move_bodies(dt)?;
+        self.move_bodies(dt, contact)?;
         lap(&mut times.rigid);
 
         self.step += 1;
+        self.time += dt;
         if !u.is_finite() {
             return Err(Error::NonFinite { step: self.step, what: "the fluid velocity".into() });
         }
@@ -520,76 +682,180 @@ impl Simulation {
             }
         }
         self.u = u;
-        self.pressure = sys.scatter(&p);
-        self.phi = phi;
+        self.pressure = sys.pressure.scatter(&proj.p);
+        self.phi = sys.phi;
+        let bodies = sys
+            .coupled
+            .iter()
+            .zip(&proj.forces)
+            .map(|(&i, f)| BodyForce {
+                name: self.bodies[i].name.clone(),
+                force: [f[0], f[1], f[2]],
+                torque: [f[3], f[4], f[5]],
+            })
+            .collect();
         Ok(StepReport {
             step: self.step,
-            time: self.time(),
-            liquid_cells: sys.len(),
-            cg_iterations: stats.iterations,
-            cg_relative_residual: stats.relative_residual,
+            time: self.time,
+            liquid_cells: sys.pressure.len(),
+            cg_iterations: proj.stats.iterations,
+            cg_relative_residual: proj.stats.relative_residual,
             max_divergence,
             liquid_volume: self.liquid_volume(),
-            max_speed: self.max_liquid_speed(&sys),
+            max_speed: self.max_liquid_speed(&sys.pressure.cell_of_row),
             kinetic_energy,
-            bodies: forces,
-            contact_iterations,
-            contact_residual,
+            bodies,
+            contact_iterations: proj.hold.iterations,
+            contact_residual: proj.hold.residual,
             stage_seconds: times,
         })
     }
 
-    /// Whether rapier contact is on and could act this step (see [`contact_possible`]).
-    fn contact_enabled(&self) -> bool {
-        #[cfg(feature = "contact")]
-        {
-            self.scene.contact.enabled
-                && contact_possible(&self.bodies, self.grid.size(), self.scene.time.dt)
+    /// Stage 0: the marker particles through the current field, pushed out of the solids,
+    /// and the density projection (nothing with a frozen surface).
+    fn advect_particles(&mut self, geometry: &Geometry, dt: f64) -> Result<()> {
+        if self.frozen_phi.is_some() {
+            return Ok(());
         }
-        #[cfg(not(feature = "contact"))]
-        false
+        let grid = self.grid;
+        let margin = 1e-3 * grid.dx;
+        surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
+        surface::push_out_of_bodies(&mut self.particles, &self.bodies, margin);
+        let solver = &self.settings.solver;
+        if solver.density_correction {
+            let inputs = DensityInputs {
+                grid: &grid,
+                weights: &geometry.weights,
+                node_sdf: &self.statics.node_sdf,
+                centre_in_solid: &geometry.centre_in_solid,
+                radius: self.radius,
+                particles_per_cell: solver.particles_per_cell,
+                theta_min: solver.theta_min,
+                solve: solver.linear(),
+            };
+            density::correct(&mut self.particles, &inputs, self.step + 1)?;
+            surface::push_out_of_bodies(&mut self.particles, &self.bodies, margin);
+        }
+        Ok(())
     }
 
-    /// What rapier's contact step would do to each dynamic body's [v; ω] now: its
-    /// velocity after the step minus before.
-    fn contact_change(&self, dynamic: &[usize], dt: f64) -> Vec<[f64; 6]> {
+    /// Stage 4: the coupled solve from the fluid velocity `u_hat` and the coupled bodies'
+    /// velocities `v_hat`, warm-started from the last pressure, with contact held inside it
+    /// when `contact` (see [`hold_contact`]).
+    fn project(
+        &self,
+        sys: &StepSystem,
+        u_hat: &Mac,
+        v_hat: &[[f64; 6]],
+        dt: f64,
+        contact: bool,
+    ) -> Result<Projection> {
+        let how = self.settings.solver.linear();
+        let mut last_p: Option<Vec<f64>> = None;
+        let solve = |kick: &[[f64; 6]]| {
+            let vel: Vec<[f64; 6]> =
+                v_hat.iter().zip(kick).map(|(v, k)| std::array::from_fn(|d| v[d] + k[d])).collect();
+            let b = sys.rhs(u_hat, &vel);
+            // Warm start: the last solve's pressure (this step's previous contact iteration,
+            // or the last step's).
+            let guess = match last_p.take() {
+                Some(p) => p,
+                None => {
+                    sys.pressure.cell_of_row.iter().map(|&c| self.pressure[c as usize]).collect()
+                }
+            };
+            let (p, stats) = sys.pressure.solve_from(&b, guess, &how);
+            if !stats.converged {
+                return Err(Error::NotConverged {
+                    step: self.step + 1,
+                    iterations: stats.iterations,
+                    residual: stats.relative_residual,
+                    tolerance: how.tolerance,
+                });
+            }
+            let mut u = u_hat.clone();
+            sys.pressure.update_velocity(&p, &mut u);
+            let forces: Vec<[f64; 6]> = sys.couplings().iter().map(|c| c.force(&p)).collect();
+            let after: Vec<[f64; 6]> = sys
+                .couplings()
+                .iter()
+                .zip(&vel)
+                .zip(&forces)
+                .map(|((c, v), f)| {
+                    let dv = c.dt_minv_times(f);
+                    std::array::from_fn(|d| v[d] + dv[d])
+                })
+                .collect();
+            last_p = Some(p.clone());
+            let proj = Projection {
+                p,
+                stats,
+                u,
+                v_hat: vel,
+                v_after: after.clone(),
+                forces,
+                hold: ContactHold::default(),
+            };
+            Ok((proj, after))
+        };
+        let change = |after: &[[f64; 6]]| self.contact_change(&sys.coupled, after, dt);
+        let change: Option<&dyn Fn(&[[f64; 6]]) -> Vec<[f64; 6]>> =
+            if contact { Some(&change) } else { None };
+        let tolerance = contact_tolerance(self.settings.fluid.gravity, dt);
+        let (mut proj, hold) = hold_contact(sys.coupled.len(), solve, change, tolerance)?;
+        proj.hold = hold;
+        Ok(proj)
+    }
+
+    /// What rapier's contact step would do to each coupled body's [v; ω] if the bodies had
+    /// the velocities `after`: its velocity after the step minus before.
+    fn contact_change(&self, coupled: &[usize], after: &[[f64; 6]], dt: f64) -> Vec<[f64; 6]> {
         #[cfg(feature = "contact")]
         {
-            let mut after = self.bodies.clone();
-            ContactWorld::new(self.grid.size(), &after, &self.scene.contact).step(&mut after, dt);
-            dynamic
+            let mut bodies = self.bodies.clone();
+            for (&i, v) in coupled.iter().zip(after) {
+                bodies[i].v = Vec3::new(v[0], v[1], v[2]);
+                bodies[i].w = Vec3::new(v[3], v[4], v[5]);
+            }
+            let before = bodies.clone();
+            crate::stages::contact::ContactWorld::new(
+                self.grid.size(),
+                &bodies,
+                &self.settings.contact,
+            )
+            .step(&mut bodies, dt);
+            coupled
                 .iter()
                 .map(|&i| {
                     let (a, b) =
-                        (generalized_velocity(&after[i]), generalized_velocity(&self.bodies[i]));
+                        (generalized_velocity(&bodies[i]), generalized_velocity(&before[i]));
                     std::array::from_fn(|d| a[d] - b[d])
                 })
                 .collect()
         }
         #[cfg(not(feature = "contact"))]
         {
-            let _ = dt;
-            vec![[0.0; 6]; dynamic.len()]
+            let _ = (after, dt);
+            vec![[0.0; 6]; coupled.len()]
         }
     }
 
-    /// A contact velocity change below this (a thousandth of what gravity adds in a step) is
-    /// taken as none.
-    fn contact_tolerance(&self, dt: f64) -> f64 {
-        1e-3 * crate::math::v3(self.scene.fluid.gravity).length().max(1.0) * dt
-    }
-
-    /// Stage 6: integrate the bodies, through rapier when contact is on; without contact, a
-    /// body that leaves the tank is an error.
-    fn move_bodies(&mut self, dt: f64) -> Result<()> {
+    /// Stage 6: integrate the bodies, through rapier when contact is on and possible; a body
+    /// that leaves the tank is an error.
+    fn move_bodies(&mut self, dt: f64, contact: bool) -> Result<()> {
         #[cfg(feature = "contact")]
-        if self.scene.contact.enabled && contact_possible(&self.bodies, self.grid.size(), dt) {
+        if contact {
             // A fresh world per step: the fluid step changed every velocity, and rebuilding
             // a handful of colliders costs microseconds.
-            ContactWorld::new(self.grid.size(), &self.bodies, &self.scene.contact)
-                .step(&mut self.bodies, dt);
+            crate::stages::contact::ContactWorld::new(
+                self.grid.size(),
+                &self.bodies,
+                &self.settings.contact,
+            )
+            .step(&mut self.bodies, dt);
             return Ok(());
         }
+        let _ = contact;
         let size = self.grid.size();
         for b in self.bodies.iter_mut() {
             b.integrate(dt);
@@ -606,9 +872,9 @@ impl Simulation {
     }
 
     /// Largest speed at the centre of a liquid cell (faces averaged per axis).
-    fn max_liquid_speed(&self, sys: &PressureSystem) -> f64 {
+    fn max_liquid_speed(&self, cell_of_row: &[u32]) -> f64 {
         let cells = self.grid.cells();
-        sys.cell_of_row
+        cell_of_row
             .iter()
             .map(|&c| {
                 let ijk = cells.ijk(c as usize);
@@ -623,93 +889,4 @@ impl Simulation {
             })
             .fold(0.0, f64::max)
     }
-
-    /// Cells that are liquid in the last step's φ_L.
-    pub fn liquid_cells(&self) -> impl Iterator<Item = usize> + '_ {
-        self.phi.iter().enumerate().filter(|(_, p)| **p < 0.0).map(|(c, _)| c)
-    }
-}
-
-/// Solves with contact impulses per step at most (see the projection in `step_inner`); a
-/// contact that still changes the velocities after them is left to the contact stage.
-/// rapier's iterative, soft contact solve answers each call with some noise (a few mm/s and
-/// mrad/s on a cube resting flat), so the iteration seldom meets its tolerance exactly: a
-/// resting cube stirred the liquid to 0.38 m/s with no extra solve, 0.06 with one, 0.018
-/// with two, 0.0096 with four and 0.0094 with eight.
-const MAX_CONTACT_ITERATIONS: usize = 4;
-
-/// Whether any body can touch a wall or another body within the next `dt`: each body's
-/// bounding box, grown by the farthest any of its points can move (|v|·Δt + |ω|·Δt times
-/// the box diagonal, which bounds the distance from the centre of mass) plus a margin of a
-/// hundredth of the diagonal as a safety margin, reaches a wall or another grown box.
-/// (rapier's predictive contacts start further out, but act only on bodies that would close
-/// the gap within the step, which the reach covers.) When none can, contact
-/// is no work: the bodies fly freely (the same integration as without contact), and rapier
-/// is not called.
-pub fn contact_possible(bodies: &[RigidBody], domain: Vec3, dt: f64) -> bool {
-    let grown: Vec<(Vec3, Vec3, bool)> = bodies
-        .iter()
-        .map(|b| {
-            let (lo, hi) = b.bounds();
-            let diag = (hi - lo).length();
-            let reach = if b.dynamic { (b.v.length() + b.w.length() * diag) * dt } else { 0.0 };
-            let pad = reach + 0.01 * diag;
-            (lo - Vec3::splat(pad), hi + Vec3::splat(pad), b.dynamic)
-        })
-        .collect();
-    let touches_wall = |(lo, hi, dynamic): &(Vec3, Vec3, bool)| {
-        *dynamic && (lo.min_element() <= 0.0 || (*hi - domain).max_element() >= 0.0)
-    };
-    if grown.iter().any(touches_wall) {
-        return true;
-    }
-    grown.iter().enumerate().any(|(i, a)| {
-        grown[i + 1..].iter().any(|b| {
-            (a.2 || b.2)
-                && (0..3).all(|d| {
-                    crate::math::comp(a.0, d) <= crate::math::comp(b.1, d)
-                        && crate::math::comp(b.0, d) <= crate::math::comp(a.1, d)
-                })
-        })
-    })
-}
-
-/// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated. Sequential on purpose: the
-/// sum is cheap and its order fixed.
-fn kinetic_energy(
-    u: &Mac,
-    valid: &[Vec<u8>; 3],
-    weights: &[Vec<f64>; 3],
-    rho: f64,
-    dx: f64,
-) -> f64 {
-    let mut e = 0.0;
-    for a in 0..3 {
-        for (f, &uf) in u.c[a].iter().enumerate() {
-            if valid[a][f] != 0 {
-                e += weights[a][f] * uf * uf;
-            }
-        }
-    }
-    0.5 * rho * dx.powi(3) * e
-}
-
-/// `[v; ω]`.
-pub fn generalized_velocity(b: &RigidBody) -> [f64; 6] {
-    [b.v.x, b.v.y, b.v.z, b.w.x, b.w.y, b.w.z]
-}
-
-/// Δt·M_S⁻¹ for a body: `diag(Δt/m·I, Δt·(R I Rᵀ)⁻¹)`.
-pub fn dt_minv(b: &RigidBody, dt: f64) -> [[f64; 6]; 6] {
-    let mut m = [[0.0; 6]; 6];
-    for d in 0..3 {
-        m[d][d] = dt / b.mass;
-    }
-    let inv = b.world_inertia().inverse();
-    for r in 0..3 {
-        for c in 0..3 {
-            m[3 + r][3 + c] = dt * inv.col(c).to_array()[r];
-        }
-    }
-    m
 }

@@ -1,0 +1,236 @@
+//! L-BFGS for [`Optimization`] (feature `lbfgs`): argmin's L-BFGS with its Moré–Thuente
+//! line search, driven one iteration per epoch through argmin's `Solver` trait (`init`, then
+//! `next_iter`), the loop argmin's `Executor` would run, so that each epoch is recorded,
+//! checked and checkpointed like a gradient-descent epoch. Its state (correction pairs, line
+//! search, iteration state) is saved with argmin's serde support.
+
+use super::optimize::{Checkpoint, EpochRecord, Optimization, OptimizerState, Outcome};
+use super::scene::OptimizerSpec;
+use crate::error::{Error, Result};
+use argmin::core::{CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus};
+use argmin::solver::linesearch::MoreThuenteLineSearch;
+use argmin::solver::quasinewton::LBFGS;
+use serde::Serialize;
+use std::cell::{Cell, RefCell};
+use std::path::Path;
+
+impl Optimization {
+    /// L-BFGS: one argmin iteration per epoch, the state checkpointed after each.
+    pub(super) fn run_lbfgs(
+        &self,
+        checkpoint: Option<&Path>,
+        mut ck: Checkpoint,
+        mut on_epoch: impl FnMut(&EpochRecord),
+    ) -> Result<Outcome> {
+        let evaluations = Cell::new(ck.evaluations);
+        let failure = RefCell::new(None);
+        let mut problem = Problem::new(Objective {
+            problem: self,
+            evaluations: &evaluations,
+            failure: &failure,
+            cache: RefCell::new(Vec::new()),
+            epoch: Cell::new(ck.next_epoch),
+        });
+        let restored = match &ck.optimizer {
+            OptimizerState::Lbfgs { solver, state } => {
+                Some((from_toml::<LbfgsSolver>(solver)?, from_toml::<LbfgsState>(state)?))
+            }
+            _ => None,
+        };
+        let (mut solver, mut state) = match restored {
+            Some(x) => x,
+            None => {
+                let mut solver = new_lbfgs(&self.optimizer)?;
+                let start = IterState::new()
+                    .param(self.to_vector(&ck.params))
+                    .max_iters(self.epochs as u64);
+                match solver.init(&mut problem, start) {
+                    Ok((mut state, _)) => {
+                        state.update();
+                        (solver, state)
+                    }
+                    Err(e) => {
+                        let reason = failure.borrow().clone().unwrap_or_else(|| e.to_string());
+                        return Ok(Outcome {
+                            history: ck.history,
+                            params: ck.params,
+                            final_loss: f64::NAN,
+                            stopped: Some(reason),
+                            converged: None,
+                            evaluations: evaluations.get(),
+                        });
+                    }
+                }
+            }
+        };
+        ck.evaluations = evaluations.get();
+        let mut stopped = None;
+        let mut converged = None;
+        while ck.next_epoch < self.epochs {
+            // The state holds this epoch's parameters, loss and gradient.
+            if ck.next_epoch > 0 {
+                let status =
+                    <_ as Solver<Objective<'_>, LbfgsState>>::terminate(&mut solver, &state);
+                if let TerminationStatus::Terminated(reason) = status {
+                    converged = Some(format!("epoch {}: {reason}", ck.next_epoch));
+                    break;
+                }
+            }
+            let x = state.get_param().expect("L-BFGS keeps its parameters").clone();
+            let loss = state.get_cost();
+            let g = state.get_gradient().expect("L-BFGS keeps its gradient");
+            let norm = g.iter().map(|x| x * x).sum::<f64>().sqrt();
+            if let Some(m) = self.stop_message(ck.next_epoch, loss, norm) {
+                stopped = Some(m);
+                break;
+            }
+            let rec = EpochRecord {
+                epoch: ck.next_epoch,
+                loss,
+                grad_norm: norm,
+                params: self.from_vector(&x),
+                evaluations: ck.evaluations,
+            };
+            on_epoch(&rec);
+            ck.history.push(rec);
+            problem.problem.as_ref().expect("the objective").epoch.set(ck.next_epoch);
+            // argmin ends an iteration whose line search failed with a termination reason; an
+            // error of the gradient after it comes back as an error.
+            let (next, error) = match solver.next_iter(&mut problem, state) {
+                Ok((next, _)) => (next, None),
+                Err(e) => (IterState::new(), Some(e.to_string())),
+            };
+            state = next;
+            ck.evaluations = evaluations.get();
+            if error.is_some() || state.terminated() {
+                let argmin_reason = error.unwrap_or_else(|| {
+                    state.get_termination_reason().map(|r| r.to_string()).unwrap_or_default()
+                });
+                let reason = failure
+                    .borrow()
+                    .clone()
+                    .unwrap_or_else(|| format!("epoch {}: {argmin_reason}", ck.next_epoch));
+                stopped = Some(if reason.contains("kept the last good parameters") {
+                    reason
+                } else {
+                    format!("{reason}; kept the last good parameters")
+                });
+                break;
+            }
+            state.update();
+            state.increment_iter();
+            ck.next_epoch += 1;
+            ck.params = self.from_vector(state.get_param().expect("L-BFGS keeps its parameters"));
+            ck.optimizer =
+                OptimizerState::Lbfgs { solver: to_toml(&solver), state: to_toml(&state) };
+            if let Some(path) = checkpoint {
+                ck.save(path)?;
+            }
+        }
+        let (params, final_loss) = match (&stopped, &converged) {
+            (Some(_), _) => {
+                let last = ck.history.last();
+                (
+                    last.map(|r| r.params).unwrap_or(ck.params),
+                    last.map(|r| r.loss).unwrap_or(f64::NAN),
+                )
+            }
+            _ => (ck.params, state.get_cost()),
+        };
+        Ok(Outcome {
+            history: ck.history,
+            params,
+            final_loss,
+            stopped,
+            converged,
+            evaluations: ck.evaluations,
+        })
+    }
+}
+
+type Vector = Vec<f64>;
+type LbfgsState = IterState<Vector, Vector, (), (), (), f64>;
+
+/// argmin's L-BFGS with its Moré–Thuente line search.
+type LbfgsSolver = LBFGS<MoreThuenteLineSearch<Vector, Vector, f64>, Vector, Vector, f64>;
+
+type ArgminResult<T> = std::result::Result<T, argmin::core::Error>;
+
+fn new_lbfgs(spec: &OptimizerSpec) -> Result<LbfgsSolver> {
+    let OptimizerSpec::Lbfgs { memory, tolerance_grad, tolerance_cost } = spec else {
+        unreachable!("an L-BFGS spec")
+    };
+    LBFGS::new(MoreThuenteLineSearch::new(), *memory)
+        .with_tolerance_grad(*tolerance_grad)
+        .and_then(|s| s.with_tolerance_cost(*tolerance_cost))
+        .map_err(|e| Error::InvalidScene {
+            origin: "optimize.optimizer".into(),
+            message: e.to_string(),
+        })
+}
+
+fn to_toml<T: Serialize>(x: &T) -> String {
+    toml::to_string(x).expect("argmin's state serialises")
+}
+
+fn from_toml<T: serde::de::DeserializeOwned>(text: &str) -> Result<T> {
+    toml::from_str(text).map_err(|e| Error::InvalidScene {
+        origin: "checkpoint".into(),
+        message: format!("L-BFGS state unreadable: {e}"),
+    })
+}
+
+/// The loss as argmin sees it. The line searches ask for the loss and then the gradient at
+/// the same point, and L-BFGS asks again for the gradient at the point it accepts: one
+/// adjoint run gives both, so the last few are kept and a repeated point costs nothing.
+struct Objective<'a> {
+    problem: &'a Optimization,
+    evaluations: &'a Cell<usize>,
+    /// Why the last evaluation failed (argmin turns a failed line search into a reason of
+    /// its own; this keeps ours).
+    failure: &'a RefCell<Option<String>>,
+    cache: RefCell<Vec<(Vector, f64, Vector)>>,
+    epoch: Cell<usize>,
+}
+
+impl Objective<'_> {
+    fn eval(&self, x: &Vector) -> ArgminResult<(f64, Vector)> {
+        if let Some((_, f, g)) = self.cache.borrow().iter().find(|(p, _, _)| p == x) {
+            return Ok((*f, g.clone()));
+        }
+        self.evaluations.set(self.evaluations.get() + 1);
+        let epoch = self.epoch.get();
+        let fail = |m: String| {
+            *self.failure.borrow_mut() = Some(m.clone());
+            argmin::core::Error::msg(m)
+        };
+        let (f, g) =
+            self.problem.evaluate_vector(x).map_err(|e| fail(format!("epoch {epoch}: {e}")))?;
+        let norm = g.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if let Some(m) = self.problem.stop_message(epoch, f, norm) {
+            return Err(fail(m));
+        }
+        let mut cache = self.cache.borrow_mut();
+        if cache.len() == 4 {
+            cache.remove(0);
+        }
+        cache.push((x.clone(), f, g.clone()));
+        Ok((f, g))
+    }
+}
+
+impl CostFunction for Objective<'_> {
+    type Param = Vector;
+    type Output = f64;
+    fn cost(&self, x: &Vector) -> ArgminResult<f64> {
+        Ok(self.eval(x)?.0)
+    }
+}
+
+impl Gradient for Objective<'_> {
+    type Param = Vector;
+    type Gradient = Vector;
+    fn gradient(&self, x: &Vector) -> ArgminResult<Vector> {
+        Ok(self.eval(x)?.1)
+    }
+}

@@ -1,0 +1,299 @@
+//! What `diffluid optimize` and `diffluid bench` write (features `csv` and `plots`; ParaView
+//! frames with `vtk`): the tables, the JSON result and the pictures, so the command line only
+//! parses arguments and prints.
+
+use super::bench;
+use super::optimize::{Optimization, Outcome};
+use crate::error::Result;
+use crate::geometry::body::BodyState;
+use crate::io::output::{write_csv, write_json};
+use crate::io::plot::{self, Frame, Series, Track};
+use crate::math::Vec3;
+use serde::Serialize;
+use std::path::Path;
+
+/// One row of `loss.csv`.
+#[derive(Serialize)]
+struct LossRow {
+    epoch: usize,
+    evaluations: usize,
+    loss: f64,
+    grad_norm: f64,
+    vx: f64,
+    vy: f64,
+    vz: f64,
+    wx: f64,
+    wy: f64,
+    wz: f64,
+    x: f64,
+    y: f64,
+    z: f64,
+    qw: f64,
+    qx: f64,
+    qy: f64,
+    qz: f64,
+}
+
+/// `result.json`.
+#[derive(Serialize)]
+struct OptimizeResult<'a> {
+    scene: &'a str,
+    epochs: usize,
+    initial_loss: f64,
+    final_loss: f64,
+    loss_reduction: f64,
+    evaluations: usize,
+    params: &'a BodyState,
+    stopped: Option<&'a str>,
+    converged: Option<&'a str>,
+    wall_seconds: f64,
+}
+
+/// Writes an optimisation's outputs into `out`: `loss.csv`, `result.json`, `loss.png`,
+/// `trajectory.png` and `optimized.gif`, and with `vtk` the optimised run's ParaView frames.
+pub fn write_optimization(
+    problem: &Optimization,
+    outcome: &Outcome,
+    out: &Path,
+    wall_seconds: f64,
+    vtk: bool,
+) -> Result<()> {
+    let rows: Vec<LossRow> = outcome
+        .history
+        .iter()
+        .map(|r| {
+            let p = &r.params;
+            LossRow {
+                epoch: r.epoch,
+                evaluations: r.evaluations,
+                loss: r.loss,
+                grad_norm: r.grad_norm,
+                vx: p.v.x,
+                vy: p.v.y,
+                vz: p.v.z,
+                wx: p.w.x,
+                wy: p.w.y,
+                wz: p.w.z,
+                x: p.x.x,
+                y: p.x.y,
+                z: p.x.z,
+                qw: p.q.w,
+                qx: p.q.x,
+                qy: p.q.y,
+                qz: p.q.z,
+            }
+        })
+        .collect();
+    write_csv(&out.join("loss.csv"), &rows)?;
+    let initial_loss = outcome.history.first().map(|r| r.loss).unwrap_or(f64::NAN);
+    write_json(
+        &out.join("result.json"),
+        &OptimizeResult {
+            scene: &problem.scene.name,
+            epochs: outcome.history.len(),
+            initial_loss,
+            final_loss: outcome.final_loss,
+            loss_reduction: initial_loss / outcome.final_loss,
+            evaluations: outcome.evaluations,
+            params: &outcome.params,
+            stopped: outcome.stopped.as_deref(),
+            converged: outcome.converged.as_deref(),
+            wall_seconds,
+        },
+    )?;
+    pictures(problem, &problem.initial_params(), outcome, out)?;
+    if vtk {
+        vtk_frames(problem, &outcome.params, out)?;
+    }
+    Ok(())
+}
+
+#[cfg(feature = "vtk")]
+fn vtk_frames(problem: &Optimization, params: &BodyState, out: &Path) -> Result<()> {
+    let mut sim = problem.simulation(params);
+    let mut frames = crate::io::vtk::VtkSeries::new(&out.join("vtk"), &problem.scene.name);
+    frames.write_frame(&sim, 0)?;
+    for n in 1..=problem.scene.time.steps {
+        sim.step()?;
+        frames.write_frame(&sim, n)?;
+    }
+    Ok(())
+}
+
+#[cfg(not(feature = "vtk"))]
+fn vtk_frames(_: &Optimization, _: &BodyState, _: &Path) -> Result<()> {
+    Err(crate::Error::InvalidSettings {
+        key: "vtk".into(),
+        message: "diffluid was built without the `vtk` feature".into(),
+    })
+}
+
+/// A run's body path, liquid snapshots and animation frames.
+type Recording = (Vec<Vec3>, Vec<(String, Vec<Vec3>)>, Vec<Frame>);
+
+/// loss.png, trajectory.png (the body's path before and after, over the liquid at a few
+/// frames) and optimized.gif (the optimised run).
+fn pictures(
+    problem: &Optimization,
+    start: &BodyState,
+    outcome: &Outcome,
+    out: &Path,
+) -> Result<()> {
+    let loss: Vec<f64> = outcome.history.iter().map(|r| r.loss).collect();
+    let norms: Vec<f64> = outcome.history.iter().map(|r| r.grad_norm).collect();
+    if !loss.is_empty() {
+        plot::loss_plot(&out.join("loss.png"), &loss, &norms)?;
+    }
+    let steps = problem.scene.time.steps;
+    let body = problem.body;
+    let (verts, _) = crate::geometry::mesh::surface_mesh(&problem.initial.bodies()[body].shape);
+    let record = |p: &BodyState, frames: bool| -> Result<Recording> {
+        let mut sim = problem.simulation(p);
+        let mut path = vec![sim.bodies()[body].x];
+        let mut snaps = Vec::new();
+        let mut gif = Vec::new();
+        let every = (steps / 25).max(1);
+        for n in 0..=steps {
+            if n > 0 {
+                sim.step()?;
+                path.push(sim.bodies()[body].x);
+            }
+            if frames && (n == 0 || n == steps / 2 || n == steps) {
+                snaps.push((format!("liquid, step {n}"), sim.particles.clone()));
+            }
+            if frames && n % every == 0 {
+                let pose = sim.bodies()[body].pose();
+                gif.push(Frame {
+                    // Every other particle is plenty for a 2D picture, and halves what the
+                    // frames hold in memory until the GIF is written.
+                    particles: sim.particles.iter().step_by(2).copied().collect(),
+                    bodies: vec![verts.iter().map(|v| pose.transform_point(*v)).collect()],
+                    label: format!("{} optimised, step {n}", problem.scene.name),
+                });
+            }
+        }
+        Ok((path, snaps, gif))
+    };
+    let (before, _, _) = record(start, false)?;
+    let (after, snaps, gif) = record(&outcome.params, true)?;
+    let target = problem.loss.position.map(|(t, _)| t);
+    let domain = problem.initial.grid().size();
+    plot::trajectory_plot(
+        &out.join("trajectory.png"),
+        domain,
+        &[
+            Track { label: "before".into(), points: before },
+            Track { label: "after".into(), points: after },
+        ],
+        target,
+        &snaps,
+    )?;
+    plot::animation_gif(&out.join("optimized.gif"), domain, &gif, 80)
+}
+
+/// Points grouped into one series per label, in the order the labels first appear.
+fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> {
+    let mut out: Vec<Series> = Vec::new();
+    for (label, p) in pairs {
+        match out.iter_mut().find(|s| s.0 == label) {
+            Some(s) => s.1.push(p),
+            None => out.push((label, vec![p])),
+        }
+    }
+    out
+}
+
+/// The four studies of `diffluid bench`, run and written into `out` as CSV tables and PNG
+/// charts; `progress` hears each study's name as it starts. Returns a few lines of summary.
+pub fn write_bench(out: &Path, quick: bool, mut progress: impl FnMut(&str)) -> Result<Vec<String>> {
+    let at = |name: &str| out.join(name);
+    progress("accuracy against time");
+    let acc = bench::accuracy(quick)?;
+    write_csv(&at("accuracy.csv"), &acc)?;
+    let s = series(acc.iter().map(|r| (r.quantity.clone(), (r.seconds, r.error))));
+    plot::line_chart(
+        &at("accuracy.png"),
+        "error against wall time",
+        ("wall time of the run, s", "relative error"),
+        (true, true),
+        &s,
+    )?;
+
+    progress("stability map");
+    let st = bench::stability(quick)?;
+    write_csv(&at("stability.csv"), &st)?;
+    let panels: Vec<plot::StabilityPanel> = ["monolithic", "weak"]
+        .iter()
+        .map(|c| {
+            let cells = st
+                .iter()
+                .filter(|r| r.coupling == *c)
+                .map(|r| (r.density_ratio, r.cfl, r.stable))
+                .collect();
+            (c.to_string(), cells)
+        })
+        .collect();
+    plot::stability_chart(&at("stability.png"), &panels)?;
+
+    progress("thin plates");
+    let thin = bench::thin_plates(quick)?;
+    write_csv(&at("thin.csv"), &thin)?;
+    // Log axis: |value|, floored at 1e-13 (a sealed plate leaks nothing; the particle count
+    // behind it can come out a little negative, which thin.csv keeps).
+    let floor = |v: f64| v.abs().max(1e-13);
+    let s: Vec<Series> = vec![
+        ("leakage".into(), thin.iter().map(|r| (r.thickness_cells, floor(r.leakage))).collect()),
+        (
+            "torque error".into(),
+            thin.iter().map(|r| (r.thickness_cells, floor(r.torque_error))).collect(),
+        ),
+        (
+            "force error".into(),
+            thin.iter().map(|r| (r.thickness_cells, floor(r.force_error))).collect(),
+        ),
+    ];
+    plot::line_chart(
+        &at("thin.png"),
+        "thin plates (|value|, floored at 1e-13)",
+        ("plate thickness, cells", "relative error"),
+        (false, true),
+        &s,
+    )?;
+
+    progress("cost against liquid cells");
+    let cost = bench::cost(quick)?;
+    write_csv(&at("cost.csv"), &cost)?;
+    let s = series(cost.iter().map(|r| {
+        let label = if r.series == "air" { "liquid fixed, air grown" } else { "liquid grown" };
+        (label.to_string(), (r.liquid_cells as f64, r.seconds_per_step * 1e3))
+    }));
+    plot::line_chart(
+        &at("cost.png"),
+        "time per step against liquid cells",
+        ("liquid cells", "ms per step (median)"),
+        (false, false),
+        &s,
+    )?;
+
+    let mut lines = Vec::new();
+    let air: Vec<&bench::CostRow> = cost.iter().filter(|r| r.series == "air").collect();
+    if air.len() >= 2 {
+        lines.push(format!(
+            "doubling the air above the pool: {:+.1}% time per step ({} -> {} cells)",
+            100.0 * (air[1].seconds_per_step / air[0].seconds_per_step - 1.0),
+            air[0].cells,
+            air[1].cells
+        ));
+    }
+    let lightest = st.iter().map(|r| r.density_ratio).fold(f64::INFINITY, f64::min);
+    for c in ["monolithic", "weak"] {
+        let rows: Vec<_> = st.iter().filter(|r| r.coupling == c).collect();
+        let stable = rows.iter().filter(|r| r.stable).count();
+        let light = rows.iter().filter(|r| r.density_ratio == lightest && r.stable).count();
+        lines.push(format!(
+            "{c}: stable in {stable} of {} cells ({light} at density ratio {lightest})",
+            rows.len()
+        ));
+    }
+    Ok(lines)
+}

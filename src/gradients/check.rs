@@ -1,0 +1,199 @@
+//! Gradient checks: the adjoint against central differences of the same forward map, one
+//! body parameter at a time, with one pass criterion `|adjoint − fd| ≤ atol + rtol·|fd|`
+//! (the CLI's `gradcheck`, the tests and the bench all call [`gradcheck`]).
+//!
+//! A central difference is only a reference where the forward map is smooth at the scale of
+//! its step: each is also taken at ten times the step, and a parameter whose two differences
+//! disagree by more than the criterion is reported as inconsistent rather than as an adjoint
+//! error.
+
+use super::backward::{GradientMode, GradientOptions};
+use super::loss::Loss;
+use super::run::{value_and_gradient, GradientSettings};
+use crate::error::Result;
+use crate::geometry::body::Param;
+use crate::world::Simulation;
+use serde::Serialize;
+
+/// One coordinate of a body's initial state: a [`Param`] and an axis.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Coordinate {
+    /// Which 3-vector.
+    pub param: Param,
+    /// Which of its components.
+    pub axis: usize,
+}
+
+impl Coordinate {
+    /// All twelve, in order v, ω, x, q.
+    pub fn all() -> impl Iterator<Item = Coordinate> {
+        Param::ALL.into_iter().flat_map(|param| (0..3).map(move |axis| Coordinate { param, axis }))
+    }
+
+    /// `v[0]`, `w[2]`, `q[1]`...
+    pub fn name(&self) -> String {
+        format!("{}[{}]", self.param, self.axis)
+    }
+
+    /// The component of a gradient.
+    pub fn of(&self, g: &super::loss::BodyGradient) -> f64 {
+        g.get(self.param).to_array()[self.axis]
+    }
+}
+
+/// Central difference `(L(p + ε) − L(p − ε)) / 2ε` of a `steps`-step run from `initial`
+/// along coordinate `c` of body `body`.
+pub fn central_difference(
+    initial: &Simulation,
+    steps: usize,
+    loss: &dyn Loss,
+    body: usize,
+    c: Coordinate,
+    eps: f64,
+) -> Result<f64> {
+    let at = |h: f64| -> Result<f64> {
+        let mut s = initial.clone();
+        let b = &mut s.bodies_mut()[body];
+        let state = c.param.perturbed(&b.state(), c.axis, h);
+        b.set_state(&state);
+        for _ in 0..steps {
+            s.step()?;
+        }
+        Ok(loss.value(&s))
+    };
+    Ok((at(eps)? - at(-eps)?) / (2.0 * eps))
+}
+
+/// How [`gradcheck`] checks.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GradcheckSettings {
+    /// The central differences' step.
+    pub eps: f64,
+    /// Absolute tolerance.
+    pub atol: f64,
+    /// Relative tolerance (of |fd|).
+    pub rtol: f64,
+    /// The backward pass checked.
+    pub options: GradientOptions,
+    /// Also report the paper's approximation beside it (not checked).
+    pub compare_paper: bool,
+}
+
+impl Default for GradcheckSettings {
+    /// ε = 1e-6 (larger steps cross the kinks of trilinear interpolation), rtol 1e-3, atol
+    /// 1e-9, the full gradient.
+    fn default() -> Self {
+        GradcheckSettings {
+            eps: 1e-6,
+            atol: 1e-9,
+            rtol: 1e-3,
+            options: GradientOptions::default(),
+            compare_paper: false,
+        }
+    }
+}
+
+/// One checked coordinate.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct GradcheckRow {
+    /// `<body>.v[0]`.
+    pub name: String,
+    /// The adjoint's component.
+    pub adjoint: f64,
+    /// The central difference at ε.
+    pub fd: f64,
+    /// The central difference at 10·ε.
+    pub fd_coarse: f64,
+    /// |adjoint − fd| / |fd| (with |fd| floored at 1e-300).
+    pub rel_error: f64,
+    /// |adjoint − fd| ≤ atol + rtol·|fd|.
+    pub pass: bool,
+    /// |fd − fd_coarse| ≤ atol + rtol·|fd|: the map is smooth at the scale of ε.
+    pub consistent: bool,
+    /// The paper's approximation, when asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub paper: Option<f64>,
+}
+
+/// A gradient check's result.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct GradcheckReport {
+    /// The loss.
+    pub loss: f64,
+    /// Steps run.
+    pub steps: usize,
+    /// The central differences' step.
+    pub eps: f64,
+    /// Absolute tolerance.
+    pub atol: f64,
+    /// Relative tolerance.
+    pub rtol: f64,
+    /// Wall time of the gradient's forward pass, s.
+    pub forward_seconds: f64,
+    /// Wall time of its backward pass, s.
+    pub backward_seconds: f64,
+    /// Tape bytes per step.
+    pub tape_bytes_per_step: usize,
+    /// One row per coordinate of each body that moves.
+    pub params: Vec<GradcheckRow>,
+}
+
+impl GradcheckReport {
+    /// Whether every coordinate passes.
+    pub fn passed(&self) -> bool {
+        self.params.iter().all(|r| r.pass)
+    }
+
+    /// The largest relative error.
+    pub fn worst_rel_error(&self) -> f64 {
+        self.params.iter().map(|r| r.rel_error).fold(0.0, f64::max)
+    }
+}
+
+/// The adjoint gradient of `loss` after `steps` steps from `sim` against central
+/// differences, for every coordinate of every body that moves.
+pub fn gradcheck(
+    sim: &Simulation,
+    steps: usize,
+    loss: &dyn Loss,
+    s: &GradcheckSettings,
+) -> Result<GradcheckReport> {
+    let run = value_and_gradient(sim, steps, loss, &GradientSettings::from(s.options))?;
+    let paper = if s.compare_paper {
+        let options = GradientOptions { mode: GradientMode::Paper, ..s.options };
+        Some(value_and_gradient(sim, steps, loss, &GradientSettings::from(options))?)
+    } else {
+        None
+    };
+    let ok = |err: f64, fd: f64| err <= s.atol + s.rtol * fd.abs();
+    let mut params = Vec::new();
+    for (b, body) in sim.bodies().iter().enumerate().filter(|(_, b)| b.moves()) {
+        for c in Coordinate::all() {
+            let fd = central_difference(sim, steps, loss, b, c, s.eps)?;
+            let fd_coarse = central_difference(sim, steps, loss, b, c, 10.0 * s.eps)?;
+            let adjoint = c.of(&run.gradient.bodies[b]);
+            let err = (adjoint - fd).abs();
+            params.push(GradcheckRow {
+                name: format!("{}.{}", body.name, c.name()),
+                adjoint,
+                fd,
+                fd_coarse,
+                rel_error: err / fd.abs().max(1e-300),
+                pass: ok(err, fd),
+                consistent: ok((fd - fd_coarse).abs(), fd),
+                paper: paper.as_ref().map(|p| c.of(&p.gradient.bodies[b])),
+            });
+        }
+    }
+    Ok(GradcheckReport {
+        loss: run.loss,
+        steps,
+        eps: s.eps,
+        atol: s.atol,
+        rtol: s.rtol,
+        forward_seconds: run.forward_seconds,
+        backward_seconds: run.backward_seconds,
+        tape_bytes_per_step: run.tape_bytes_per_step,
+        params,
+    })
+}

@@ -1,0 +1,132 @@
+//! Losses on the final state, and the adjoint state they start the backward pass from.
+
+use crate::geometry::body::Param;
+use crate::geometry::grid::Mac;
+use crate::math::{Rotation, Vec3};
+use crate::world::Simulation;
+
+/// The adjoint of one body's state: ∂L/∂x, ∂L/∂q (in the quaternion embedding), ∂L/∂v,
+/// ∂L/∂ω.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BodyAdjoint {
+    /// ∂L/∂x.
+    pub x: Vec3,
+    /// ∂L/∂q as a 4-vector.
+    pub q: Rotation,
+    /// ∂L/∂v.
+    pub v: Vec3,
+    /// ∂L/∂ω.
+    pub w: Vec3,
+}
+
+impl BodyAdjoint {
+    /// Zero.
+    pub fn zero() -> BodyAdjoint {
+        BodyAdjoint {
+            x: Vec3::ZERO,
+            q: Rotation::from_xyzw(0.0, 0.0, 0.0, 0.0),
+            v: Vec3::ZERO,
+            w: Vec3::ZERO,
+        }
+    }
+}
+
+/// ∂L/∂(state): fluid velocity and bodies.
+#[derive(Clone, Debug)]
+pub struct AdjointState {
+    /// ∂L/∂u.
+    pub u: Mac,
+    /// Per body.
+    pub bodies: Vec<BodyAdjoint>,
+}
+
+/// A loss on the final state.
+pub trait Loss: Sync {
+    /// L(final state).
+    fn value(&self, sim: &Simulation) -> f64;
+    /// ∂L/∂(final state).
+    fn gradient(&self, sim: &Simulation) -> AdjointState;
+}
+
+/// Weighted squared distances of one body's final position, orientation and velocity to
+/// targets: `wₓ·|x − x*|² + w_q·(1 − (q·q*)²) + w_v·|v − v*|²` (the orientation term is
+/// zero at q = ±q*).
+#[derive(Clone, Debug, PartialEq)]
+pub struct BodyTargetLoss {
+    /// Which body (index in [`Simulation::bodies`]).
+    pub body: usize,
+    /// Target position and weight.
+    pub position: Option<(Vec3, f64)>,
+    /// Target orientation and weight.
+    pub orientation: Option<(Rotation, f64)>,
+    /// Target velocity and weight.
+    pub velocity: Option<(Vec3, f64)>,
+}
+
+impl Loss for BodyTargetLoss {
+    fn value(&self, sim: &Simulation) -> f64 {
+        let b = &sim.bodies()[self.body];
+        let mut l = 0.0;
+        if let Some((t, w)) = self.position {
+            l += w * (b.x - t).length_squared();
+        }
+        if let Some((t, w)) = self.orientation {
+            l += w * (1.0 - b.q.dot(t).powi(2));
+        }
+        if let Some((t, w)) = self.velocity {
+            l += w * (b.v - t).length_squared();
+        }
+        l
+    }
+
+    fn gradient(&self, sim: &Simulation) -> AdjointState {
+        let mut bodies = vec![BodyAdjoint::zero(); sim.bodies().len()];
+        let b = &sim.bodies()[self.body];
+        let g = &mut bodies[self.body];
+        if let Some((t, w)) = self.position {
+            g.x = 2.0 * w * (b.x - t);
+        }
+        if let Some((t, w)) = self.orientation {
+            g.q = t * (-2.0 * w * b.q.dot(t));
+        }
+        if let Some((t, w)) = self.velocity {
+            g.v = 2.0 * w * (b.v - t);
+        }
+        AdjointState { u: Mac::zeros(sim.grid()), bodies }
+    }
+}
+
+/// One body's initial-state gradient: ∂L/∂v₀, ∂L/∂ω₀, ∂L/∂x₀ and ∂L/∂θ₀ (the orientation in
+/// the world-frame tangent space q → exp(θ)·q), a 3-vector per [`Param`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BodyGradient {
+    /// ∂L/∂v₀.
+    pub v: Vec3,
+    /// ∂L/∂ω₀.
+    pub w: Vec3,
+    /// ∂L/∂x₀.
+    pub x: Vec3,
+    /// ∂L/∂θ₀.
+    pub q: Vec3,
+}
+
+impl BodyGradient {
+    /// The part for `p`.
+    pub fn get(&self, p: Param) -> Vec3 {
+        match p {
+            Param::V => self.v,
+            Param::W => self.w,
+            Param::X => self.x,
+            Param::Q => self.q,
+        }
+    }
+}
+
+/// The gradient of a loss with respect to the initial state.
+#[derive(Clone, Debug)]
+pub struct Gradient {
+    /// ∂L/∂u₀ on every face.
+    pub u: Mac,
+    /// Per body.
+    pub bodies: Vec<BodyGradient>,
+}

@@ -1,0 +1,209 @@
+//! What a world is set up with: plain structs with documented defaults. A scene file's
+//! `[solver]` and `[contact]` tables deserialise into [`SolverSettings`] and
+//! [`ContactSettings`] directly; a program fills them in code.
+
+use crate::solvers::{LinearSolve, Preconditioner};
+pub use crate::stages::contact::ContactSettings;
+use crate::stages::pressure::Coupling;
+use serde::{Deserialize, Serialize};
+
+/// A setting that fails its check: the key (as a scene file names it, `solver.theta_min`)
+/// and what is wrong.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SettingError {
+    /// The key.
+    pub key: String,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl SettingError {
+    /// A failure of `key`.
+    pub fn new(key: impl Into<String>, message: impl Into<String>) -> SettingError {
+        SettingError { key: key.into(), message: message.into() }
+    }
+}
+
+/// Checks that `x` is a finite positive number.
+pub fn check_positive(key: &str, x: f64) -> Result<(), SettingError> {
+    if x.is_finite() && x > 0.0 {
+        Ok(())
+    } else {
+        Err(SettingError::new(key, format!("must be a positive number, got {x}")))
+    }
+}
+
+/// Checks that every value is finite.
+pub fn check_finite(key: &str, xs: &[f64]) -> Result<(), SettingError> {
+    if xs.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(SettingError::new(key, format!("must be finite, got {xs:?}")))
+    }
+}
+
+/// The liquid.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Fluid {
+    /// Density in kg/m³.
+    pub density: f64,
+    /// Gravity in m/s² (on the liquid and on the bodies).
+    pub gravity: [f64; 3],
+}
+
+impl Default for Fluid {
+    /// Water under Earth's gravity, y up.
+    fn default() -> Self {
+        Fluid { density: 1000.0, gravity: [0.0, -9.81, 0.0] }
+    }
+}
+
+impl Fluid {
+    /// The checks of `fluid.*`.
+    pub fn validate(&self) -> Result<(), SettingError> {
+        check_positive("fluid.density", self.density)?;
+        check_finite("fluid.gravity", &self.gravity)
+    }
+}
+
+/// Solver settings (a scene's `[solver]` table). Every field has a default, given with its
+/// reason.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SolverSettings {
+    /// CG stops when ‖r‖₂ ≤ tolerance·‖b‖₂. Default 1e-8: the still-water and Archimedes
+    /// checks need pressure to well under 1%, and MIC(0) reaches 1e-8 in a few dozen
+    /// iterations on the shipped grids.
+    pub tolerance: f64,
+    /// CG iteration cap; reaching it is an error, never a silent answer. Default 2000.
+    pub max_iterations: usize,
+    /// Preconditioner: `mic0`, `multigrid`, `none` or `auto`. Default `auto`: whichever of
+    /// MIC(0) and multigrid solves faster for the number of unknowns (measured crossover in
+    /// [`Preconditioner::AUTO_CROSSOVER`]).
+    pub preconditioner: Preconditioner,
+    /// Layers of velocity extrapolated into air after projection. Default 3 (the paper's
+    /// choice; advection reads at most Δt·|u|/dx cells beyond the surface).
+    pub extrapolation_layers: usize,
+    /// Marker particles seeded per liquid cell, on a regular sub-lattice: 1, 8, 27 or 64.
+    /// Default 8.
+    pub particles_per_cell: usize,
+    /// Smallest ghost-fluid fraction θ at a liquid–air face. Default 0.01 (Gibou et al.;
+    /// bounds the diagonal at 100× a full face).
+    pub theta_min: f64,
+    /// Push marker particles out of over-full cells after advecting them (particle density
+    /// projection, see `density.rs`). Default true: without it the dam break loses about
+    /// 10% of its volume to particles bunching at the floor.
+    pub density_correction: bool,
+    /// Hold the free surface fixed: the marker particles do not move and the liquid signed
+    /// distance keeps its initial value (extended into the solids where they are now). The
+    /// backward pass always holds the surface fixed (as the paper does); with this switch the
+    /// forward pass is exactly the map the adjoint differentiates, which gradient checks need.
+    /// It also skips all particle work. Default false.
+    pub freeze_surface: bool,
+    /// Liquid–body coupling. Default `monolithic`; `weak` is the partitioned baseline the
+    /// stability map compares against (no gradients through it).
+    pub coupling: Coupling,
+    /// The most cells a liquid sample or body point may cross in one of the steps
+    /// [`crate::world::Simulation::advance`] takes. Default 1 (semi-Lagrangian advection is
+    /// stable at any CFL number, but the explicit free surface and the bodies' geometry,
+    /// taken where it is at the start of a step, are accurate up to about one cell). The
+    /// fixed-Δt [`crate::world::Simulation::step`] does not read it.
+    pub cfl: f64,
+}
+
+impl Default for SolverSettings {
+    fn default() -> Self {
+        SolverSettings {
+            tolerance: 1e-8,
+            max_iterations: 2000,
+            preconditioner: Preconditioner::Auto,
+            extrapolation_layers: 3,
+            particles_per_cell: 8,
+            theta_min: 0.01,
+            density_correction: true,
+            freeze_surface: false,
+            coupling: Coupling::Monolithic,
+            cfl: 1.0,
+        }
+    }
+}
+
+impl SolverSettings {
+    /// The pressure solve these settings ask for.
+    pub fn linear(&self) -> LinearSolve {
+        LinearSolve {
+            preconditioner: self.preconditioner,
+            tolerance: self.tolerance,
+            max_iterations: self.max_iterations,
+        }
+    }
+
+    /// The checks of `solver.*`.
+    pub fn validate(&self) -> Result<(), SettingError> {
+        if !(self.tolerance.is_finite() && self.tolerance > 0.0 && self.tolerance < 1.0) {
+            return Err(SettingError::new(
+                "solver.tolerance",
+                format!("must be in (0, 1), got {}", self.tolerance),
+            ));
+        }
+        if self.max_iterations == 0 {
+            return Err(SettingError::new("solver.max_iterations", "must be at least 1"));
+        }
+        let m = (self.particles_per_cell as f64).cbrt().round() as usize;
+        if !(1..=4).contains(&m) || m * m * m != self.particles_per_cell {
+            return Err(SettingError::new(
+                "solver.particles_per_cell",
+                format!(
+                    "must be 1, 8, 27 or 64 (a regular sub-lattice), got {}",
+                    self.particles_per_cell
+                ),
+            ));
+        }
+        if !(self.theta_min.is_finite() && self.theta_min > 0.0 && self.theta_min <= 0.5) {
+            return Err(SettingError::new(
+                "solver.theta_min",
+                format!("must be in (0, 0.5], got {}", self.theta_min),
+            ));
+        }
+        check_positive("solver.cfl", self.cfl)?;
+        Ok(())
+    }
+}
+
+/// Everything a world is set up with besides its geometry.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WorldSettings {
+    /// The fixed step of [`crate::world::Simulation::step`], s. A fixed Δt keeps the step a
+    /// differentiable map; [`crate::world::Simulation::advance`] takes shorter steps where
+    /// the CFL condition asks for them.
+    pub dt: f64,
+    /// The liquid.
+    pub fluid: Fluid,
+    /// The solver.
+    pub solver: SolverSettings,
+    /// Rigid contact.
+    pub contact: ContactSettings,
+}
+
+impl Default for WorldSettings {
+    /// A 0.01 s step, water, the default solver, no contact.
+    fn default() -> Self {
+        WorldSettings {
+            dt: 0.01,
+            fluid: Fluid::default(),
+            solver: SolverSettings::default(),
+            contact: ContactSettings::default(),
+        }
+    }
+}
+
+impl WorldSettings {
+    /// Every check, with the key a scene file gives the setting.
+    pub fn validate(&self) -> Result<(), SettingError> {
+        check_positive("time.dt", self.dt)?;
+        self.fluid.validate()?;
+        self.solver.validate()?;
+        self.contact.validate().map_err(|(key, message)| SettingError { key, message })
+    }
+}

@@ -1,0 +1,295 @@
+//! The parts of a step that the forward pass and the backward pass share: where the solids
+//! are ([`Geometry`]), and the step's system ([`StepSystem::assemble`]: the liquid signed
+//! distance extended into the solids, the faces the step reads, the coupled pressure
+//! operator). The forward step builds them once from the current state; the backward pass
+//! builds them again, with the same functions, from the tape. Nothing else builds them, so a
+//! change to the step is a change to both directions.
+
+use crate::geometry::body::RigidBody;
+use crate::geometry::fractions::{self, BodyFaces};
+use crate::geometry::grid::{Grid, Mac};
+use crate::stages::advect::{advect, needed_faces, FaceMask};
+use crate::stages::forces::add_gravity;
+use crate::stages::pressure::{BodyCoupling, Coupling, PressureParams, PressureSystem};
+use crate::stages::surface;
+use serde::Serialize;
+
+/// Geometry that does not move: tank walls and obstacles.
+#[derive(Clone, Debug)]
+pub struct StaticGeometry {
+    /// Signed distance of the obstacles at grid nodes.
+    pub node_sdf: Vec<f64>,
+    /// Fluid weight of every face (0 on walls).
+    pub weights: [Vec<f64>; 3],
+    /// Cells whose centre lies inside an obstacle.
+    pub centre_in_solid: Vec<bool>,
+}
+
+/// Where the solids are this step: combined face weights and the bodies' faces.
+#[derive(Clone, Debug)]
+pub struct Geometry {
+    /// Fluid weight of every face: static weight minus the bodies' fractions, in [0, 1].
+    pub weights: [Vec<f64>; 3],
+    /// Cells whose centre is inside a static solid or a body.
+    pub centre_in_solid: Vec<bool>,
+    /// Faces covered by each body.
+    pub body_faces: Vec<BodyFaces>,
+}
+
+/// Each body's face fractions where it is now (volume-consistent, see
+/// [`fractions::body_faces`]).
+pub fn body_faces(grid: &Grid, bodies: &[RigidBody]) -> Vec<BodyFaces> {
+    bodies
+        .iter()
+        .map(|b| fractions::body_faces(grid, b.bounds(), |p| b.sdf(p), Some(b.volume())))
+        .collect()
+}
+
+impl Geometry {
+    /// The static weights minus each body's fractions `faces` (one per body, in order).
+    pub fn new(
+        grid: &Grid,
+        statics: &StaticGeometry,
+        bodies: &[RigidBody],
+        faces: Vec<BodyFaces>,
+    ) -> Geometry {
+        assert_eq!(bodies.len(), faces.len());
+        let mut weights = statics.weights.clone();
+        let mut centre_in_solid = statics.centre_in_solid.clone();
+        let cells = grid.cells();
+        for (b, faces) in bodies.iter().zip(&faces) {
+            for a in 0..3 {
+                for &(f, beta) in &faces.faces[a] {
+                    // β is already snapped to 0 or 1 where it is within round-off of
+                    // them, so w + β = 1 holds exactly on every face a body alone covers.
+                    weights[a][f] = (weights[a][f] - beta).clamp(0.0, 1.0);
+                }
+            }
+            let (lo, hi) = b.bounds();
+            let lo = lo.to_array().map(|x| ((x / grid.dx).floor().max(0.0)) as usize);
+            let hi = hi.to_array();
+            for k in lo[2]..grid.n[2].min((hi[2] / grid.dx).ceil() as usize + 1) {
+                for j in lo[1]..grid.n[1].min((hi[1] / grid.dx).ceil() as usize + 1) {
+                    for i in lo[0]..grid.n[0].min((hi[0] / grid.dx).ceil() as usize + 1) {
+                        if b.sdf(cells.position(i, j, k)) < 0.0 {
+                            centre_in_solid[grid.cell(i, j, k)] = true;
+                        }
+                    }
+                }
+            }
+        }
+        Geometry { weights, centre_in_solid, body_faces: faces }
+    }
+}
+
+/// What a step's projection is assembled from besides the geometry.
+#[derive(Clone, Copy, Debug)]
+pub struct StepParams {
+    /// The pressure operator's Δt, density and θ clamp.
+    pub pressure: PressureParams,
+    /// Monolithic or weak coupling.
+    pub coupling: Coupling,
+}
+
+/// One step's system, built once and shared by every stage that reads it.
+#[derive(Clone, Debug)]
+pub struct StepSystem {
+    /// Where the solids are.
+    pub geometry: Geometry,
+    /// φ_L at cell centres, extended into the solids (the pressure stage's liquid).
+    pub phi: Vec<f64>,
+    /// The faces whose advected velocity the step reads.
+    pub needed: FaceMask,
+    /// The pressure operator; with monolithic coupling its `bodies` are the coupled bodies'
+    /// terms.
+    pub pressure: PressureSystem,
+    /// Indices of the bodies in the solve (those that [`RigidBody::moves`]), in order.
+    pub coupled: Vec<usize>,
+    /// With weak coupling, the coupled bodies' J and Δt·M⁻¹ (outside the operator).
+    weak: Vec<BodyCoupling>,
+}
+
+impl StepSystem {
+    /// Assembles the step's system from the geometry and the particles' φ_L (before its
+    /// extension into the solids).
+    pub fn assemble(
+        grid: &Grid,
+        bodies: &[RigidBody],
+        geometry: Geometry,
+        mut phi: Vec<f64>,
+        params: StepParams,
+    ) -> StepSystem {
+        surface::extend_into_solids(&mut phi, grid, &geometry.centre_in_solid);
+        let needed = needed_faces(grid, &phi, &geometry.body_faces);
+        let mut pressure = PressureSystem::build(grid, &phi, &geometry.weights, params.pressure);
+        let coupled: Vec<usize> = (0..bodies.len()).filter(|&i| bodies[i].moves()).collect();
+        let dt = params.pressure.dt;
+        let couplings: Vec<BodyCoupling> = coupled
+            .iter()
+            .map(|&i| {
+                let b = &bodies[i];
+                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x);
+                BodyCoupling::new(&pressure.row_of_cell, &jac, dt_minv(b, dt))
+            })
+            .collect();
+        let weak = match params.coupling {
+            Coupling::Monolithic => {
+                pressure.bodies = couplings;
+                Vec::new()
+            }
+            Coupling::Weak => couplings,
+        };
+        StepSystem { geometry, phi, needed, pressure, coupled, weak }
+    }
+
+    /// The coupled bodies' J and Δt·M⁻¹, in the order of [`StepSystem::coupled`].
+    pub fn couplings(&self) -> &[BodyCoupling] {
+        if self.weak.is_empty() {
+            &self.pressure.bodies
+        } else {
+            &self.weak
+        }
+    }
+
+    /// The right-hand side for the fluid velocity `u` and the coupled bodies' velocities
+    /// `v` (one per coupled body): minus the volume flux out of each liquid cell.
+    pub fn rhs(&self, u: &Mac, v: &[[f64; 6]]) -> Vec<f64> {
+        if self.weak.is_empty() {
+            return self.pressure.rhs(u, &self.geometry.weights, v);
+        }
+        // Partitioned: the bodies are boundaries moving at their current velocity.
+        let mut b = self.pressure.rhs(u, &self.geometry.weights, &[]);
+        for (c, v) in self.weak.iter().zip(v) {
+            c.add_jt(&v.map(|x| -x), &mut b);
+        }
+        b
+    }
+
+    /// The faces the velocity correction treats as known: those the projection updated and
+    /// those the bodies cover.
+    pub fn known_faces(&self) -> [Vec<u8>; 3] {
+        let grid = &self.pressure.grid;
+        let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
+        for a in 0..3 {
+            for pf in &self.pressure.faces[a] {
+                valid[a][pf.face as usize] = 1;
+            }
+        }
+        crate::stages::extrapolate::mark_body_faces(&mut valid, &self.geometry.body_faces);
+        valid
+    }
+}
+
+/// Stages 1 and 2 on the fluid: `u` advected through itself for `dt` on the faces of `mask`,
+/// plus gravity. The forward step asks for the faces the step reads; the backward pass asks
+/// for the faces it reads the intermediate field on.
+pub fn predicted_velocity(
+    u: &Mac,
+    grid: &Grid,
+    dt: f64,
+    gravity: [f64; 3],
+    mask: &FaceMask,
+) -> Mac {
+    let mut out = advect(u, grid, dt, Some(mask));
+    add_gravity(&mut out, gravity, dt);
+    out
+}
+
+/// Wall time of each stage of one step, in seconds.
+#[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
+pub struct StageSeconds {
+    /// Stage 3a: the bodies' face fractions, J and the combined weights.
+    pub geometry: f64,
+    /// Stage 0: marker particles (with the density projection).
+    pub advect_particles: f64,
+    /// Stage 3: the liquid signed distance from the particles.
+    pub surface: f64,
+    /// The step's system: φ_L extended into solids, the faces read, the pressure operator.
+    pub assemble: f64,
+    /// Stage 1: velocity advection.
+    pub advect_velocity: f64,
+    /// Stage 2: gravity and external forces.
+    pub forces: f64,
+    /// Stage 4: the pressure solves (with contact held inside) and the velocity update.
+    pub pressure: f64,
+    /// Stage 5: extrapolation and solid velocities.
+    pub correct_velocity: f64,
+    /// Stage 6: rigid integration or contact.
+    pub rigid: f64,
+}
+
+/// Pressure force and torque on one body in one step, as written to `summary.json`.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct BodyForce {
+    /// Body name.
+    pub name: String,
+    /// Pressure force J·p (first three rows), N.
+    pub force: [f64; 3],
+    /// Pressure torque about the centre of mass, N·m.
+    pub torque: [f64; 3],
+}
+
+/// What one step did, as written to `summary.json`.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct StepReport {
+    /// Step number, from 1.
+    pub step: usize,
+    /// Simulated time at the end of the step, s.
+    pub time: f64,
+    /// Unknowns of the pressure solve (liquid cells).
+    pub liquid_cells: usize,
+    /// CG iterations.
+    pub cg_iterations: usize,
+    /// ‖b − A p‖₂ / ‖b‖₂ at the end of the solve.
+    pub cg_relative_residual: f64,
+    /// Largest |∇·u| over liquid cells after projection, 1/s.
+    pub max_divergence: f64,
+    /// Liquid volume from the marker particles, m³ (see [`surface::liquid_volume`]).
+    pub liquid_volume: f64,
+    /// Largest liquid speed at a liquid cell centre, m/s.
+    pub max_speed: f64,
+    /// Kinetic energy of the liquid, ½ Σ ρ·w_f·dx³·u_f² over faces next to liquid, J.
+    pub kinetic_energy: f64,
+    /// Pressure force and torque on each body in the solve.
+    pub bodies: Vec<BodyForce>,
+    /// Extra pressure solves made to hold contact impulses (0 without contact).
+    pub contact_iterations: usize,
+    /// Largest velocity change contact still made after the last solve, m/s (0 when it
+    /// converged or contact was off).
+    pub contact_residual: f64,
+    /// Wall time per stage.
+    pub stage_seconds: StageSeconds,
+}
+
+/// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated. Sequential on purpose: the
+/// sum is cheap and its order fixed.
+pub fn kinetic_energy(u: &Mac, sys: &PressureSystem, weights: &[Vec<f64>; 3], rho: f64) -> f64 {
+    let mut e = 0.0;
+    for a in 0..3 {
+        for pf in &sys.faces[a] {
+            let uf = u.c[a][pf.face as usize];
+            e += weights[a][pf.face as usize] * uf * uf;
+        }
+    }
+    0.5 * rho * sys.grid.dx.powi(3) * e
+}
+
+/// `[v; ω]`.
+pub fn generalized_velocity(b: &RigidBody) -> [f64; 6] {
+    [b.v.x, b.v.y, b.v.z, b.w.x, b.w.y, b.w.z]
+}
+
+/// Δt·M_S⁻¹ for a body: `diag(Δt/m·I, Δt·(R I Rᵀ)⁻¹)`.
+pub fn dt_minv(b: &RigidBody, dt: f64) -> [[f64; 6]; 6] {
+    let mut m = [[0.0; 6]; 6];
+    for d in 0..3 {
+        m[d][d] = dt / b.mass;
+    }
+    let inv = b.world_inertia().inverse();
+    for r in 0..3 {
+        for c in 0..3 {
+            m[3 + r][3 + c] = dt * inv.col(c).to_array()[r];
+        }
+    }
+    m
+}

@@ -1,0 +1,70 @@
+//! What a taped forward step leaves for the backward pass: only what cannot be recomputed
+//! cheaply. The step's geometry, operator and masks are rebuilt from the body states by the
+//! same [`crate::world::StepSystem::assemble`] the forward step used; the pressure needs a
+//! solve, so it is stored.
+
+use crate::geometry::body::BodyState;
+use crate::geometry::fractions::BodyFaces;
+use crate::geometry::grid::Mac;
+
+/// One forward step's record.
+#[derive(Clone, Debug)]
+pub struct StepRecord {
+    /// Fluid velocity at the start of the step (advection's input).
+    pub u: Mac,
+    /// Bodies at the start of the step.
+    pub bodies: Vec<BodyState>,
+    /// Each coupled body's [v; ω] as the solve saw it before the pressure acted: the start
+    /// velocity with gravity, the external force and the contact kick (the rigid velocity
+    /// the projection's right-hand side reads). One per body that [`RigidBody::moves`].
+    ///
+    /// [`RigidBody::moves`]: crate::geometry::body::RigidBody::moves
+    pub v_hat: Vec<[f64; 6]>,
+    /// Each body's [v; ω] after the pressure solve (the rigid integration's input).
+    pub v_after: Vec<[f64; 6]>,
+    /// Pressure per liquid cell.
+    pub p: Vec<f64>,
+    /// Particle φ_L of the step (empty when the surface is frozen: the initial one).
+    pub phi: Vec<f64>,
+    /// Each body's face fractions at the start of the step (a few kB; recomputing them cost
+    /// 4% of the backward pass).
+    pub body_faces: Vec<BodyFaces>,
+    /// Whether rapier contact acted in this step (a kick in the solve, or the contact
+    /// integration): the gradient then takes contact as free flight.
+    pub contact: bool,
+}
+
+/// The recorded forward pass.
+#[derive(Clone, Debug, Default)]
+pub struct Tape {
+    /// One record per step.
+    pub steps: Vec<StepRecord>,
+}
+
+impl Tape {
+    /// Bytes stored per step (mean over the tape).
+    pub fn bytes_per_step(&self) -> usize {
+        if self.steps.is_empty() {
+            return 0;
+        }
+        let total: usize = self
+            .steps
+            .iter()
+            .map(|s| {
+                8 * (s.u.c.iter().map(Vec::len).sum::<usize>() + s.p.len() + s.phi.len())
+                    + s.bodies.len() * std::mem::size_of::<BodyState>()
+                    + (s.v_after.len() + s.v_hat.len()) * 48
+                    + s.body_faces
+                        .iter()
+                        .map(|b| b.faces.iter().map(Vec::len).sum::<usize>() * 16)
+                        .sum::<usize>()
+            })
+            .sum();
+        total / self.steps.len()
+    }
+
+    /// Whether contact acted in any step.
+    pub fn through_contact(&self) -> bool {
+        self.steps.iter().any(|s| s.contact)
+    }
+}
