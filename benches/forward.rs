@@ -5,7 +5,7 @@
 //! quicker look).
 
 use criterion::{criterion_group, criterion_main, Criterion, SamplingMode};
-use diffluid::{Scene, Simulation};
+use diffluid::Scene;
 use std::hint::black_box;
 use std::time::Duration;
 

@@ -196,6 +196,17 @@ impl RigidBody {
     /// A body from a shape at a pose, with mass properties at `density` (kg/m³).
     pub fn new(name: String, shape: SharedShape, pose: Pose, density: f64) -> RigidBody {
         let mp = shape.mass_properties(density);
+        RigidBody::with_mass_properties(name, shape, pose, &mp)
+    }
+
+    /// A body from a shape at a pose with the given mass properties (in the shape frame),
+    /// such as a rapier body's `mass_properties().local_mprops`.
+    pub fn with_mass_properties(
+        name: String,
+        shape: SharedShape,
+        pose: Pose,
+        mp: &parry3d_f64::mass_properties::MassProperties,
+    ) -> RigidBody {
         let r = Mat3::from_quat(mp.principal_inertia_local_frame);
         let local_inertia = r * Mat3::from_diagonal(mp.principal_inertia()) * r.transpose();
         RigidBody {
@@ -212,6 +223,19 @@ impl RigidBody {
             force: Vec3::ZERO,
             torque: Vec3::ZERO,
         }
+    }
+
+    /// The same body with another [`Motion`].
+    pub fn with_motion(mut self, motion: Motion) -> RigidBody {
+        self.motion = motion;
+        self
+    }
+
+    /// The same body with initial linear and angular velocities (world frame).
+    pub fn with_velocity(mut self, v: Vec3, w: Vec3) -> RigidBody {
+        self.v = v;
+        self.w = w;
+        self
     }
 
     /// Whether the body moves under the liquid's forces: it is one of the coupled solve's

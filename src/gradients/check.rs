@@ -139,6 +139,24 @@ pub struct GradcheckReport {
 }
 
 impl GradcheckReport {
+    /// The report as JSON: its fields, and with the paper's approximation a `paper` array of
+    /// `{name, adjoint, fd, rel_error}`.
+    pub fn to_json(&self) -> serde_json::Value {
+        let mut json = serde_json::to_value(self).expect("serialisable");
+        if self.params.iter().all(|r| r.paper.is_some()) {
+            json["paper"] = self
+                .params
+                .iter()
+                .map(|r| {
+                    let paper = r.paper.unwrap_or(f64::NAN);
+                    let rel = (paper - r.fd).abs() / r.fd.abs().max(1e-300);
+                    serde_json::json!({ "name": r.name, "adjoint": paper, "fd": r.fd, "rel_error": rel })
+                })
+                .collect();
+        }
+        json
+    }
+
     /// Whether every coordinate passes.
     pub fn passed(&self) -> bool {
         self.params.iter().all(|r| r.pass)
@@ -147,6 +165,32 @@ impl GradcheckReport {
     /// The largest relative error.
     pub fn worst_rel_error(&self) -> f64 {
         self.params.iter().map(|r| r.rel_error).fold(0.0, f64::max)
+    }
+}
+
+impl std::fmt::Display for GradcheckReport {
+    /// A table: one row per coordinate, with the paper's approximation when there is one.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{:<12} {:>16} {:>16} {:>10} {:>5} {:>16} {:>10}",
+            "param", "adjoint", "central diff", "rel err", "fd ok", "paper approx", "rel err"
+        )?;
+        for r in &self.params {
+            let paper = r.paper.unwrap_or(f64::NAN);
+            writeln!(
+                f,
+                "{:<12} {:>16.8e} {:>16.8e} {:>10.2e} {:>5} {:>16.8e} {:>10.2e}",
+                r.name,
+                r.adjoint,
+                r.fd,
+                r.rel_error,
+                if r.consistent { "yes" } else { "no" },
+                paper,
+                (paper - r.fd).abs() / r.fd.abs().max(1e-300)
+            )?;
+        }
+        Ok(())
     }
 }
 

@@ -94,6 +94,10 @@ impl ContactSettings {
 /// and 0.0094 with eight.
 pub const MAX_CONTACT_ITERATIONS: usize = 4;
 
+/// What contact would do to the coupled bodies' velocities [v; ω] (one per body): the
+/// velocity change.
+pub type ContactChange<'a> = &'a dyn Fn(&[[f64; 6]]) -> Vec<[f64; 6]>;
+
 /// What [`hold_contact`] did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ContactHold {
@@ -116,7 +120,7 @@ pub struct ContactHold {
 pub fn hold_contact<T>(
     bodies: usize,
     mut solve: impl FnMut(&[[f64; 6]]) -> Result<(T, Vec<[f64; 6]>)>,
-    change: Option<&dyn Fn(&[[f64; 6]]) -> Vec<[f64; 6]>>,
+    change: Option<ContactChange<'_>>,
     tolerance: f64,
 ) -> Result<(T, ContactHold)> {
     let mut hold = ContactHold { kick: vec![[0.0; 6]; bodies], ..Default::default() };

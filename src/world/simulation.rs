@@ -35,7 +35,7 @@ use crate::geometry::fractions;
 use crate::geometry::grid::{on_pool, Grid, Mac};
 use crate::geometry::shape::Solid;
 use crate::math::{v3, Vec3};
-use crate::stages::contact::{contact_possible, hold_contact, ContactHold};
+use crate::stages::contact::{contact_possible, hold_contact, ContactChange, ContactHold};
 use crate::stages::density::{self, DensityInputs};
 use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
 use crate::stages::forces::body_velocity;
@@ -191,7 +191,7 @@ impl SimulationBuilder {
             }
         }
         for (i, b) in self.bodies.iter().enumerate() {
-            check_body(b, size).map_err(|m| SettingError::new(format!("body[{i}]"), m))?;
+            check_body(b, size, 0.0).map_err(|m| SettingError::new(format!("body[{i}]"), m))?;
         }
         Ok(grid)
     }
@@ -268,8 +268,10 @@ pub(crate) fn round6(a: [f64; 3]) -> [f64; 3] {
     a.map(|x| (x * 1e6).round() / 1e6)
 }
 
-/// A body a simulation can take: a positive finite mass, a finite state, inside the tank.
-fn check_body(b: &RigidBody, size: Vec3) -> std::result::Result<(), String> {
+/// A body a simulation can take: a positive finite mass, a finite state, and bounds inside
+/// the tank: strictly inside for a body added (`reach` 0), within `reach` of the walls for one
+/// whose caller's engine moved it (resting on the floor, a little into it).
+fn check_body(b: &RigidBody, size: Vec3, reach: f64) -> std::result::Result<(), String> {
     if !(b.mass.is_finite() && b.mass > 0.0) {
         return Err(format!("mass must be a positive number, got {}", b.mass));
     }
@@ -282,13 +284,23 @@ fn check_body(b: &RigidBody, size: Vec3) -> std::result::Result<(), String> {
     finite("torque", b.torque)?;
     finite("position", b.x)?;
     let (lo, hi) = b.bounds();
-    if !(lo.min_element() > 0.0 && (hi - size).max_element() < 0.0) {
+    let inside = if reach == 0.0 {
+        lo.min_element() > 0.0 && (hi - size).max_element() < 0.0
+    } else {
+        lo.min_element() >= -reach && (hi - size).max_element() <= reach
+    };
+    if !inside {
+        let how = if reach == 0.0 {
+            "it must start inside the tank".to_string()
+        } else {
+            format!("it must stay within {reach} m of the tank")
+        };
         return Err(format!(
-            "body spans {:?}..{:?}: it must start inside the tank [0, 0, 0]..{:?} without \
-             touching a wall",
+            "body spans {:?}..{:?}: {how} [0, 0, 0]..{:?}{}",
             round6(lo.to_array()),
             round6(hi.to_array()),
-            round6(size.to_array())
+            round6(size.to_array()),
+            if reach == 0.0 { " without touching a wall" } else { "" }
         ));
     }
     Ok(())
@@ -417,7 +429,7 @@ impl Simulation {
     /// positive mass; marker particles inside it are removed (the body displaces that
     /// liquid).
     pub fn add_body(&mut self, body: RigidBody) -> Result<BodyHandle> {
-        check_body(&body, self.grid.size()).map_err(|message| Error::InvalidSettings {
+        check_body(&body, self.grid.size(), 0.0).map_err(|message| Error::InvalidSettings {
             key: format!("body {:?}", body.name),
             message,
         })?;
@@ -452,14 +464,15 @@ impl Simulation {
     }
 
     /// Sets body `h`'s pose and velocity: how a program whose own rigid-body engine moves an
-    /// [`crate::geometry::body::Motion::External`] body hands it over each step. The pose must lie inside the tank.
+    /// [`crate::geometry::body::Motion::External`] body hands it over each step. The body
+    /// must lie inside the tank, up to a quarter of a cell into a wall (contact resolved by
+    /// the caller's engine allows a little penetration).
     pub fn set_body_state(&mut self, h: BodyHandle, state: &BodyState) -> Result<()> {
         let i = self.index(h)?;
         let mut b = self.bodies[i].clone();
         b.set_state(state);
-        check_body(&b, self.grid.size()).map_err(|message| Error::InvalidSettings {
-            key: format!("body {:?}", b.name),
-            message,
+        check_body(&b, self.grid.size(), 0.25 * self.grid.dx).map_err(|message| {
+            Error::InvalidSettings { key: format!("body {:?}", b.name), message }
         })?;
         self.bodies[i] = b;
         Ok(())
@@ -799,8 +812,7 @@ impl Simulation {
             Ok((proj, after))
         };
         let change = |after: &[[f64; 6]]| self.contact_change(&sys.coupled, after, dt);
-        let change: Option<&dyn Fn(&[[f64; 6]]) -> Vec<[f64; 6]>> =
-            if contact { Some(&change) } else { None };
+        let change: Option<ContactChange<'_>> = if contact { Some(&change) } else { None };
         let tolerance = contact_tolerance(self.settings.fluid.gravity, dt);
         let (mut proj, hold) = hold_contact(sys.coupled.len(), solve, change, tolerance)?;
         proj.hold = hold;
