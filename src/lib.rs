@@ -1,10 +1,114 @@
 //! diffluid: differentiable Eulerian liquid simulation with strong two-way rigid coupling.
 //!
-//! The forward step is a pipeline of stages, one module each (see [`sim`]):
-//! [`surface`] (marker particles, liquid signed distance), [`advect`], [`forces`],
-//! [`pressure`] (with [`cg`], [`mic0`] and [`multigrid`]), and [`extrapolate`]. Geometry enters through
-//! [`shape`] (parry shapes) and [`fractions`] (face weights from signed distances); scenes
-//! are TOML files read by [`scene`].
+//! A liquid on a MAC grid with marker particles for its free surface, and rigid bodies of any
+//! parry shape coupled to it through one monolithic pressure solve (Batty et al. 2007); an
+//! adjoint backward pass gives the gradient of a loss on the final state with respect to the
+//! initial state (Patel et al., "Differentiable Two-Way Eulerian Fluid-Solid Coupling").
+//!
+//! The layers, each a folder, lowest first (ARCHITECTURE.md draws them; `tests/layers.rs`
+//! holds every module to them): [`math`] and [`error`]; [`geometry`] (grid, shapes, meshes,
+//! bodies, face fractions); [`solvers`] (CG, MIC(0), multigrid); [`stages`] (each stage of a
+//! step with its adjoint); [`world`] (the [`Simulation`], its settings, the step assembly the
+//! forward and backward passes share, the tape); [`gradients`] (losses, the backward pass,
+//! gradient checks); [`io`] (writers); [`experiments`] (scene files, optimisation, benches).
+//!
+//! # Step a world
+//!
+//! A world is built from plain parts; bodies come and go through handles.
+//!
+//! ```
+//! use diffluid::geometry::{body::RigidBody, shape::Solid};
+//! use diffluid::math::{Pose, SharedShape, Vec3};
+//! use diffluid::Simulation;
+//!
+//! let mut sim = Simulation::builder([0.6, 0.4, 0.4], 0.05)
+//!     .dt(0.01)
+//!     .liquid(Solid::aabb(Vec3::ZERO, Vec3::new(0.6, 0.2, 0.4)))
+//!     .build()?;
+//! let cube = RigidBody::new("cube".into(), SharedShape::cuboid(0.05, 0.05, 0.05),
+//!     Pose::from_translation(Vec3::new(0.3, 0.2, 0.2)), 500.0);
+//! let h = sim.add_body(cube)?;
+//! sim.set_external_force(h, Vec3::new(2.0, 0.0, 0.0), Vec3::ZERO)?; // a push along x
+//! for _ in 0..10 {
+//!     sim.step()?;
+//! }
+//! let (force, _torque) = sim.fluid_force(h).unwrap();
+//! assert!(force.y > 0.0, "the water holds the half-submerged cube up");
+//! assert!(sim.body(h).unwrap().v.x > 0.0);
+//! sim.advance(1.0 / 30.0)?; // a frame of a game loop, in CFL-limited steps
+//! sim.remove_body(h)?;
+//! # Ok::<(), diffluid::Error>(())
+//! ```
+//!
+//! # Take a gradient
+//!
+//! The gradient of a loss on a body's final position with respect to its initial state.
+//!
+//! ```
+//! use diffluid::gradients::{value_and_gradient, BodyTargetLoss, GradientSettings};
+//! use diffluid::math::Vec3;
+//! use diffluid::Scene;
+//!
+//! let mut scene = Scene::builtin("gradcheck_box")?;
+//! scene.time.steps = 4;
+//! let sim = scene.build()?;
+//! let loss = BodyTargetLoss {
+//!     body: 0,
+//!     position: Some((Vec3::new(0.35, 0.2, 0.45), 1.0)),
+//!     orientation: None,
+//!     velocity: None,
+//! };
+//! let run = value_and_gradient(&sim, 4, &loss, &GradientSettings::default())?;
+//! let g = run.gradient.bodies[0]; // ∂L/∂v₀, ∂L/∂ω₀, ∂L/∂x₀, ∂L/∂θ₀
+//! assert!(g.x.length() > 0.0 && run.loss > 0.0);
+//! # Ok::<(), diffluid::Error>(())
+//! ```
+//!
+//! # Embed with rapier
+//!
+//! A program whose bodies live in its own rapier world adds each as a
+//! [`Motion::External`](geometry::body::Motion::External) body, and every step hands
+//! diffluid the pose and velocity ([`Simulation::set_body_state`]) and gives rapier back the
+//! pressure impulse Δt·[`Simulation::fluid_force`]; rapier keeps gravity, integration and
+//! contact. `examples/rapier_coupling.rs` runs a box and a mesh so.
+//!
+//! ```
+//! # #[cfg(feature = "contact")] {
+//! use diffluid::geometry::{body::{BodyState, Motion, RigidBody}, shape::Solid};
+//! use diffluid::math::{SharedShape, Vec3};
+//! use rapier3d_f64::prelude::*;
+//!
+//! let dt = 0.01;
+//! let mut world = PhysicsWorld::new();
+//! world.integration_parameters.dt = dt;
+//! let shape = SharedShape::ball(0.06);
+//! let (h, _) = world.insert(
+//!     RigidBodyBuilder::dynamic().translation(Vec3::new(0.3, 0.25, 0.2)),
+//!     ColliderBuilder::new(shape.clone()).density(500.0),
+//! );
+//! let mut sim = diffluid::Simulation::builder([0.6, 0.4, 0.4], 0.05)
+//!     .dt(dt)
+//!     .liquid(Solid::aabb(Vec3::ZERO, Vec3::new(0.6, 0.2, 0.4)))
+//!     .build()?;
+//! let rb = &world.bodies[h];
+//! let body = RigidBody::with_mass_properties("ball".into(), shape, *rb.position(),
+//!     &rb.mass_properties().local_mprops);
+//! let ball = sim.add_body(body.with_motion(Motion::External))?;
+//! for _ in 0..10 {
+//!     let rb = &world.bodies[h];
+//!     let state = BodyState { x: rb.center_of_mass(), q: rb.position().rotation,
+//!         v: rb.linvel(), w: rb.angvel() };
+//!     sim.set_body_state(ball, &state)?;
+//!     sim.step()?;
+//!     let (force, torque) = sim.fluid_force(ball).unwrap();
+//!     world.bodies[h].apply_impulse(dt * force, true);
+//!     world.bodies[h].apply_torque_impulse(dt * torque, true);
+//!     world.step();
+//! }
+//! assert!(world.bodies[h].linvel().y < 0.0, "the ball falls, slowed by the water");
+//! # }
+//! # Ok::<(), diffluid::Error>(())
+//! ```
 #![warn(missing_docs)]
 // Loops over the three axes index several per-axis arrays at once; an index reads better.
 #![allow(clippy::needless_range_loop)]
@@ -21,4 +125,4 @@ pub mod world;
 
 pub use error::{Error, Result};
 pub use experiments::scene::Scene;
-pub use world::{Simulation, StepReport};
+pub use world::{BodyHandle, Simulation, StepReport};

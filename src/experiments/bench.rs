@@ -1,6 +1,6 @@
 //! `diffluid bench`: speed against accuracy, stability where methods fail, thin bodies, and
 //! what air costs. Each study returns plain rows (written as CSV by the CLI and drawn by
-//! [`crate::io::plot`]); `quick` shrinks every sweep so a test can run them all.
+//! `io::plot`); `quick` shrinks every sweep so a test can run them all.
 //!
 //! Every scene is built here as TOML text, the way a user would write it, and timed in
 //! process with the wall clock: a row's `seconds` is the whole run of that configuration.

@@ -1,6 +1,6 @@
 //! Experiments on top of the world: scene files ([`scene`], [`shapes`]) as one way to build
 //! a world and a loss, the optimisation of a body's initial state ([`optimize`]), the
-//! benchmark studies ([`bench`]), and what the CLI writes for them ([`outputs`], features
+//! benchmark studies ([`mod@bench`]), and what the CLI writes for them (`outputs`, features
 //! `csv` and `plots`).
 
 pub mod bench;

@@ -122,7 +122,7 @@ fn vtk_frames(problem: &Optimization, params: &BodyState, out: &Path) -> Result<
 
 #[cfg(not(feature = "vtk"))]
 fn vtk_frames(_: &Optimization, _: &BodyState, _: &Path) -> Result<()> {
-    Err(crate::Error::InvalidSettings {
+    Err(crate::error::Error::InvalidSettings {
         key: "vtk".into(),
         message: "diffluid was built without the `vtk` feature".into(),
     })

@@ -239,7 +239,7 @@ fn plural(n: usize) -> &'static str {
 
 /// A triangle mesh of the surface of `shape` in its local frame, for output: cuboids,
 /// balls, capsules, cylinders, cones, convex polyhedra and triangle meshes (and compounds
-/// of these, parts placed at their poses). Round shapes use [`ROUND_SUBDIV`] subdivisions
+/// of these, parts placed at their poses). Round shapes use `ROUND_SUBDIV` subdivisions
 /// around their axis. Triangles are counter-clockwise seen from outside. Shapes with no
 /// finite closed surface or not used by diffluid (half-spaces, segments, polylines, rounded
 /// shapes, custom shapes) give an empty mesh.

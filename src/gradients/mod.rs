@@ -1,5 +1,5 @@
 //! Gradients of a loss on the final state with respect to the initial state: losses
-//! ([`loss`]), the backward pass over a forward pass's tape ([`backward`]), the loss and its
+//! ([`loss`]), the backward pass over a forward pass's tape ([`mod@backward`]), the loss and its
 //! gradient in one call with optional checkpointing ([`run`]), and gradient checks against
 //! central differences ([`check`]).
 

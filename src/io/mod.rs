@@ -1,6 +1,6 @@
 //! Input and output: PLY, JSON and CSV writers ([`output`]), a run's recorder
-//! ([`recorder`], feature `csv`), ParaView frames ([`vtk`], feature `vtk`) and pictures
-//! ([`plot`], feature `plots`).
+//! (`recorder`, feature `csv`), ParaView frames (`vtk`, feature `vtk`) and pictures
+//! (`plot`, feature `plots`).
 
 pub mod output;
 #[cfg(feature = "plots")]

@@ -21,7 +21,7 @@ pub struct VtkSeries {
     dir: PathBuf,
     /// The run's name, in each file's title.
     name: String,
-    /// Per series name ("liquid", "grid", "body_<name>"): (time, file name) of each frame.
+    /// Per series name ("liquid", "grid", "body_`name`"): (time, file name) of each frame.
     series: Vec<(String, Vec<(f64, String)>)>,
 }
 

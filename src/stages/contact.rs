@@ -1,7 +1,9 @@
-//! Rigid contact through rapier3d (feature `contact`).
+//! Rigid contact through rapier3d (feature `contact`; the settings, the "is contact
+//! possible" test and the iteration that holds contact inside the projection,
+//! [`hold_contact`], are always built).
 //!
-//! After the fluid step has updated every body's velocity (pressure and gravity included),
-//! [`ContactWorld::step`] hands the bodies to rapier for ONE step of length `Δt` with zero
+//! Given every body's velocity after the fluid's forces (pressure and gravity included),
+//! `ContactWorld::step` hands the bodies to rapier for ONE step of length `Δt` with zero
 //! gravity: rapier detects body–body and body–wall contact at the current poses, solves the
 //! contact impulses (Coulomb friction and restitution from [`ContactSettings`]) and
 //! integrates the positions. The new poses and velocities are written back.

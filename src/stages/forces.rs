@@ -30,8 +30,8 @@ pub fn body_velocity(b: &RigidBody, g: Vec3, dt: f64) -> [f64; 6] {
 }
 
 /// The orientation part of [`body_velocity`]'s adjoint: given ∂L/∂ω after the stage, the
-/// gradient ∂L/∂θ (world-frame tangent) of Δt·I_w(θ)⁻¹·τ. With I_w⁻¹ → I_w⁻¹ + [δθ]×I_w⁻¹ −
-/// I_w⁻¹[δθ]× and y = I_w⁻¹τ: Δt·(y × ω̄ − τ × I_w⁻¹ω̄). (The v and ω parts are the identity.)
+/// gradient ∂L/∂θ (world-frame tangent) of Δt·I_w(θ)⁻¹·τ. With I_w⁻¹ → I_w⁻¹ + \[δθ\]×I_w⁻¹ −
+/// I_w⁻¹\[δθ\]× and y = I_w⁻¹τ: Δt·(y × ω̄ − τ × I_w⁻¹ω̄). (The v and ω parts are the identity.)
 pub fn body_velocity_pose_adjoint(b: &RigidBody, dt: f64, w_bar: Vec3) -> Vec3 {
     if b.torque == Vec3::ZERO {
         return Vec3::ZERO;
