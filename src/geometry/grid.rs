@@ -274,6 +274,34 @@ impl Mac {
         v3([0, 1, 2].map(|a| grid.faces(a).sample(&self.c[a], x)))
     }
 
+    /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`.
+    #[inline]
+    pub fn velocity_jacobian(&self, grid: &Grid, x: Vec3) -> (Vec3, [Vec3; 3]) {
+        let mut v = [0.0; 3];
+        let mut j = [Vec3::ZERO; 3];
+        for a in 0..3 {
+            let (s, g) = grid.faces(a).sample_grad(&self.c[a], x);
+            v[a] = s;
+            j[a] = g;
+        }
+        (v3(v), j)
+    }
+
+    /// Transpose of [`Mac::velocity`] in the field: adds `coef_a · ∂v_a(x)/∂u` into `self`
+    /// (component a's trilinear weights at `x`, times `coef_a`).
+    #[inline]
+    pub fn scatter_velocity(&mut self, grid: &Grid, x: Vec3, coef: Vec3) {
+        for (a, c) in coef.to_array().into_iter().enumerate() {
+            if c == 0.0 {
+                continue;
+            }
+            let s = grid.faces(a).stencil(x);
+            for k in 0..8 {
+                self.c[a][s.idx[k]] += c * s.w[k];
+            }
+        }
+    }
+
     /// Largest |component| over all faces (a cheap bound used in reports).
     pub fn max_abs(&self) -> f64 {
         self.c.iter().flat_map(|c| c.iter()).fold(0.0f64, |m, &x| m.max(x.abs()))

@@ -19,14 +19,18 @@ use crate::error::{Error, Result};
 use crate::geometry::body::{quat_step_adjoint, RigidBody};
 use crate::geometry::fractions;
 use crate::geometry::grid::on_pool;
+use crate::geometry::grid::Mac;
 use crate::math::dual::Dual;
 use crate::math::so3;
 use crate::math::{Rotation, Vec3};
 use crate::stages::advect::{advect_adjoint, needed_faces};
+use crate::stages::density::{DensityInputs, DensityProjection};
 use crate::stages::extrapolate::{apply_body_velocities_adjoint, correct_velocity_adjoint};
 use crate::stages::forces::body_velocity_pose_adjoint;
 use crate::stages::pressure::{projection_pose_adjoint, Coupling, PoseAdjointInputs};
-use crate::world::step::predicted_velocity;
+use crate::stages::surface::{self, Bins};
+use crate::world::step::{predicted_velocity, Geometry};
+use crate::world::tape::ParticleRecord;
 use crate::world::{Simulation, StepRecord, StepSystem, Tape};
 use std::time::Instant;
 
@@ -41,11 +45,28 @@ pub enum GradientMode {
     Paper,
 }
 
+/// Whether the backward pass follows the liquid surface.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum SurfaceGradient {
+    /// The surface's motion is differentiated: the marker particles' advection (with its
+    /// sub-steps and the push out of solids and bodies), the density projection, φ_L from the
+    /// particles and the ghost-fluid θ it sets in the pressure solve. Exact for the forward
+    /// map wherever no cell or face changes kind.
+    #[default]
+    Live,
+    /// The paper's approximation: the surface is taken as fixed within the backward pass
+    /// (the particles' dependence on the state is dropped). Exact only when the forward pass
+    /// holds the surface fixed too (`solver.freeze_surface`); cheaper.
+    Frozen,
+}
+
 /// How the backward pass treats what it cannot differentiate.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct GradientOptions {
     /// Full or the paper's approximation.
     pub mode: GradientMode,
+    /// The moving surface, or the paper's fixed one.
+    pub surface: SurfaceGradient,
     /// Accept taped steps in which rapier contact acted, taking contact as free flight (its
     /// impulse a constant): an approximation, so it must be asked for. Without it such a tape
     /// is an error.
@@ -55,7 +76,7 @@ pub struct GradientOptions {
 impl GradientOptions {
     /// The options for `mode`, contact not accepted.
     pub fn new(mode: GradientMode) -> GradientOptions {
-        GradientOptions { mode, through_contact: false }
+        GradientOptions { mode, ..Default::default() }
     }
 }
 
@@ -73,6 +94,8 @@ pub struct AdjointSeconds {
     pub pressure: f64,
     /// 1ᵀ.
     pub advect_velocity: f64,
+    /// 0ᵀ: the marker particles (advection, push-outs, density projection, φ_L).
+    pub advect_particles: f64,
 }
 
 impl std::ops::AddAssign for AdjointSeconds {
@@ -82,6 +105,7 @@ impl std::ops::AddAssign for AdjointSeconds {
         self.correct_velocity += o.correct_velocity;
         self.pressure += o.pressure;
         self.advect_velocity += o.advect_velocity;
+        self.advect_particles += o.advect_particles;
     }
 }
 
@@ -140,7 +164,7 @@ pub fn to_gradient(initial: &Simulation, adj: AdjointState) -> Gradient {
         .zip(initial.bodies())
         .map(|(a, b)| BodyGradient { v: a.v, w: a.w, x: a.x, q: so3::tangent_gradient(b.q, a.q) })
         .collect();
-    Gradient { u: adj.u, bodies }
+    Gradient { u: adj.u, bodies, particles: adj.particles }
 }
 
 /// [`backward`] without the final conversion: the adjoint of `initial`'s state, and what
@@ -156,7 +180,7 @@ pub fn backward_adjoint(
         let mut times = AdjointSeconds::default();
         let mut adj = final_adjoint;
         for (t, rec) in tape.steps.iter().enumerate().rev() {
-            adj = step_adjoint(initial, rec, adj, options.mode, t + 1, &mut times)?;
+            adj = step_adjoint(initial, rec, adj, options, t + 1, &mut times)?;
         }
         Ok((adj, times))
     })
@@ -177,10 +201,12 @@ fn step_adjoint(
     initial: &Simulation,
     rec: &StepRecord,
     adj: AdjointState,
-    mode: GradientMode,
+    options: &GradientOptions,
     step: usize,
     times: &mut AdjointSeconds,
 ) -> Result<AdjointState> {
+    let mode = options.mode;
+    let live = options.surface == SurfaceGradient::Live;
     let grid = *initial.grid();
     let dt = initial.dt();
     let settings = initial.settings();
@@ -195,6 +221,7 @@ fn step_adjoint(
     let bodies = bodies_at(initial, rec);
     let geometry = initial.geometry_with(&bodies, rec.body_faces.clone());
     let phi = if rec.phi.is_empty() { initial.particle_phi() } else { rec.phi.clone() };
+    let particle_phi = (live && rec.particles.is_some()).then(|| phi.clone());
     let sys = StepSystem::assemble(&grid, &bodies, geometry, phi, initial.step_params(dt));
     // The fractions' derivatives along each body's pose (full gradient only).
     let dual_faces: Vec<[Vec<(usize, Dual<6>)>; 3]> = if mode == GradientMode::Full {
@@ -298,6 +325,17 @@ fn step_adjoint(
     let adj_v: Vec<[f64; 6]> = sys.coupled.iter().map(|&i| vbar[i]).collect();
     let (uhat_bar, vhat_bar, s, stats) =
         sys.pressure.projection_adjoint(&ubar, &adj_v, &settings.solver.linear());
+    // The surface's part: ∂L/∂φ_L through the ghost-fluid θ (cells whose φ the extension
+    // into solids set carry none).
+    let phi_bar = particle_phi.as_ref().map(|pp| {
+        let mut g = sys.pressure.phi_adjoint(&sys.phi, &s, &rec.p, &ubar);
+        for (c, x) in g.iter_mut().enumerate() {
+            if sys.phi[c] != pp[c] {
+                *x = 0.0;
+            }
+        }
+        g
+    });
     if !stats.converged {
         return Err(Error::NotConverged {
             step,
@@ -350,7 +388,162 @@ fn step_adjoint(
     lap(&mut times.pressure);
 
     // 2ᵀ: gravity is the identity on the fluid. 1ᵀ: advection.
-    let u0 = advect_adjoint(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed));
+    let mut u0 = advect_adjoint(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed));
     lap(&mut times.advect_velocity);
-    Ok(AdjointState { u: u0, bodies: out })
+
+    // 0ᵀ: the marker particles, whose φ_L the step read.
+    let mut particles = Vec::new();
+    if let (Some(pr), Some(phi_bar)) = (rec.particles.as_ref(), phi_bar) {
+        let ctx = ParticleAdjoint {
+            initial,
+            u: &rec.u,
+            bodies: &bodies,
+            geometry: &sys.geometry,
+            dual_faces: &dual_faces,
+        };
+        let mut pose = vec![[0.0f64; 6]; bodies.len()];
+        particles = ctx.run(pr, adj.particles, &phi_bar, &mut u0, &mut pose, step)?;
+        if mode == GradientMode::Full {
+            for &i in &sys.coupled {
+                let gr = pose[i];
+                out[i].x += Vec3::new(gr[0], gr[1], gr[2]);
+                let gq = so3::from_tangent_gradient(bodies[i].q, Vec3::new(gr[3], gr[4], gr[5]));
+                let q = out[i].q;
+                out[i].q = Rotation::from_xyzw(q.x + gq.x, q.y + gq.y, q.z + gq.z, q.w + gq.w);
+            }
+        }
+    }
+    lap(&mut times.advect_particles);
+    Ok(AdjointState { u: u0, bodies: out, particles })
+}
+
+/// What the particle stage's adjoint (0ᵀ) reads besides the record.
+struct ParticleAdjoint<'a> {
+    initial: &'a Simulation,
+    /// The fluid velocity at the start of the step (the particles' advecting field).
+    u: &'a Mac,
+    bodies: &'a [RigidBody],
+    geometry: &'a Geometry,
+    dual_faces: &'a [[Vec<(usize, Dual<6>)>; 3]],
+}
+
+impl ParticleAdjoint<'_> {
+    /// From ∂L/∂(particles after the step) (`after`, empty for zero) and ∂L/∂φ_L of the step,
+    /// ∂L/∂(particles at its start); adds ∂L/∂u of the start velocity into `ubar` and the
+    /// bodies' ∂L/∂[δx; δθ] through the push-outs and the density system into `pose`. Replays
+    /// the stage from the record: the advection (for the push's input), the density system
+    /// and displacement, the positions after the step.
+    fn run(
+        &self,
+        pr: &ParticleRecord,
+        after: Vec<Vec3>,
+        phi_bar: &[f64],
+        ubar: &mut Mac,
+        pose: &mut [[f64; 6]],
+        step: usize,
+    ) -> Result<Vec<Vec3>> {
+        let sim = self.initial;
+        let grid = *sim.grid();
+        let dt = sim.dt();
+        let margin = sim.push_margin();
+        let fd = surface::jacobian_step(&grid);
+        let add_pose = |pose: &mut [[f64; 6]], g: Vec<[f64; 6]>| {
+            for (p, g) in pose.iter_mut().zip(g) {
+                for d in 0..6 {
+                    p[d] += g[d];
+                }
+            }
+        };
+        // The positions after the step: the density projection's displacement and the second
+        // push-out replayed from the advected positions.
+        let inputs = sim.density_inputs(self.geometry);
+        let projection = match (&inputs, &pr.density) {
+            (Some(g), Some(q)) => DensityProjection::build(&pr.advected, g).map(|p| (p, q)),
+            _ => None,
+        };
+        let mut displaced = pr.advected.clone();
+        if let (Some((proj, q)), Some(g)) = (&projection, &inputs) {
+            proj.displace(&mut displaced, q, g);
+        }
+        let mut end = displaced.clone();
+        if inputs.is_some() {
+            surface::push_out_of_bodies(&mut end, self.bodies, margin);
+        }
+        // ∂L/∂(positions after): what later steps and the loss ask, and φ_L of this step.
+        let mut pbar = if after.is_empty() { vec![Vec3::ZERO; end.len()] } else { after };
+        let (_, nearest) = surface::liquid_sdf_nearest(
+            &end,
+            &Bins::new(&end, &grid),
+            &grid,
+            sim.particle_radius(),
+        );
+        surface::liquid_sdf_adjoint(&end, &nearest, &grid, phi_bar, &mut pbar);
+        // The second push-out and the density projection.
+        if let Some(g) = &inputs {
+            add_pose(
+                pose,
+                surface::push_out_of_bodies_adjoint(&displaced, &mut pbar, self.bodies, margin, fd),
+            );
+            if let Some((proj, q)) = &projection {
+                let (s, stats) = proj.adjoint(&pr.advected, q, &mut pbar, g);
+                if !stats.converged {
+                    return Err(Error::NotConverged {
+                        step,
+                        iterations: stats.iterations,
+                        residual: stats.relative_residual,
+                        tolerance: g.solve.tolerance,
+                    });
+                }
+                self.density_weight_pose(proj, q, &s, g, pose);
+            }
+        }
+        // The first push-out, from the advected positions before it (replayed), and the
+        // advection through the start velocity.
+        let node_sdf = &sim.statics().node_sdf;
+        let mut moved = pr.start.clone();
+        surface::advect_substepped(&mut moved, self.u, &grid, dt, pr.substeps, node_sdf);
+        add_pose(
+            pose,
+            surface::push_out_of_bodies_adjoint(&moved, &mut pbar, self.bodies, margin, fd),
+        );
+        surface::advect_adjoint(
+            &pr.start,
+            &mut pbar,
+            self.u,
+            &grid,
+            dt,
+            pr.substeps,
+            node_sdf,
+            ubar,
+        );
+        Ok(pbar)
+    }
+
+    /// The density system's part of the pose derivative: its weights lose what a body covers,
+    /// so −sᵀ·δA·q = Σ_f ∂β_f/∂pose · Δt·dx/ρ·θ·(g·s)(g·q) over the faces the body covers in
+    /// part (inside the clamp of w = w_static − β).
+    fn density_weight_pose(
+        &self,
+        proj: &DensityProjection,
+        q: &[f64],
+        s: &[f64],
+        g: &DensityInputs<'_>,
+        pose: &mut [[f64; 6]],
+    ) {
+        let statics = &self.initial.statics().weights;
+        for (i, faces) in self.dual_faces.iter().enumerate() {
+            for (axis, list) in faces.iter().enumerate() {
+                for (f, beta) in list {
+                    let raw = statics[axis][*f] - beta.v;
+                    if !(raw > 0.0 && raw < 1.0 && g.weights[axis][*f] > 0.0) {
+                        continue;
+                    }
+                    let w = proj.sys.weight_adjoint(axis, *f, g.weights, &proj.phi, s, q);
+                    for k in 0..6 {
+                        pose[i][k] += beta.d[k] * w;
+                    }
+                }
+            }
+        }
+    }
 }

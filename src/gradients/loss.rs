@@ -38,6 +38,8 @@ pub struct AdjointState {
     pub u: Mac,
     /// Per body.
     pub bodies: Vec<BodyAdjoint>,
+    /// ∂L/∂(marker particle positions); empty means zero.
+    pub particles: Vec<Vec3>,
 }
 
 /// A loss on the final state.
@@ -92,7 +94,7 @@ impl Loss for BodyTargetLoss {
         if let Some((t, w)) = self.velocity {
             g.v = 2.0 * w * (b.v - t);
         }
-        AdjointState { u: Mac::zeros(sim.grid()), bodies }
+        AdjointState { u: Mac::zeros(sim.grid()), bodies, particles: Vec::new() }
     }
 }
 
@@ -129,4 +131,6 @@ pub struct Gradient {
     pub u: Mac,
     /// Per body.
     pub bodies: Vec<BodyGradient>,
+    /// ∂L/∂(initial marker particle positions) (empty with a frozen surface).
+    pub particles: Vec<Vec3>,
 }

@@ -1,23 +1,34 @@
 //! Particle density projection (Kugelstadt, Longva, Thuerey & Bender 2019, "Implicit
-//! density projection for volume conserving liquids"), part of stage 0.
+//! density projection for volume conserving liquids"), part of stage 0, with its adjoint.
 //!
 //! Trilinear interpolation of a discretely divergence-free MAC field is not divergence-free
 //! between the samples, and marker particles drift together where it converges, most of all
 //! in the half cell next to a wall: the grid sees a full cell, the particles fill part of it,
 //! and volume is lost. The projection measures the particles' density on cell centres and
 //! solves one more Poisson problem on the same operator as the pressure, whose gradient is a
-//! displacement that carries each over-full cell's excess volume out of it. The surface is
-//! held fixed in the backward pass, so this costs no gradient; it is a scene option
-//! (`solver.density_correction`).
+//! displacement that carries each over-full cell's excess volume out of it. It is a scene
+//! option (`solver.density_correction`).
+//!
+//! The map, for particles P: φ = SDF(P) (the operator's liquid), dens = deposit(P),
+//! b = max(dens − 1 − 10⁻⁶, 0)·dx³ on liquid cells (round-off in the deposit must not start
+//! a solve, and the threshold is subtracted so b is continuous), A q = b, d = C(−G q) (one
+//! extrapolation layer), and each particle moves by d(x) capped at half a cell, then is
+//! kept out of the static solids. Its adjoint ([`DensityProjection::adjoint`]) is one more
+//! solve with the same A, and the derivatives of the deposit, of φ (through the ghost-fluid
+//! θ) and of the interpolated displacement.
 
 use crate::error::{Error, Result};
 use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
+use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
-use crate::stages::extrapolate::correct_velocity;
+use crate::stages::extrapolate::{correct_velocity, correct_velocity_adjoint};
 use crate::stages::pressure::{PressureParams, PressureSystem};
-use crate::stages::surface::{self, Bins};
+use crate::stages::surface::{self, jacobian_step, jacobian_t, Bins, Walls};
 use rayon::prelude::*;
+
+/// Densities up to this much over full count as full.
+const FULL: f64 = 1.0 + 1e-6;
 
 /// What the projection did.
 #[derive(Clone, Copy, Debug, Default)]
@@ -44,63 +55,164 @@ pub struct DensityInputs<'a> {
     pub particles_per_cell: usize,
     /// The ghost-fluid θ clamp of the projection's operator.
     pub theta_min: f64,
-    /// How to solve it (the tolerance is raised to at least 1e-6: a volume to a millionth
-    /// of the excess is plenty).
+    /// How to solve it.
     pub solve: LinearSolve,
 }
 
-/// Pushes particles out of over-full cells. `step` names the step in errors.
-pub fn correct(particles: &mut [Vec3], g: &DensityInputs<'_>, step: usize) -> Result<DensityStats> {
-    let grid = g.grid;
-    let ppc = g.particles_per_cell;
-    let bins = Bins::new(particles, grid);
-    let mut phi = surface::liquid_sdf(particles, &bins, grid, g.radius);
-    surface::extend_into_solids(&mut phi, grid, g.centre_in_solid);
-    let dens = surface::particle_density(particles, grid, ppc);
-    // Unit Δt and density: the "velocity" update below is then a displacement in metres
-    // whose volume flux out of each cell equals the right-hand side.
-    let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
-    let sys = PressureSystem::build(grid, &phi, g.weights, params);
-    let vol = grid.dx.powi(3);
-    // Densities within 1e-6 of full are full: round-off in the deposit must not start a solve.
-    let b: Vec<f64> = sys
-        .cell_of_row
-        .iter()
-        .map(|&c| if dens[c as usize] > 1.0 + 1e-6 { (dens[c as usize] - 1.0) * vol } else { 0.0 })
-        .collect();
-    let excess_volume: f64 = b.iter().sum();
-    if excess_volume == 0.0 {
-        return Ok(DensityStats::default());
+/// One projection's system for particles P: what the displacement and the adjoint read.
+pub struct DensityProjection {
+    /// φ_L of P, extended into solids.
+    pub phi: Vec<f64>,
+    /// The particle each cell's φ is the distance to (see [`surface::liquid_sdf_nearest`]).
+    pub nearest: Vec<u32>,
+    /// Particle density at cell centres.
+    pub dens: Vec<f64>,
+    /// The operator (unit Δt and density: its velocity update is a displacement in metres).
+    pub sys: PressureSystem,
+    /// The right-hand side, the excess volume per row.
+    pub b: Vec<f64>,
+}
+
+impl DensityProjection {
+    /// The system for particles `particles`; None when no cell is over full.
+    pub fn build(particles: &[Vec3], g: &DensityInputs<'_>) -> Option<DensityProjection> {
+        let grid = g.grid;
+        let bins = Bins::new(particles, grid);
+        let (mut phi, nearest) = surface::liquid_sdf_nearest(particles, &bins, grid, g.radius);
+        surface::extend_into_solids(&mut phi, grid, g.centre_in_solid);
+        let dens = surface::particle_density(particles, grid, g.particles_per_cell);
+        let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
+        let sys = PressureSystem::build(grid, &phi, g.weights, params);
+        let vol = grid.dx.powi(3);
+        let b: Vec<f64> =
+            sys.cell_of_row.iter().map(|&c| (dens[c as usize] - FULL).max(0.0) * vol).collect();
+        if b.iter().all(|&x| x == 0.0) {
+            return None;
+        }
+        Some(DensityProjection { phi, nearest, dens, sys, b })
     }
-    let how = LinearSolve { tolerance: g.solve.tolerance.max(1e-6), ..g.solve };
-    let (q, stats) = sys.solve(&b, &how);
-    if !stats.converged {
-        return Err(Error::NotConverged {
-            step,
-            iterations: stats.iterations,
-            residual: stats.relative_residual,
-            tolerance: how.tolerance,
-        });
+
+    /// Solves for the potential q. `step` names the step in errors.
+    pub fn solve(&self, g: &DensityInputs<'_>, step: usize) -> Result<(Vec<f64>, CgStats)> {
+        let (q, stats) = self.sys.solve(&self.b, &g.solve);
+        if !stats.converged {
+            return Err(Error::NotConverged {
+                step,
+                iterations: stats.iterations,
+                residual: stats.relative_residual,
+                tolerance: g.solve.tolerance,
+            });
+        }
+        Ok((q, stats))
     }
-    let mut d = Mac::zeros(grid);
-    let mut valid = sys.update_velocity(&q, &mut d);
-    correct_velocity(&mut d, &mut valid, g.weights, grid, 1);
-    let nodes = grid.nodes();
-    let size = grid.size();
-    let margin = 1e-3 * grid.dx;
+
+    /// The displacement field of potential `q` and the faces it was projected on.
+    fn displacement(&self, q: &[f64], g: &DensityInputs<'_>) -> (Mac, [Vec<u8>; 3]) {
+        let mut d = Mac::zeros(g.grid);
+        let valid0 = self.sys.update_velocity(q, &mut d);
+        let mut valid = valid0.clone();
+        correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
+        (d, valid0)
+    }
+
+    /// Moves the particles by the displacement of potential `q` (capped at half a cell),
+    /// keeping them out of the static solids.
+    pub fn displace(&self, particles: &mut [Vec3], q: &[f64], g: &DensityInputs<'_>) {
+        let (d, _) = self.displacement(q, g);
+        let walls = Walls { grid: g.grid, node_sdf: g.node_sdf };
+        particles
+            .par_iter_mut()
+            .for_each(|x| *x = walls.keep(*x + capped(d.velocity(g.grid, *x), g.grid)));
+    }
+
+    /// Adjoint of [`DensityProjection::displace`] composed with the system's dependence on
+    /// the particles: given ∂L/∂(displaced positions) in `pbar`, leaves ∂L/∂(positions before)
+    /// there. `particles` are the positions the system was built from, `q` its solution.
+    /// Returns the adjoint solve's solution s (for the pose derivative of the weights, which
+    /// the caller takes) and its statistics.
+    pub fn adjoint(
+        &self,
+        particles: &[Vec3],
+        q: &[f64],
+        pbar: &mut [Vec3],
+        g: &DensityInputs<'_>,
+    ) -> (Vec<f64>, CgStats) {
+        let grid = g.grid;
+        let (d, valid0) = self.displacement(q, g);
+        let walls = Walls { grid, node_sdf: g.node_sdf };
+        let step = jacobian_step(grid);
+        // y = x + cap(d(x)), x' = keep(y).
+        let mut dbar = Mac::zeros(grid);
+        for (x, xb) in particles.iter().zip(pbar.iter_mut()) {
+            if *xb == Vec3::ZERO {
+                continue;
+            }
+            let (v, jd) = d.velocity_jacobian(grid, *x);
+            let y = *x + capped(v, grid);
+            let ybar =
+                if walls.keep(y) == y { *xb } else { jacobian_t(|p| walls.keep(p), y, step, *xb) };
+            let vbar = capped_adjoint(v, grid, ybar);
+            *xb = ybar + vbar.x * jd[0] + vbar.y * jd[1] + vbar.z * jd[2];
+            dbar.scatter_velocity(grid, *x, vbar);
+        }
+        // d = C(−k·G·q).
+        correct_velocity_adjoint(&mut dbar, &valid0, g.weights, grid, 1);
+        let qbar = self.sys.update_velocity_adjoint(&dbar);
+        let (s, stats) = self.sys.solve(&qbar, &g.solve);
+        // b = max(dens − FULL, 0)·dx³ on the rows.
+        let vol = grid.dx.powi(3);
+        let mut dens_bar = vec![0.0; grid.num_cells()];
+        for (r, &c) in self.sys.cell_of_row.iter().enumerate() {
+            if self.dens[c as usize] > FULL {
+                dens_bar[c as usize] = vol * s[r];
+            }
+        }
+        surface::particle_density_adjoint(particles, grid, g.particles_per_cell, &dens_bar, pbar);
+        // The operator and the update read φ through the ghost-fluid θ.
+        let phi_bar = self.sys.phi_adjoint(&self.phi, &s, q, &dbar);
+        surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &phi_bar, pbar);
+        (s, stats)
+    }
+}
+
+/// The displacement `v` capped at half a cell.
+#[inline]
+fn capped(v: Vec3, grid: &Grid) -> Vec3 {
     let cap = 0.5 * grid.dx;
-    particles.par_iter_mut().for_each(|x| {
-        let mut dx = d.velocity(grid, *x);
-        let len = dx.length();
-        if len > cap {
-            dx *= cap / len;
-        }
-        let mut y = *x + dx;
-        let (s, gr) = nodes.sample_grad(g.node_sdf, y);
-        if s < margin && gr.length() > 1e-12 {
-            y += (margin - s) * gr.normalize();
-        }
-        *x = y.clamp(Vec3::splat(margin), size - Vec3::splat(margin));
-    });
-    Ok(DensityStats { excess_volume, cg_iterations: stats.iterations })
+    let len = v.length();
+    if len > cap {
+        v * (cap / len)
+    } else {
+        v
+    }
+}
+
+/// Transpose of the Jacobian of [`capped`] at `v`, applied to `bar`.
+#[inline]
+fn capped_adjoint(v: Vec3, grid: &Grid, bar: Vec3) -> Vec3 {
+    let cap = 0.5 * grid.dx;
+    let len = v.length();
+    if len > cap {
+        let n = v / len;
+        (cap / len) * (bar - n * n.dot(bar))
+    } else {
+        bar
+    }
+}
+
+/// Pushes particles out of over-full cells. `step` names the step in errors. Returns what
+/// it did and the potential q (None when no cell was over full), which a tape keeps.
+pub fn correct(
+    particles: &mut [Vec3],
+    g: &DensityInputs<'_>,
+    step: usize,
+) -> Result<(DensityStats, Option<Vec<f64>>)> {
+    let Some(proj) = DensityProjection::build(particles, g) else {
+        return Ok((DensityStats::default(), None));
+    };
+    let (q, stats) = proj.solve(g, step)?;
+    proj.displace(particles, &q, g);
+    let stats =
+        DensityStats { excess_volume: proj.b.iter().sum(), cg_iterations: stats.iterations };
+    Ok((stats, Some(q)))
 }

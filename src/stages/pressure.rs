@@ -474,6 +474,72 @@ impl PressureSystem {
         }
     }
 
+    /// −∂/∂w_f of ⟨s, A(w)·p⟩ for face `f` of `axis`: `Δt·dx/ρ · θ·(g·s)(g·p)` with g the
+    /// face's pressure gradient (carrying 1/θ on a ghost-fluid face), 0 where the update does
+    /// not act. With δw = −δβ on a face a body covers, this times ∂β/∂pose is the operator's
+    /// part of the pose derivative −sᵀ·δA·p.
+    pub fn weight_adjoint(
+        &self,
+        axis: usize,
+        f: usize,
+        weights: &[Vec<f64>; 3],
+        phi: &[f64],
+        s: &[f64],
+        p: &[f64],
+    ) -> f64 {
+        let Some(fg) = self.face_gradient(axis, f, weights, phi) else {
+            return 0.0;
+        };
+        let theta = if fg.cp == 0.0 {
+            1.0 / fg.cm
+        } else if fg.cm == 0.0 {
+            1.0 / fg.cp
+        } else {
+            1.0
+        };
+        let scale = self.params.dt * self.grid.dx / self.params.density;
+        scale * theta * fg.apply(s) * fg.apply(p)
+    }
+
+    /// ∂L/∂φ per cell through the ghost-fluid θ = φ_l/(φ_l − φ_a) of the liquid–air faces
+    /// (the free surface's position), for the solve's solution `p`, the adjoint solve's `s`
+    /// and the adjoint `ubar` of the updated velocity: dL = −sᵀ·(∂A/∂θ)·p·dθ + ūᵀ·(∂u/∂θ)·dθ,
+    /// with A ∋ Δt·dx/ρ·w/θ on the liquid cell's diagonal and u_f = û_f ∓ k·p_l/θ. Zero where
+    /// θ is clamped at θ_min.
+    pub fn phi_adjoint(&self, phi: &[f64], s: &[f64], p: &[f64], ubar: &Mac) -> Vec<f64> {
+        let mut out = vec![0.0; self.grid.num_cells()];
+        let scale = self.params.dt * self.grid.dx / self.params.density;
+        let k = self.params.dt / (self.params.density * self.grid.dx);
+        for a in 0..3 {
+            let lat = self.grid.faces(a);
+            for pf in &self.faces[a] {
+                let g = &pf.gradient;
+                // The liquid row and its side: + side liquid when the − side is air.
+                let (r, sign) = match (g.cm == 0.0, g.cp == 0.0) {
+                    (true, false) => (g.rp as usize, 1.0),
+                    (false, true) => (g.rm as usize, -1.0),
+                    _ => continue,
+                };
+                let (m, pl) = self.grid.face_cells(a, lat.ijk(pf.face as usize));
+                let (m, pl) = (m.expect("an interior face"), pl.expect("an interior face"));
+                let (l, air) = if sign > 0.0 { (pl, m) } else { (m, pl) };
+                let (pl_, pa) = (phi[l], phi[air]);
+                let raw = pl_ / (pl_ - pa);
+                if raw <= self.params.theta_min {
+                    continue;
+                }
+                let theta2 = raw * raw;
+                // u_f = û_f − k·sign·p_l/θ.
+                let theta_bar = s[r] * scale * pf.weight * p[r] / theta2
+                    + ubar.c[a][pf.face as usize] * sign * k * p[r] / theta2;
+                let den = (pl_ - pa) * (pl_ - pa);
+                out[l] += theta_bar * (-pa) / den;
+                out[air] += theta_bar * pl_ / den;
+            }
+        }
+        out
+    }
+
     /// Adjoint of [`PressureSystem::update_velocity`] with respect to p: given the adjoint
     /// of the updated face velocities, returns `−k·G̃ᵀ·adj` per row.
     pub fn update_velocity_adjoint(&self, adj_u: &Mac) -> Vec<f64> {
@@ -596,7 +662,6 @@ pub fn projection_pose_adjoint(
     let sys = g.sys;
     let grid = sys.grid;
     let area = grid.dx * grid.dx;
-    let scale = sys.params.dt * grid.dx / sys.params.density;
     let row_val = |c: Option<usize>, x: &[f64]| match c.map(|c| sys.row_of_cell[c]) {
         Some(r) if r != crate::geometry::grid::NONE => x[r as usize],
         _ => 0.0,
@@ -621,20 +686,7 @@ pub fn projection_pose_adjoint(
             if raw > 0.0 && raw < 1.0 && g.weights[axis][f] > 0.0 {
                 let uh = g.u_hat.c[axis][f];
                 let flux = area * uh * (row_val(m, g.s) - row_val(pl, g.s));
-                let stencil = match sys.face_gradient(axis, f, g.weights, g.phi) {
-                    Some(fg) => {
-                        // θ·(g·s)(g·p), with g carrying 1/θ on a ghost-fluid face.
-                        let theta = if fg.cp == 0.0 {
-                            1.0 / fg.cm
-                        } else if fg.cm == 0.0 {
-                            1.0 / fg.cp
-                        } else {
-                            1.0
-                        };
-                        scale * theta * fg.apply(g.s) * fg.apply(g.p)
-                    }
-                    None => 0.0,
-                };
+                let stencil = sys.weight_adjoint(axis, f, g.weights, g.phi, g.s, g.p);
                 // sᵀδb ∋ −sᵀ δF û = −Σ dx²·δw·û·(s_m − s_p), δw = −δβ; −sᵀ δS p likewise.
                 for k in 0..6 {
                     out[k] += beta.d[k] * (flux + stencil);

@@ -8,9 +8,10 @@
 //! reconstructed exactly halfway between the cell centres that straddle it
 //! (see [`particle_radius`]).
 
+use crate::geometry::body::RigidBody;
 use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::shape::Solid;
-use crate::math::Vec3;
+use crate::math::{Pose, SharedShape, Vec3};
 use rayon::prelude::*;
 
 /// Sub-lattice offsets (in cells, relative to the cell's lower corner) for m per axis.
@@ -84,54 +85,231 @@ pub fn seed(grid: &Grid, regions: &[Solid], ppc: usize, node_sdf: &[f64]) -> Vec
     slabs.concat()
 }
 
-/// Advects particles through `u` for `dt` with the midpoint rule (RK2), then pushes any
-/// that ended inside a static solid back to its surface and keeps all inside the tank.
-pub fn advect(pos: &mut [Vec3], u: &Mac, grid: &Grid, dt: f64, node_sdf: &[f64]) {
-    let nodes = grid.nodes();
-    let size = grid.size();
-    let margin = 1e-3 * grid.dx;
-    // Sub-steps so no particle moves more than half a cell per sub-step: the surface is not
-    // differentiated (it is held fixed in the backward pass), so this costs no gradient.
-    let umax = u.max_abs();
-    let subs = ((umax * dt / (0.5 * grid.dx)).ceil() as usize).clamp(1, 64);
-    let h = dt / subs as f64;
-    pos.par_iter_mut().for_each(|x| {
-        for _ in 0..subs {
-            let mid = *x + 0.5 * h * u.velocity(grid, *x);
-            let mut y = *x + h * u.velocity(grid, mid);
-            let (d, g) = nodes.sample_grad(node_sdf, y);
-            if d < margin && g.length() > 1e-12 {
-                y += (margin - d) * g.normalize();
-            }
-            *x = y.clamp(Vec3::splat(margin), size - Vec3::splat(margin));
-        }
-    });
+/// Sub-steps of [`advect`] for the field `u`: so many that no particle moves more than half
+/// a cell per sub-step (at most 64).
+pub fn advect_substeps(u: &Mac, grid: &Grid, dt: f64) -> usize {
+    ((u.max_abs() * dt / (0.5 * grid.dx)).ceil() as usize).clamp(1, 64)
 }
 
-/// Moves particles that ended inside a rigid body to its surface, `margin` outside.
-pub fn push_out_of_bodies(
-    pos: &mut [Vec3],
-    bodies: &[crate::geometry::body::RigidBody],
-    margin: f64,
-) {
-    for b in bodies {
-        let (lo, hi) = b.bounds();
-        let pose = b.pose();
-        pos.par_iter_mut().for_each(|x| {
-            if x.cmplt(lo).any() || x.cmpgt(hi).any() {
-                return;
-            }
-            let proj = b.shape.project_point(&pose, *x, false);
-            if proj.is_inside {
-                let n = proj.point - *x;
-                let len = n.length();
-                *x = if len > 0.0 { proj.point + n * (margin / len) } else { proj.point };
-            } else if (proj.point - *x).length() < margin {
-                let n = *x - proj.point;
-                *x = proj.point + n.normalize_or_zero() * margin;
-            }
-        });
+/// What keeps a particle out of the static solids and inside the tank: the node signed
+/// distance, the margin kept from surfaces, the tank size.
+#[derive(Clone, Copy)]
+pub struct Walls<'a> {
+    /// The grid.
+    pub grid: &'a Grid,
+    /// Signed distance of the static solids at grid nodes.
+    pub node_sdf: &'a [f64],
+}
+
+impl Walls<'_> {
+    /// A point a thousandth of a cell out of the static solids and inside the tank.
+    #[inline]
+    pub fn keep(&self, y: Vec3) -> Vec3 {
+        let margin = 1e-3 * self.grid.dx;
+        let (d, g) = self.grid.nodes().sample_grad(self.node_sdf, y);
+        let mut y = y;
+        if d < margin && g.length() > 1e-12 {
+            y += (margin - d) * g.normalize();
+        }
+        y.clamp(Vec3::splat(margin), self.grid.size() - Vec3::splat(margin))
     }
+}
+
+/// One particle's path: `subs` midpoint (RK2) sub-steps of length `h` through `u`, each
+/// ending with [`Walls::keep`].
+#[inline]
+fn advect_one(x: Vec3, u: &Mac, walls: &Walls<'_>, h: f64, subs: usize) -> Vec3 {
+    let grid = walls.grid;
+    let mut x = x;
+    for _ in 0..subs {
+        let mid = x + 0.5 * h * u.velocity(grid, x);
+        x = walls.keep(x + h * u.velocity(grid, mid));
+    }
+    x
+}
+
+/// Advects particles through `u` for `dt` with the midpoint rule (RK2), in
+/// [`advect_substeps`] sub-steps, each pushing particles that ended inside a static solid
+/// back to its surface and keeping all inside the tank. Returns the sub-steps taken.
+pub fn advect(pos: &mut [Vec3], u: &Mac, grid: &Grid, dt: f64, node_sdf: &[f64]) -> usize {
+    let subs = advect_substeps(u, grid, dt);
+    advect_substepped(pos, u, grid, dt, subs, node_sdf);
+    subs
+}
+
+/// [`advect`] in a given number of sub-steps.
+pub fn advect_substepped(
+    pos: &mut [Vec3],
+    u: &Mac,
+    grid: &Grid,
+    dt: f64,
+    subs: usize,
+    node_sdf: &[f64],
+) {
+    let walls = Walls { grid, node_sdf };
+    let h = dt / subs as f64;
+    pos.par_iter_mut().for_each(|x| *x = advect_one(*x, u, &walls, h, subs));
+}
+
+/// `Jᵀ·v̄` of `f` at `x` by central differences with step `h`: for the few maps of a particle
+/// stage whose exact Jacobian needs the second derivatives of a distance field (pushing a
+/// point out of a solid, clamping it into the tank). Their error is O(h²) of the surface's
+/// curvature and O(ε/h) of round-off.
+#[inline]
+pub fn jacobian_t(f: impl Fn(Vec3) -> Vec3, x: Vec3, h: f64, vbar: Vec3) -> Vec3 {
+    let d = [0, 1, 2].map(|k| {
+        let e = h * crate::math::unit(k);
+        vbar.dot(f(x + e) - f(x - e)) / (2.0 * h)
+    });
+    Vec3::from_array(d)
+}
+
+/// The step of [`jacobian_t`] on `grid`: a millionth of a cell.
+pub fn jacobian_step(grid: &Grid) -> f64 {
+    1e-6 * grid.dx
+}
+
+/// Adjoint of [`advect`] from the start positions `pos0` (the same `u`, `dt` and sub-steps):
+/// given ∂L/∂(advected positions) in `pbar`, leaves ∂L/∂(start positions) there and adds
+/// ∂L/∂u into `ubar`. Each particle's path is replayed and walked back: the midpoint rule's
+/// transpose (the velocity's Jacobian and its transpose-scatter into the field), and the
+/// wall push's Jacobian where it acted. Sequential in particle order (deterministic).
+#[allow(clippy::too_many_arguments)]
+pub fn advect_adjoint(
+    pos0: &[Vec3],
+    pbar: &mut [Vec3],
+    u: &Mac,
+    grid: &Grid,
+    dt: f64,
+    subs: usize,
+    node_sdf: &[f64],
+    ubar: &mut Mac,
+) {
+    let walls = Walls { grid, node_sdf };
+    let h = dt / subs as f64;
+    let fd = jacobian_step(grid);
+    let mut path = Vec::with_capacity(subs);
+    for (x0, xb) in pos0.iter().zip(pbar.iter_mut()) {
+        if *xb == Vec3::ZERO {
+            continue;
+        }
+        path.clear();
+        let mut x = *x0;
+        for _ in 0..subs {
+            let mid = x + 0.5 * h * u.velocity(grid, x);
+            let y = x + h * u.velocity(grid, mid);
+            path.push((x, mid, y));
+            x = walls.keep(y);
+        }
+        let mut bar = *xb;
+        for &(x, mid, y) in path.iter().rev() {
+            // x' = keep(y): the identity unless the push or the clamp acted.
+            let ybar =
+                if walls.keep(y) == y { bar } else { jacobian_t(|p| walls.keep(p), y, fd, bar) };
+            // y = x + h·U(mid), mid = x + h/2·U(x).
+            let (_, jm) = u.velocity_jacobian(grid, mid);
+            let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
+            ubar.scatter_velocity(grid, mid, h * ybar);
+            let (_, jx) = u.velocity_jacobian(grid, x);
+            bar = ybar + mbar + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2]);
+            ubar.scatter_velocity(grid, x, 0.5 * h * mbar);
+        }
+        *xb = bar;
+    }
+}
+
+/// One point pushed out of a body's shape at `pose` (bounds `lo`..`hi`): a point inside goes
+/// to the closest surface point and `margin` beyond it, a point outside but nearer than
+/// `margin` out to `margin`; any other point stays.
+#[inline]
+fn push_one(shape: &SharedShape, pose: &Pose, bounds: (Vec3, Vec3), x: Vec3, margin: f64) -> Vec3 {
+    let (lo, hi) = bounds;
+    if x.cmplt(lo).any() || x.cmpgt(hi).any() {
+        return x;
+    }
+    let proj = shape.project_point(pose, x, false);
+    if proj.is_inside {
+        let n = proj.point - x;
+        let len = n.length();
+        if len > 0.0 {
+            proj.point + n * (margin / len)
+        } else {
+            proj.point
+        }
+    } else if (proj.point - x).length() < margin {
+        proj.point + (x - proj.point).normalize_or_zero() * margin
+    } else {
+        x
+    }
+}
+
+/// A body's pose and bounds.
+type PlacedShape = (Pose, (Vec3, Vec3));
+
+/// Moves particles that ended inside a rigid body to its surface, `margin` outside (the
+/// bodies in order).
+pub fn push_out_of_bodies(pos: &mut [Vec3], bodies: &[RigidBody], margin: f64) {
+    for b in bodies {
+        let (bounds, pose) = (b.bounds(), b.pose());
+        pos.par_iter_mut().for_each(|x| *x = push_one(&b.shape, &pose, bounds, *x, margin));
+    }
+}
+
+/// Adjoint of [`push_out_of_bodies`] from the positions before it, `pos0`: given ∂L/∂(pushed
+/// positions) in `pbar`, leaves ∂L/∂(positions before) there and returns each body's
+/// ∂L/∂[δx; δθ] (translation, and rotation about its centre of mass in the world frame).
+/// Only pushed particles carry a Jacobian; it is taken by central differences in the point
+/// ([`jacobian_t`]) and in the six pose directions, so it holds for any shape.
+pub fn push_out_of_bodies_adjoint(
+    pos0: &[Vec3],
+    pbar: &mut [Vec3],
+    bodies: &[RigidBody],
+    margin: f64,
+    step: f64,
+) -> Vec<[f64; 6]> {
+    // Replay, keeping (body, particle, position before) of every push.
+    let mut pos = pos0.to_vec();
+    let mut pushes = Vec::new();
+    for (bi, b) in bodies.iter().enumerate() {
+        let (bounds, pose) = (b.bounds(), b.pose());
+        for (i, x) in pos.iter_mut().enumerate() {
+            let y = push_one(&b.shape, &pose, bounds, *x, margin);
+            if y != *x {
+                pushes.push((bi, i, *x));
+                *x = y;
+            }
+        }
+    }
+    let mut out = vec![[0.0; 6]; bodies.len()];
+    // The poses ±step along each of the six directions, per body that pushed.
+    let moved = |b: &RigidBody, k: usize, s: f64| -> PlacedShape {
+        let mut c = b.clone();
+        let e = s * crate::math::unit(k % 3);
+        if k < 3 {
+            c.x += e;
+        } else {
+            c.q = (crate::math::Rotation::from_scaled_axis(e) * c.q).normalize();
+        }
+        (c.pose(), c.bounds())
+    };
+    let mut poses: Vec<Option<Vec<[PlacedShape; 2]>>> = vec![None; bodies.len()];
+    for &(bi, i, x) in pushes.iter().rev() {
+        let b = &bodies[bi];
+        let bar = pbar[i];
+        if bar == Vec3::ZERO {
+            continue;
+        }
+        let (bounds, pose) = (b.bounds(), b.pose());
+        let dirs = poses[bi].get_or_insert_with(|| {
+            (0..6).map(|k| [moved(b, k, step), moved(b, k, -step)]).collect()
+        });
+        for (k, [(pp, bp), (pm, bm)]) in dirs.iter().enumerate() {
+            let d = push_one(&b.shape, pp, *bp, x, margin) - push_one(&b.shape, pm, *bm, x, margin);
+            out[bi][k] += bar.dot(d) / (2.0 * step);
+        }
+        pbar[i] = jacobian_t(|p| push_one(&b.shape, &pose, bounds, p, margin), x, step, bar);
+    }
+    out
 }
 
 /// Particles sorted by cell (a counting sort, so the order is deterministic).
@@ -196,38 +374,98 @@ fn for_neighbour_cells(grid: &Grid, ijk: [usize; 3], reach: usize, mut f: impl F
 /// The liquid signed distance at cell centres: `min_p |x − x_p| − r`, exact where the
 /// nearest particle is within two cells, and `2·dx − r` or more beyond.
 pub fn liquid_sdf(pos: &[Vec3], bins: &Bins, grid: &Grid, radius: f64) -> Vec<f64> {
+    liquid_sdf_nearest(pos, bins, grid, radius).0
+}
+
+/// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
+/// move with a particle: capped far from the liquid, or set by the one-particle rule).
+pub fn liquid_sdf_nearest(
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    radius: f64,
+) -> (Vec<f64>, Vec<u32>) {
+    use crate::geometry::grid::NONE;
     let cells = grid.cells();
-    let mut phi = vec![0.0; cells.len()];
     let dx = grid.dx;
-    cells.fill_par(&mut phi, |i, j, k| {
-        let x = cells.position(i, j, k);
-        let nearest = |reach: usize| {
-            let mut best = f64::MAX;
-            for_neighbour_cells(grid, [i, j, k], reach, |c| {
-                for &p in bins.cell(c) {
-                    best = best.min((pos[p as usize] - x).length_squared());
+    let slab = grid.n[0] * grid.n[1];
+    let rows: Vec<(Vec<f64>, Vec<u32>)> = (0..grid.n[2])
+        .into_par_iter()
+        .map(|k| {
+            let mut phi = Vec::with_capacity(slab);
+            let mut who = Vec::with_capacity(slab);
+            for j in 0..grid.n[1] {
+                for i in 0..grid.n[0] {
+                    let x = cells.position(i, j, k);
+                    let nearest = |reach: usize| {
+                        let mut best = (f64::MAX, NONE);
+                        for_neighbour_cells(grid, [i, j, k], reach, |c| {
+                            for &p in bins.cell(c) {
+                                let d = (pos[p as usize] - x).length_squared();
+                                if d < best.0 {
+                                    best = (d, p);
+                                }
+                            }
+                        });
+                        (best.0.sqrt(), best.1)
+                    };
+                    // A particle outside the 3³ block is at least dx away, so a nearer one
+                    // found inside it is the true nearest; otherwise look one ring further
+                    // (exact up to 2·dx).
+                    let mut d = nearest(1);
+                    if d.0 > dx {
+                        d = nearest(2);
+                        if d.0 > 2.0 * dx {
+                            d = (2.0 * dx, NONE);
+                        }
+                    }
+                    let value = d.0 - radius;
+                    // A cell that holds a particle is liquid even where the particles are too
+                    // sparse for the distance to say so (thin sheets, splashes): the projection
+                    // then keeps it divergence-free instead of leaving its particles to
+                    // extrapolated air velocities, which bunch them up and lose volume.
+                    if value >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {
+                        phi.push(-1e-3 * dx);
+                        who.push(NONE);
+                    } else {
+                        phi.push(value);
+                        who.push(d.1);
+                    }
                 }
-            });
-            best.sqrt()
-        };
-        // A particle outside the 3³ block is at least dx away, so a nearer one found inside
-        // it is the true nearest; otherwise look one ring further (exact up to 2·dx).
-        let mut d = nearest(1);
-        if d > dx {
-            d = nearest(2).min(2.0 * dx);
+            }
+            (phi, who)
+        })
+        .collect();
+    let mut phi = Vec::with_capacity(cells.len());
+    let mut who = Vec::with_capacity(cells.len());
+    for (p, w) in rows {
+        phi.extend(p);
+        who.extend(w);
+    }
+    (phi, who)
+}
+
+/// Adjoint of [`liquid_sdf_nearest`] in the particles: ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c|
+/// for the particle p whose distance φ_c is. Adds into `pbar`.
+pub fn liquid_sdf_adjoint(
+    pos: &[Vec3],
+    nearest: &[u32],
+    grid: &Grid,
+    phi_bar: &[f64],
+    pbar: &mut [Vec3],
+) {
+    let cells = grid.cells();
+    for (c, (&p, &g)) in nearest.iter().zip(phi_bar).enumerate() {
+        if g == 0.0 || p == crate::geometry::grid::NONE {
+            continue;
         }
-        let phi = d - radius;
-        // A cell that holds a particle is liquid even where the particles are too sparse
-        // for the distance to say so (thin sheets, splashes): the projection then keeps it
-        // divergence-free instead of leaving its particles to extrapolated air velocities,
-        // which bunch them up and lose volume.
-        if phi >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {
-            -1e-3 * dx
-        } else {
-            phi
+        let [i, j, k] = cells.ijk(c);
+        let d = pos[p as usize] - cells.position(i, j, k);
+        let len = d.length();
+        if len > 0.0 {
+            pbar[p as usize] += g * d / len;
         }
-    });
-    phi
+    }
 }
 
 /// Marks cells whose centre is inside a static solid as liquid when a face neighbour is
@@ -267,37 +505,79 @@ pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]
 /// (reflection), so every particle deposits exactly one unit. The scatter runs in particle
 /// order on one thread, so the sums do not depend on the thread count.
 pub fn particle_density(pos: &[Vec3], grid: &Grid, ppc: usize) -> Vec<f64> {
-    let cells = grid.cells();
-    let mut out = vec![0.0; cells.len()];
+    let mut out = vec![0.0; grid.num_cells()];
     let unit = 1.0 / ppc as f64;
     for x in pos {
-        let a = x.to_array();
-        let mut idx = [[0usize; 2]; 3];
-        let mut w = [[0.0f64; 2]; 3];
-        for d in 0..3 {
-            let g = a[d] / grid.dx - 0.5;
-            let i0 = g.floor();
-            let t = g - i0;
-            let n = grid.n[d] as i64;
-            let fold = |i: i64| -> usize {
-                if i < 0 {
-                    (-i - 1).min(n - 1) as usize
-                } else if i >= n {
-                    (2 * n - 1 - i).max(0) as usize
-                } else {
-                    i as usize
-                }
-            };
-            idx[d] = [fold(i0 as i64), fold(i0 as i64 + 1)];
-            w[d] = [1.0 - t, t];
-        }
+        let (idx, w, _) = deposit_weights(grid, *x);
         for c in 0..8 {
             let (bi, bj, bk) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
-            let cell = grid.cell(idx[0][bi], idx[1][bj], idx[2][bk]);
-            out[cell] += w[0][bi] * w[1][bj] * w[2][bk] * unit;
+            out[grid.cell(idx[0][bi], idx[1][bj], idx[2][bk])] +=
+                w[0][bi] * w[1][bj] * w[2][bk] * unit;
         }
     }
     out
+}
+
+/// Per axis: the two cells, their weights and the weights' derivatives.
+type Deposit = ([[usize; 2]; 3], [[f64; 2]; 3], [[f64; 2]; 3]);
+
+/// The cells a particle at `x` deposits on, per axis (folded back at the walls), their 1D
+/// weights and the weights' derivatives.
+#[inline]
+fn deposit_weights(grid: &Grid, x: Vec3) -> Deposit {
+    let a = x.to_array();
+    let mut idx = [[0usize; 2]; 3];
+    let mut w = [[0.0f64; 2]; 3];
+    let mut dw = [[0.0f64; 2]; 3];
+    for d in 0..3 {
+        let g = a[d] / grid.dx - 0.5;
+        let i0 = g.floor();
+        let t = g - i0;
+        let n = grid.n[d] as i64;
+        let fold = |i: i64| -> usize {
+            if i < 0 {
+                (-i - 1).min(n - 1) as usize
+            } else if i >= n {
+                (2 * n - 1 - i).max(0) as usize
+            } else {
+                i as usize
+            }
+        };
+        idx[d] = [fold(i0 as i64), fold(i0 as i64 + 1)];
+        w[d] = [1.0 - t, t];
+        dw[d] = [-1.0 / grid.dx, 1.0 / grid.dx];
+    }
+    (idx, w, dw)
+}
+
+/// Adjoint of [`particle_density`]: adds `Σ_c dens̄_c · ∂dens_c/∂x_p` into `pbar`.
+pub fn particle_density_adjoint(
+    pos: &[Vec3],
+    grid: &Grid,
+    ppc: usize,
+    dens_bar: &[f64],
+    pbar: &mut [Vec3],
+) {
+    let unit = 1.0 / ppc as f64;
+    for (x, xb) in pos.iter().zip(pbar.iter_mut()) {
+        let (idx, w, dw) = deposit_weights(grid, *x);
+        let mut g = Vec3::ZERO;
+        for c in 0..8 {
+            let b = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
+            let s = dens_bar[grid.cell(idx[0][b[0]], idx[1][b[1]], idx[2][b[2]])];
+            if s == 0.0 {
+                continue;
+            }
+            g += s
+                * unit
+                * Vec3::new(
+                    dw[0][b[0]] * w[1][b[1]] * w[2][b[2]],
+                    w[0][b[0]] * dw[1][b[1]] * w[2][b[2]],
+                    w[0][b[0]] * w[1][b[1]] * dw[2][b[2]],
+                );
+        }
+        *xb += g;
+    }
 }
 
 /// Liquid volume in m³: the particle density capped at one full cell per cell, times the

@@ -28,7 +28,7 @@ use super::step::{
     body_faces, generalized_velocity, kinetic_energy, predicted_velocity, BodyForce, Geometry,
     StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
 };
-use super::tape::{StepRecord, Tape};
+use super::tape::{ParticleRecord, StepRecord, Tape};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::fractions;
@@ -606,7 +606,7 @@ impl Simulation {
         lap(&mut times.geometry);
 
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
-        self.advect_particles(&geometry, dt)?;
+        let particle_record = self.advect_particles(&geometry, dt, start.is_some())?;
         lap(&mut times.advect_particles);
 
         // 3. Where the liquid is now (with a frozen surface: where it was at the start). It
@@ -677,6 +677,7 @@ impl Simulation {
                 phi: taped_phi,
                 body_faces: sys.geometry.body_faces.clone(),
                 contact,
+                particles: particle_record,
             });
         }
 
@@ -726,30 +727,66 @@ impl Simulation {
 
     /// Stage 0: the marker particles through the current field, pushed out of the solids,
     /// and the density projection (nothing with a frozen surface).
-    fn advect_particles(&mut self, geometry: &Geometry, dt: f64) -> Result<()> {
+    fn advect_particles(
+        &mut self,
+        geometry: &Geometry,
+        dt: f64,
+        taped: bool,
+    ) -> Result<Option<ParticleRecord>> {
         if self.frozen_phi.is_some() {
-            return Ok(());
+            return Ok(None);
         }
-        let grid = self.grid;
-        let margin = 1e-3 * grid.dx;
-        surface::advect(&mut self.particles, &self.u, &grid, dt, &self.statics.node_sdf);
+        let start = taped.then(|| self.particles.clone());
+        let margin = self.push_margin();
+        let substeps =
+            surface::advect(&mut self.particles, &self.u, &self.grid, dt, &self.statics.node_sdf);
         surface::push_out_of_bodies(&mut self.particles, &self.bodies, margin);
-        let solver = &self.settings.solver;
-        if solver.density_correction {
-            let inputs = DensityInputs {
-                grid: &grid,
-                weights: &geometry.weights,
-                node_sdf: &self.statics.node_sdf,
-                centre_in_solid: &geometry.centre_in_solid,
-                radius: self.radius,
-                particles_per_cell: solver.particles_per_cell,
-                theta_min: solver.theta_min,
-                solve: solver.linear(),
-            };
-            density::correct(&mut self.particles, &inputs, self.step + 1)?;
-            surface::push_out_of_bodies(&mut self.particles, &self.bodies, margin);
+        let advected = taped.then(|| self.particles.clone());
+        let mut density = None;
+        let mut particles = std::mem::take(&mut self.particles);
+        if let Some(inputs) = self.density_inputs(geometry) {
+            let corrected = density::correct(&mut particles, &inputs, self.step + 1);
+            match corrected {
+                Ok((_, q)) => density = q,
+                Err(e) => {
+                    self.particles = particles;
+                    return Err(e);
+                }
+            }
+            surface::push_out_of_bodies(&mut particles, &self.bodies, margin);
         }
-        Ok(())
+        self.particles = particles;
+        Ok(start.zip(advected).map(|(start, advected)| ParticleRecord {
+            start,
+            substeps,
+            advected,
+            density,
+        }))
+    }
+
+    /// How far out of a body a particle is pushed.
+    pub fn push_margin(&self) -> f64 {
+        1e-3 * self.grid.dx
+    }
+
+    /// The particle radius of φ_L.
+    pub fn particle_radius(&self) -> f64 {
+        self.radius
+    }
+
+    /// What the density projection of a step with `geometry` reads (None when it is off).
+    pub fn density_inputs<'a>(&'a self, geometry: &'a Geometry) -> Option<DensityInputs<'a>> {
+        let solver = &self.settings.solver;
+        solver.density_correction.then(|| DensityInputs {
+            grid: &self.grid,
+            weights: &geometry.weights,
+            node_sdf: &self.statics.node_sdf,
+            centre_in_solid: &geometry.centre_in_solid,
+            radius: self.radius,
+            particles_per_cell: solver.particles_per_cell,
+            theta_min: solver.theta_min,
+            solve: solver.linear(),
+        })
     }
 
     /// Stage 4: the coupled solve from the fluid velocity `u_hat` and the coupled bodies'

@@ -6,6 +6,7 @@
 use crate::geometry::body::BodyState;
 use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::Mac;
+use crate::math::Vec3;
 
 /// One forward step's record.
 #[derive(Clone, Debug)]
@@ -32,6 +33,23 @@ pub struct StepRecord {
     /// Whether rapier contact acted in this step (a kick in the solve, or the contact
     /// integration): the gradient then takes contact as free flight.
     pub contact: bool,
+    /// The marker particles' stage (None when the surface is frozen).
+    pub particles: Option<ParticleRecord>,
+}
+
+/// What stage 0 (the marker particles) leaves for the backward pass: the positions it
+/// started from and after advection, its sub-steps and the density projection's potential;
+/// the rest (the density system, the displacement, the positions after it) is replayed.
+#[derive(Clone, Debug)]
+pub struct ParticleRecord {
+    /// Positions at the start of the step.
+    pub start: Vec<Vec3>,
+    /// Sub-steps of the advection.
+    pub substeps: usize,
+    /// Positions after advection and the push out of the bodies.
+    pub advected: Vec<Vec3>,
+    /// The density projection's potential q (None when no cell was over full or it is off).
+    pub density: Option<Vec<f64>>,
 }
 
 /// The recorded forward pass.
@@ -58,6 +76,10 @@ impl Tape {
                         .iter()
                         .map(|b| b.faces.iter().map(Vec::len).sum::<usize>() * 16)
                         .sum::<usize>()
+                    + s.particles.as_ref().map_or(0, |r| {
+                        24 * (r.start.len() + r.advected.len())
+                            + 8 * r.density.as_ref().map_or(0, Vec::len)
+                    })
             })
             .sum();
         total / self.steps.len()
