@@ -216,3 +216,78 @@ pub fn correct(
         DensityStats { excess_volume: proj.b.iter().sum(), cg_iterations: stats.iterations };
     Ok((stats, Some(q)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::shape::Solid;
+    use crate::solvers::Preconditioner;
+
+    /// The whole projection (its system built from the particles, the solve, the capped
+    /// displacement, the wall push) against central differences in the particle positions,
+    /// for a pool whose bottom layers are over full.
+    #[test]
+    fn adjoint_matches_central_differences() {
+        let grid = Grid { n: [8, 8, 6], dx: 0.1 };
+        let node_sdf = vec![1e3; grid.nodes().len()];
+        let pool = Solid::aabb(Vec3::ZERO, Vec3::new(0.8, 0.4, 0.6));
+        let mut p0 = surface::seed(&grid, &[pool], 8, &node_sdf);
+        // Squeeze the particles toward the floor (the lower cells are over full), and jitter
+        // them off the seeding lattice, whose symmetry makes the nearest particle of a cell
+        // centre a tie (a kink of φ_L).
+        for (i, x) in p0.iter_mut().enumerate() {
+            let r = |k: usize| ((i * 7919 + k * 104729) % 1009) as f64 / 1009.0 - 0.5;
+            x.y *= 0.8;
+            *x += 4e-3 * Vec3::new(r(1), r(2), r(3));
+        }
+        let weights = [0, 1, 2].map(|a| {
+            let lat = grid.faces(a);
+            let mut w = vec![1.0; lat.len()];
+            lat.fill_par(&mut w, |i, j, k| {
+                let f = [i, j, k];
+                if f[a] == 0 || f[a] == grid.n[a] {
+                    0.0
+                } else {
+                    1.0
+                }
+            });
+            w
+        });
+        let centre_in_solid = vec![false; grid.num_cells()];
+        let inputs = DensityInputs {
+            grid: &grid,
+            weights: &weights,
+            node_sdf: &node_sdf,
+            centre_in_solid: &centre_in_solid,
+            radius: surface::particle_radius(grid.dx, 2),
+            particles_per_cell: 8,
+            theta_min: 0.01,
+            solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),
+        };
+        let c: Vec<Vec3> = (0..p0.len())
+            .map(|i| Vec3::new(((i * 7) % 5) as f64 - 2.0, ((i * 3) % 7) as f64 - 3.0, 1.0))
+            .collect();
+        let run = |p: &[Vec3]| {
+            let mut q = p.to_vec();
+            correct(&mut q, &inputs, 1).unwrap();
+            q.iter().zip(&c).map(|(a, b)| a.dot(*b)).sum::<f64>()
+        };
+        let proj = DensityProjection::build(&p0, &inputs).expect("over-full cells");
+        let (q, _) = proj.solve(&inputs, 1).unwrap();
+        let mut pbar = c.clone();
+        proj.adjoint(&p0, &q, &mut pbar, &inputs);
+        let d: Vec<Vec3> = (0..p0.len())
+            .map(|i| {
+                Vec3::new(((i * 11) % 9) as f64 / 4.0 - 1.0, ((i * 5) % 7) as f64 / 3.0 - 1.0, 0.3)
+            })
+            .collect();
+        let eps = 1e-8;
+        let shift = |s: f64| p0.iter().zip(&d).map(|(x, y)| *x + s * *y).collect::<Vec<_>>();
+        let fd = (run(&shift(eps)) - run(&shift(-eps))) / (2.0 * eps);
+        let ad: f64 = pbar.iter().zip(&d).map(|(a, b)| a.dot(*b)).sum();
+        // The identity part alone would be Σ c·d; the projection's own share must show.
+        let identity: f64 = c.iter().zip(&d).map(|(a, b)| a.dot(*b)).sum();
+        assert!((fd - identity).abs() > 1e-3 * fd.abs(), "the projection moved nothing");
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "adjoint {ad:e}, central difference {fd:e}");
+    }
+}

@@ -621,3 +621,179 @@ mod tests {
         assert!((below / (below - above) - 0.5).abs() < 1e-12);
     }
 }
+
+#[cfg(test)]
+mod adjoint_tests {
+    //! Each particle-stage adjoint against central differences of its forward map, for a
+    //! fixed linear functional of the output: ⟨∇L, d⟩ = (L(x + εd) − L(x − εd)) / 2ε.
+    use super::*;
+    use crate::math::{Rotation, SharedShape};
+
+    fn grid() -> Grid {
+        Grid { n: [8, 7, 6], dx: 0.1 }
+    }
+
+    /// Particles spread over the tank, away from lattice planes.
+    fn particles(n: usize) -> Vec<Vec3> {
+        (0..n)
+            .map(|i| {
+                let f = |k: usize| ((i * k * 7919 + k * 104729) % 1000) as f64 / 1000.0;
+                Vec3::new(0.05 + 0.7 * f(3), 0.05 + 0.6 * f(5), 0.05 + 0.5 * f(7))
+                    + Vec3::splat(1e-4)
+            })
+            .collect()
+    }
+
+    fn field(grid: &Grid, seed: usize) -> Mac {
+        let mut u = Mac::zeros(grid);
+        for a in 0..3 {
+            for (f, x) in u.c[a].iter_mut().enumerate() {
+                *x = (((f * 7919 + a * 131 + seed * 31) % 101) as f64 / 50.0 - 1.0) * 0.6 + 0.0123;
+            }
+        }
+        u
+    }
+
+    fn dir(n: usize, seed: usize) -> Vec<Vec3> {
+        (0..n)
+            .map(|i| {
+                let f = |k: usize| ((i * 31 + k * 17 + seed * 7) % 23) as f64 / 11.5 - 1.0;
+                Vec3::new(f(1), f(2), f(3))
+            })
+            .collect()
+    }
+
+    fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
+        a.iter().zip(b).map(|(x, y)| x.dot(*y)).sum()
+    }
+
+    /// Advection through a field with a solid obstacle and the tank walls in reach: the
+    /// adjoint in the positions and in the field against central differences.
+    #[test]
+    fn advection_adjoint_matches_central_differences() {
+        let grid = grid();
+        let obstacle =
+            Solid::new(SharedShape::ball(0.12), Pose::from_translation(Vec3::new(0.4, 0.3, 0.3)));
+        let node_sdf = crate::geometry::fractions::node_sdf(&grid, &[obstacle]);
+        let (p0, u, du) = (particles(200), field(&grid, 1), field(&grid, 2));
+        let (c, dp) = (dir(200, 3), dir(200, 4));
+        let (dt, subs) = (0.05, 3);
+        let run = |p: &[Vec3], u: &Mac| {
+            let mut q = p.to_vec();
+            advect_substepped(&mut q, u, &grid, dt, subs, &node_sdf);
+            dot(&q, &c)
+        };
+        let mut pbar = c.clone();
+        let mut ubar = Mac::zeros(&grid);
+        advect_adjoint(&p0, &mut pbar, &u, &grid, dt, subs, &node_sdf, &mut ubar);
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        let fd = (run(&shift(eps), &u) - run(&shift(-eps), &u)) / (2.0 * eps);
+        let ad = dot(&pbar, &dp);
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "positions: adjoint {ad:e}, fd {fd:e}");
+        let moved = |s: f64| {
+            let mut v = u.clone();
+            for a in 0..3 {
+                for (x, d) in v.c[a].iter_mut().zip(&du.c[a]) {
+                    *x += s * d;
+                }
+            }
+            v
+        };
+        let fd = (run(&p0, &moved(eps)) - run(&p0, &moved(-eps))) / (2.0 * eps);
+        let ad = ubar.dot(&du);
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "field: adjoint {ad:e}, fd {fd:e}");
+    }
+
+    /// The push out of a tilted box and a ball: positions and the bodies' pose.
+    #[test]
+    fn push_out_adjoint_matches_central_differences() {
+        let grid = grid();
+        let pose = |x: [f64; 3], q: Rotation| Pose::from_parts(Vec3::from_array(x), q);
+        let bodies = vec![
+            RigidBody::new(
+                "box".into(),
+                SharedShape::cuboid(0.15, 0.1, 0.12),
+                pose(
+                    [0.31, 0.33, 0.29],
+                    Rotation::from_axis_angle(Vec3::new(0.3, 1.0, 0.2).normalize(), 0.4),
+                ),
+                500.0,
+            ),
+            RigidBody::new(
+                "ball".into(),
+                SharedShape::ball(0.1),
+                pose([0.55, 0.4, 0.3], Rotation::IDENTITY),
+                500.0,
+            ),
+        ];
+        let (p0, c, dp) = (particles(400), dir(400, 5), dir(400, 6));
+        let margin = 1e-3 * grid.dx;
+        let run = |p: &[Vec3], bodies: &[RigidBody]| {
+            let mut q = p.to_vec();
+            push_out_of_bodies(&mut q, bodies, margin);
+            dot(&q, &c)
+        };
+        let mut pbar = c.clone();
+        let pose_bar =
+            push_out_of_bodies_adjoint(&p0, &mut pbar, &bodies, margin, jacobian_step(&grid));
+        let mut pushed = p0.clone();
+        push_out_of_bodies(&mut pushed, &bodies, margin);
+        assert!(pushed.iter().zip(&p0).filter(|(a, b)| a != b).count() > 20, "too few pushed");
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        let fd = (run(&shift(eps), &bodies) - run(&shift(-eps), &bodies)) / (2.0 * eps);
+        let ad = dot(&pbar, &dp);
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "positions: adjoint {ad:e}, fd {fd:e}");
+        for (b, k) in [(0, 0), (0, 4), (1, 1), (1, 5)] {
+            let moved = |s: f64| {
+                let mut bs = bodies.clone();
+                let e = s * crate::math::unit(k % 3);
+                if k < 3 {
+                    bs[b].x += e;
+                } else {
+                    bs[b].q = (Rotation::from_scaled_axis(e) * bs[b].q).normalize();
+                }
+                bs
+            };
+            let fd = (run(&p0, &moved(eps)) - run(&p0, &moved(-eps))) / (2.0 * eps);
+            let ad = pose_bar[b][k];
+            assert!(
+                (ad - fd).abs() <= 1e-5 * fd.abs().max(1e-3),
+                "body {b} dir {k}: {ad:e} vs {fd:e}"
+            );
+        }
+    }
+
+    /// φ_L and the particle density in the particles.
+    #[test]
+    fn sdf_and_density_adjoints_match_central_differences() {
+        let grid = grid();
+        let (p0, dp) = (particles(300), dir(300, 8));
+        let cells = grid.num_cells();
+        let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
+        let radius = particle_radius(grid.dx, 2);
+        let sdf = |p: &[Vec3]| {
+            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, radius);
+            phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let dens = |p: &[Vec3]| {
+            particle_density(p, &grid, 8).iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, radius);
+        let mut g_sdf = vec![Vec3::ZERO; p0.len()];
+        liquid_sdf_adjoint(&p0, &nearest, &grid, &phi_bar, &mut g_sdf);
+        let mut g_dens = vec![Vec3::ZERO; p0.len()];
+        particle_density_adjoint(&p0, &grid, 8, &phi_bar, &mut g_dens);
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        for (name, f, g) in
+            [("sdf", &sdf as &dyn Fn(&[Vec3]) -> f64, &g_sdf), ("density", &dens, &g_dens)]
+        {
+            let fd = (f(&shift(eps)) - f(&shift(-eps))) / (2.0 * eps);
+            let ad = dot(g, &dp);
+            assert!(fd.abs() > 1e-3, "{name}: a vanishing derivative checks nothing");
+            assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "{name}: adjoint {ad:e}, fd {fd:e}");
+        }
+    }
+}
