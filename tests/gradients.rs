@@ -1,19 +1,27 @@
 //! End-to-end gradients against central finite differences of the same forward map.
 //!
-//! With the surface frozen (`solver.freeze_surface`), the forward step is a smooth map of
-//! the state away from the places where a face opens or a cell changes kind, and the
-//! backward pass must reproduce its derivative: ⟨∇L, d⟩ = (L(x + εd) − L(x − εd)) / 2ε.
+//! The forward step is a smooth map of the state away from the places where a face opens or
+//! a cell changes kind, with the surface frozen (`solver.freeze_surface`) or moving (the
+//! marker particles differentiated), and the backward pass must reproduce its derivative:
+//! ⟨∇L, d⟩ = (L(x + εd) − L(x − εd)) / 2ε.
 
 use diffluid::geometry::grid::Mac;
+use diffluid::gradients::backward::SurfaceGradient;
 use diffluid::gradients::{
     backward, gradcheck, AdjointState, BodyTargetLoss, GradcheckSettings, GradientMode,
     GradientOptions, GradientSettings,
 };
+use diffluid::gradients::{value_and_gradient, Coordinate};
 use diffluid::math::{Rotation, Vec3};
 use diffluid::world::Tape;
 use diffluid::{Scene, Simulation};
 
 fn small_tank(body: &str, steps: usize) -> Scene {
+    tank_with_surface(body, steps, true)
+}
+
+/// The tank with the surface held fixed (`frozen`) or moving.
+fn tank_with_surface(body: &str, steps: usize, frozen: bool) -> Scene {
     let text = format!(
         r#"
 name = "grad"
@@ -31,7 +39,7 @@ shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.3, 0.8] }}
 {body}
 [solver]
 tolerance = 1e-12
-freeze_surface = true
+freeze_surface = {frozen}
 "#
     );
     Scene::from_toml(&text, "<test>").unwrap()
@@ -115,17 +123,26 @@ fn fluid_velocity_gradient_matches_central_differences() {
 /// (ε = 1e-6), with the library's gradient check: |adjoint − fd| ≤ 1e-12 + 1e-4·|fd|. The
 /// issue asked for 1e-3; measured 3e-7 to 3e-5.
 fn check(name: &str, scene: &Scene) {
-    let loss = BodyTargetLoss {
+    check_with(name, scene, 1e-4);
+}
+
+/// The loss the checks use: body 0's final position, orientation and velocity.
+fn test_loss() -> BodyTargetLoss {
+    BodyTargetLoss {
         body: 0,
         position: Some((Vec3::new(0.35, 0.2, 0.45), 1.0)),
         orientation: Some((Rotation::from_axis_angle(Vec3::new(0.0, 1.0, 0.0), 0.3), 0.5)),
         velocity: Some((Vec3::new(0.1, -0.2, 0.0), 0.2)),
-    };
+    }
+}
+
+fn check_with(name: &str, scene: &Scene, rtol: f64) -> diffluid::gradients::GradcheckReport {
+    let loss = test_loss();
     let sim = scene.build().unwrap();
     let settings = GradcheckSettings {
         eps: 1e-6,
         atol: 1e-12,
-        rtol: 1e-4,
+        rtol,
         compare_paper: true,
         ..Default::default()
     };
@@ -142,6 +159,7 @@ fn check(name: &str, scene: &Scene) {
     for r in &report.params {
         assert!(r.pass, "{name} {}: adjoint {:e}, fd {:e}", r.name, r.adjoint, r.fd);
     }
+    report
 }
 
 #[test]
@@ -156,6 +174,34 @@ velocity = [0.2, -0.3, 0.1]
 angular_velocity = [0.5, -0.3, 0.8]
 "#;
     check("floating box", &small_tank(body, 20));
+}
+
+/// The same box with the surface moving: the marker particles, the density projection and
+/// φ_L are differentiated (the live-surface gradient). Every parameter within 1e-3 of central
+/// differences of the same map (measured: 4e-5 at worst); the frozen-surface approximation,
+/// which drops the particles' dependence, is off by more than 1% somewhere on the same map.
+#[test]
+fn live_surface_floating_box_gradient_matches_central_differences() {
+    let body = r#"
+[[body]]
+shape = { kind = "cuboid", half_extents = [0.15, 0.075, 0.12] }
+density = 500.0
+position = [0.41, 0.31, 0.38]
+axis_angle = { axis = [0.3, 1.0, 0.2], degrees = 20 }
+velocity = [0.2, -0.3, 0.1]
+angular_velocity = [0.5, -0.3, 0.8]
+"#;
+    let scene = tank_with_surface(body, 20, false);
+    let report = check_with("live floating box", &scene, 1e-3);
+    let options = GradientOptions { surface: SurfaceGradient::Frozen, ..Default::default() };
+    let sim = scene.build().unwrap();
+    let frozen = value_and_gradient(&sim, 20, &test_loss(), &options.into()).unwrap();
+    let worst = Coordinate::all()
+        .zip(&report.params)
+        .map(|(c, r)| (c.of(&frozen.gradient.bodies[0]) - r.fd).abs() / r.fd.abs())
+        .fold(0.0, f64::max);
+    eprintln!("frozen-surface approximation on the moving map: worst {worst:.2e}");
+    assert!(worst > 1e-2, "the surface's motion should matter here");
 }
 
 #[test]
