@@ -25,6 +25,8 @@ pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("floating_box", include_str!("../../assets/scenes/floating_box.toml")),
     ("gradcheck_box", include_str!("../../assets/scenes/gradcheck_box.toml")),
     ("recover_box", include_str!("../../assets/scenes/recover_box.toml")),
+    ("gradcheck_live", include_str!("../../assets/scenes/gradcheck_live.toml")),
+    ("surge_ball", include_str!("../../assets/scenes/surge_ball.toml")),
 ];
 
 /// A whole scene.

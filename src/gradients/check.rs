@@ -7,7 +7,7 @@
 //! disagree by more than the criterion is reported as inconsistent rather than as an adjoint
 //! error.
 
-use super::backward::{GradientMode, GradientOptions};
+use super::backward::{GradientMode, GradientOptions, SurfaceGradient};
 use super::loss::Loss;
 use super::run::{value_and_gradient, GradientSettings};
 use crate::error::Result;
@@ -75,7 +75,8 @@ pub struct GradcheckSettings {
     pub rtol: f64,
     /// The backward pass checked.
     pub options: GradientOptions,
-    /// Also report the paper's approximation beside it (not checked).
+    /// Also report the paper's approximation beside it (not checked): the pose dependence
+    /// of the geometry dropped and the surface held fixed in the backward pass.
     pub compare_paper: bool,
 }
 
@@ -204,7 +205,11 @@ pub fn gradcheck(
 ) -> Result<GradcheckReport> {
     let run = value_and_gradient(sim, steps, loss, &GradientSettings::from(s.options))?;
     let paper = if s.compare_paper {
-        let options = GradientOptions { mode: GradientMode::Paper, ..s.options };
+        let options = GradientOptions {
+            mode: GradientMode::Paper,
+            surface: SurfaceGradient::Frozen,
+            ..s.options
+        };
         Some(value_and_gradient(sim, steps, loss, &GradientSettings::from(options))?)
     } else {
         None
