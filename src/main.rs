@@ -303,7 +303,7 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
 }
 
 fn bench(args: BenchArgs) -> Outcome {
-    let bar = bar(4, false, "{bar:30} {pos}/{len} {msg} [{elapsed}]");
+    let bar = bar(5, false, "{bar:30} {pos}/{len} {msg} [{elapsed}]");
     let lines = write_bench(&args.out, args.quick, |study| {
         if bar.position() > 0 || !bar.message().is_empty() {
             bar.inc(1);

@@ -14,8 +14,9 @@
 //! search, iteration state) is saved with argmin's serde support.
 
 use crate::error::{Error, Result};
-use crate::experiments::scene::{OptimizerSpec, Scene};
+use crate::experiments::scene::{OptimizerSpec, Scene, SurfaceGradientSpec};
 use crate::geometry::body::{BodyState, Param};
+use crate::gradients::backward::SurfaceGradient;
 use crate::gradients::{
     value_and_gradient, BodyTargetLoss, GradientOptions, GradientSettings, Loss,
 };
@@ -181,6 +182,10 @@ impl Optimization {
             max_gradient_norm: spec.max_gradient_norm,
             gradient: GradientOptions {
                 through_contact: spec.through_contact,
+                surface: match spec.surface_gradient {
+                    SurfaceGradientSpec::Live => SurfaceGradient::Live,
+                    SurfaceGradientSpec::Frozen => SurfaceGradient::Frozen,
+                },
                 ..Default::default()
             },
             initial,

@@ -203,7 +203,7 @@ fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> 
     out
 }
 
-/// The four studies of `diffluid bench`, run and written into `out` as CSV tables and PNG
+/// The five studies of `diffluid bench`, run and written into `out` as CSV tables and PNG
 /// charts; `progress` hears each study's name as it starts. Returns a few lines of summary.
 pub fn write_bench(out: &Path, quick: bool, mut progress: impl FnMut(&str)) -> Result<Vec<String>> {
     let at = |name: &str| out.join(name);
@@ -272,6 +272,27 @@ pub fn write_bench(out: &Path, quick: bool, mut progress: impl FnMut(&str)) -> R
         "time per step against liquid cells",
         ("liquid cells", "ms per step (median)"),
         (false, false),
+        &s,
+    )?;
+
+    progress("smoothness over long horizons");
+    let sm = bench::smoothness(quick)?;
+    write_csv(&at("smoothness.csv"), &sm)?;
+    let s = series(sm.iter().flat_map(|r| {
+        let h = r.horizon as f64;
+        [
+            (format!("{} {}: spread of fd over ε", r.settings, r.param), (h, r.spread.max(1e-12))),
+            (
+                format!("{} {}: adjoint vs fd(1e-6)", r.settings, r.param),
+                (h, r.adjoint_error.max(1e-12)),
+            ),
+        ]
+    }));
+    plot::line_chart(
+        &at("smoothness.png"),
+        "surge: smoothness of the forward map and the adjoint's error",
+        ("horizon, steps", "relative (floored at 1e-12)"),
+        (false, true),
         &s,
     )?;
 

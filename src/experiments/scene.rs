@@ -261,11 +261,27 @@ pub struct OptimizeSpec {
     /// it is never silent. Default false: contact and optimisation are then an error.
     #[serde(default)]
     pub through_contact: bool,
+    /// The backward pass's surface: `"live"` (default: the surface's motion differentiated,
+    /// the exact gradient of the map) or `"frozen"` (the paper's approximation: the surface
+    /// taken as fixed in the backward pass while the forward pass moves it).
+    #[serde(default)]
+    pub surface_gradient: SurfaceGradientSpec,
     /// Hold the liquid surface fixed during the optimisation's epochs (as the paper did for
     /// its timings: no marker particles in the loop). The gradient is then exact, and an epoch
     /// costs no particle work. `run` keeps the scene's own setting. Default false.
     #[serde(default)]
     pub freeze_surface: bool,
+}
+
+/// The backward pass's surface, as a scene names it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SurfaceGradientSpec {
+    /// Differentiate the surface's motion.
+    #[default]
+    Live,
+    /// Hold it fixed in the backward pass.
+    Frozen,
 }
 
 fn max_grad() -> f64 {

@@ -28,7 +28,7 @@ use crate::stages::density::{DensityInputs, DensityProjection};
 use crate::stages::extrapolate::{apply_body_velocities_adjoint, correct_velocity_adjoint};
 use crate::stages::forces::body_velocity_pose_adjoint;
 use crate::stages::pressure::{projection_pose_adjoint, Coupling, PoseAdjointInputs};
-use crate::stages::surface::{self, Bins};
+use crate::stages::surface;
 use crate::world::step::{predicted_velocity, Geometry};
 use crate::world::tape::ParticleRecord;
 use crate::world::{Simulation, StepRecord, StepSystem, Tape};
@@ -471,13 +471,7 @@ impl ParticleAdjoint<'_> {
         }
         // ∂L/∂(positions after): what later steps and the loss ask, and φ_L of this step.
         let mut pbar = if after.is_empty() { vec![Vec3::ZERO; end.len()] } else { after };
-        let (_, nearest) = surface::liquid_sdf_nearest(
-            &end,
-            &Bins::new(&end, &grid),
-            &grid,
-            sim.particle_radius(),
-        );
-        surface::liquid_sdf_adjoint(&end, &nearest, &grid, phi_bar, &mut pbar);
+        surface::liquid_sdf_adjoint(&end, &pr.nearest, &grid, phi_bar, &mut pbar);
         // The second push-out and the density projection.
         if let Some(g) = &inputs {
             add_pose(

@@ -49,8 +49,8 @@ pub struct DensityInputs<'a> {
     pub node_sdf: &'a [f64],
     /// Cells whose centre is in a solid.
     pub centre_in_solid: &'a [bool],
-    /// Particle radius for φ_L.
-    pub radius: f64,
+    /// How φ_L is made from the particles.
+    pub surface: surface::SurfaceModel,
     /// Marker particles seeded per cell (the density of a full cell).
     pub particles_per_cell: usize,
     /// The ghost-fluid θ clamp of the projection's operator.
@@ -78,7 +78,7 @@ impl DensityProjection {
     pub fn build(particles: &[Vec3], g: &DensityInputs<'_>) -> Option<DensityProjection> {
         let grid = g.grid;
         let bins = Bins::new(particles, grid);
-        let (mut phi, nearest) = surface::liquid_sdf_nearest(particles, &bins, grid, g.radius);
+        let (mut phi, nearest) = surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface);
         surface::extend_into_solids(&mut phi, grid, g.centre_in_solid);
         let dens = surface::particle_density(particles, grid, g.particles_per_cell);
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
@@ -259,7 +259,10 @@ mod tests {
             weights: &weights,
             node_sdf: &node_sdf,
             centre_in_solid: &centre_in_solid,
-            radius: surface::particle_radius(grid.dx, 2),
+            surface: surface::SurfaceModel {
+                radius: surface::particle_radius(grid.dx, 2),
+                sparse_cells: true,
+            },
             particles_per_cell: 8,
             theta_min: 0.01,
             solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),

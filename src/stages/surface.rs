@@ -173,7 +173,8 @@ pub fn jacobian_step(grid: &Grid) -> f64 {
 /// given ∂L/∂(advected positions) in `pbar`, leaves ∂L/∂(start positions) there and adds
 /// ∂L/∂u into `ubar`. Each particle's path is replayed and walked back: the midpoint rule's
 /// transpose (the velocity's Jacobian and its transpose-scatter into the field), and the
-/// wall push's Jacobian where it acted. Sequential in particle order (deterministic).
+/// wall push's Jacobian where it acted. The particles run in parallel; the scatter into the
+/// field runs in particle order, so the sums do not depend on the thread count.
 #[allow(clippy::too_many_arguments)]
 pub fn advect_adjoint(
     pos0: &[Vec3],
@@ -188,33 +189,46 @@ pub fn advect_adjoint(
     let walls = Walls { grid, node_sdf };
     let h = dt / subs as f64;
     let fd = jacobian_step(grid);
-    let mut path = Vec::with_capacity(subs);
-    for (x0, xb) in pos0.iter().zip(pbar.iter_mut()) {
-        if *xb == Vec3::ZERO {
-            continue;
-        }
-        path.clear();
-        let mut x = *x0;
-        for _ in 0..subs {
-            let mid = x + 0.5 * h * u.velocity(grid, x);
-            let y = x + h * u.velocity(grid, mid);
-            path.push((x, mid, y));
-            x = walls.keep(y);
-        }
-        let mut bar = *xb;
-        for &(x, mid, y) in path.iter().rev() {
-            // x' = keep(y): the identity unless the push or the clamp acted.
-            let ybar =
-                if walls.keep(y) == y { bar } else { jacobian_t(|p| walls.keep(p), y, fd, bar) };
-            // y = x + h·U(mid), mid = x + h/2·U(x).
-            let (_, jm) = u.velocity_jacobian(grid, mid);
-            let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
-            ubar.scatter_velocity(grid, mid, h * ybar);
-            let (_, jx) = u.velocity_jacobian(grid, x);
-            bar = ybar + mbar + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2]);
-            ubar.scatter_velocity(grid, x, 0.5 * h * mbar);
-        }
-        *xb = bar;
+    // Per particle, in parallel: its start adjoint, and the points and coefficients at which
+    // its path read the field; then the field's adjoint, scattered in particle order.
+    let reads: Vec<Vec<(Vec3, Vec3)>> = pos0
+        .par_iter()
+        .zip(pbar.par_iter_mut())
+        .map(|(x0, xb)| {
+            if *xb == Vec3::ZERO {
+                return Vec::new();
+            }
+            let mut path = Vec::with_capacity(subs);
+            let mut x = *x0;
+            for _ in 0..subs {
+                let mid = x + 0.5 * h * u.velocity(grid, x);
+                let y = x + h * u.velocity(grid, mid);
+                path.push((x, mid, y));
+                x = walls.keep(y);
+            }
+            let mut reads = Vec::with_capacity(2 * subs);
+            let mut bar = *xb;
+            for &(x, mid, y) in path.iter().rev() {
+                // x' = keep(y): the identity unless the push or the clamp acted.
+                let ybar = if walls.keep(y) == y {
+                    bar
+                } else {
+                    jacobian_t(|p| walls.keep(p), y, fd, bar)
+                };
+                // y = x + h·U(mid), mid = x + h/2·U(x).
+                let (_, jm) = u.velocity_jacobian(grid, mid);
+                let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
+                reads.push((mid, h * ybar));
+                let (_, jx) = u.velocity_jacobian(grid, x);
+                bar = ybar + mbar + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2]);
+                reads.push((x, 0.5 * h * mbar));
+            }
+            *xb = bar;
+            reads
+        })
+        .collect();
+    for (x, coef) in reads.iter().flatten() {
+        ubar.scatter_velocity(grid, *x, *coef);
     }
 }
 
@@ -272,12 +286,17 @@ pub fn push_out_of_bodies_adjoint(
     let mut pushes = Vec::new();
     for (bi, b) in bodies.iter().enumerate() {
         let (bounds, pose) = (b.bounds(), b.pose());
-        for (i, x) in pos.iter_mut().enumerate() {
-            let y = push_one(&b.shape, &pose, bounds, *x, margin);
-            if y != *x {
-                pushes.push((bi, i, *x));
-                *x = y;
-            }
+        let moved: Vec<(usize, Vec3, Vec3)> = pos
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, x)| {
+                let y = push_one(&b.shape, &pose, bounds, *x, margin);
+                (y != *x).then_some((i, *x, y))
+            })
+            .collect();
+        for (i, x, y) in moved {
+            pushes.push((bi, i, x));
+            pos[i] = y;
         }
     }
     let mut out = vec![[0.0; 6]; bodies.len()];
@@ -371,20 +390,35 @@ fn for_neighbour_cells(grid: &Grid, ijk: [usize; 3], reach: usize, mut f: impl F
     }
 }
 
+/// How φ_L is made from the particles.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceModel {
+    /// The particle radius r of `min_p |x − x_p| − r` (see [`particle_radius`]).
+    pub radius: f64,
+    /// A cell that holds a particle is liquid even where the distance says air (see
+    /// [`liquid_sdf_nearest`]).
+    pub sparse_cells: bool,
+}
+
 /// The liquid signed distance at cell centres: `min_p |x − x_p| − r`, exact where the
 /// nearest particle is within two cells, and `2·dx − r` or more beyond.
-pub fn liquid_sdf(pos: &[Vec3], bins: &Bins, grid: &Grid, radius: f64) -> Vec<f64> {
-    liquid_sdf_nearest(pos, bins, grid, radius).0
+pub fn liquid_sdf(pos: &[Vec3], bins: &Bins, grid: &Grid, model: &SurfaceModel) -> Vec<f64> {
+    liquid_sdf_nearest(pos, bins, grid, model).0
 }
 
 /// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
-/// move with a particle: capped far from the liquid, or set by the one-particle rule).
+/// move with a particle: capped far from the liquid, or set by the sparse-cell rule). With
+/// `model.sparse_cells`, a cell that holds a particle is liquid even where the particles are
+/// too sparse for the distance to say so (thin sheets, splashes): the projection then keeps
+/// it divergence-free instead of leaving its particles to extrapolated air velocities, which
+/// bunch them up and lose volume. The rule makes φ jump when a particle crosses a cell face.
 pub fn liquid_sdf_nearest(
     pos: &[Vec3],
     bins: &Bins,
     grid: &Grid,
-    radius: f64,
+    model: &SurfaceModel,
 ) -> (Vec<f64>, Vec<u32>) {
+    let radius = model.radius;
     use crate::geometry::grid::NONE;
     let cells = grid.cells();
     let dx = grid.dx;
@@ -420,11 +454,10 @@ pub fn liquid_sdf_nearest(
                         }
                     }
                     let value = d.0 - radius;
-                    // A cell that holds a particle is liquid even where the particles are too
-                    // sparse for the distance to say so (thin sheets, splashes): the projection
-                    // then keeps it divergence-free instead of leaving its particles to
-                    // extrapolated air velocities, which bunch them up and lose volume.
-                    if value >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {
+                    if model.sparse_cells
+                        && value >= 0.0
+                        && !bins.cell(grid.cell(i, j, k)).is_empty()
+                    {
                         phi.push(-1e-3 * dx);
                         who.push(NONE);
                     } else {
@@ -613,7 +646,8 @@ mod tests {
         let bins = Bins::new(&pos, &grid);
         let vol = liquid_volume(&pos, &grid, 8);
         assert!((vol - 0.5).abs() < 1e-12, "volume {vol}");
-        let phi = liquid_sdf(&pos, &bins, &grid, particle_radius(grid.dx, 2));
+        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
+        let phi = liquid_sdf(&pos, &bins, &grid, &model);
         // Centres at y = 7/16 (below) and 9/16 (above) straddle the surface y = 0.5 evenly.
         let below = phi[grid.cell(3, 3, 3)];
         let above = phi[grid.cell(3, 4, 3)];
@@ -772,15 +806,15 @@ mod adjoint_tests {
         let (p0, dp) = (particles(300), dir(300, 8));
         let cells = grid.num_cells();
         let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
-        let radius = particle_radius(grid.dx, 2);
+        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
         let sdf = |p: &[Vec3]| {
-            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, radius);
+            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model);
             phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
         let dens = |p: &[Vec3]| {
             particle_density(p, &grid, 8).iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
-        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, radius);
+        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model);
         let mut g_sdf = vec![Vec3::ZERO; p0.len()];
         liquid_sdf_adjoint(&p0, &nearest, &grid, &phi_bar, &mut g_sdf);
         let mut g_dens = vec![Vec3::ZERO; p0.len()];

@@ -40,7 +40,7 @@ use crate::stages::density::{self, DensityInputs};
 use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
 use crate::stages::forces::body_velocity;
 use crate::stages::pressure::PressureParams;
-use crate::stages::surface::{self, Bins};
+use crate::stages::surface::{self, Bins, SurfaceModel};
 use std::time::Instant;
 
 /// A body's name in a [`Simulation`], stable while other bodies come and go.
@@ -214,7 +214,8 @@ impl SimulationBuilder {
         let (frozen_phi, frozen_volume) = if self.settings.solver.freeze_surface {
             let bins = Bins::new(&particles, &grid);
             let vol = surface::liquid_volume(&particles, &grid, ppc);
-            (Some(surface::liquid_sdf(&particles, &bins, &grid, radius)), vol)
+            let model = SurfaceModel { radius, sparse_cells: self.settings.solver.sparse_cells };
+            (Some(surface::liquid_sdf(&particles, &bins, &grid, &model)), vol)
         } else {
             (None, 0.0)
         };
@@ -550,7 +551,7 @@ impl Simulation {
                 &self.particles,
                 &Bins::new(&self.particles, &self.grid),
                 &self.grid,
-                self.radius,
+                &self.surface_model(),
             ),
         }
     }
@@ -611,7 +612,22 @@ impl Simulation {
 
         // 3. Where the liquid is now (with a frozen surface: where it was at the start). It
         // depends on the particles only, and tells advection which faces the step reads.
-        let particle_phi = self.particle_phi();
+        let mut particle_record = particle_record;
+        let particle_phi = match particle_record.as_mut() {
+            // Taped: the particle each cell's φ is the distance to, for the backward pass.
+            Some(r) => {
+                let bins = Bins::new(&self.particles, &grid);
+                let (phi, nearest) = surface::liquid_sdf_nearest(
+                    &self.particles,
+                    &bins,
+                    &grid,
+                    &self.surface_model(),
+                );
+                r.nearest = nearest;
+                phi
+            }
+            None => self.particle_phi(),
+        };
         lap(&mut times.surface);
         let taped_phi = match (&start, &self.frozen_phi) {
             (Some(_), None) => particle_phi.clone(),
@@ -738,8 +754,19 @@ impl Simulation {
         }
         let start = taped.then(|| self.particles.clone());
         let margin = self.push_margin();
-        let substeps =
-            surface::advect(&mut self.particles, &self.u, &self.grid, dt, &self.statics.node_sdf);
+        let substeps = match self.settings.solver.particle_substeps {
+            0 => surface::advect_substeps(&self.u, &self.grid, dt),
+            n => n.max(surface::advect_substeps(&self.u, &self.grid, dt)),
+        };
+        let node_sdf = &self.statics.node_sdf;
+        surface::advect_substepped(
+            &mut self.particles,
+            &self.u,
+            &self.grid,
+            dt,
+            substeps,
+            node_sdf,
+        );
         surface::push_out_of_bodies(&mut self.particles, &self.bodies, margin);
         let advected = taped.then(|| self.particles.clone());
         let mut density = None;
@@ -761,6 +788,7 @@ impl Simulation {
             substeps,
             advected,
             density,
+            nearest: Vec::new(),
         }))
     }
 
@@ -769,9 +797,9 @@ impl Simulation {
         1e-3 * self.grid.dx
     }
 
-    /// The particle radius of φ_L.
-    pub fn particle_radius(&self) -> f64 {
-        self.radius
+    /// How φ_L is made from the particles.
+    pub fn surface_model(&self) -> SurfaceModel {
+        SurfaceModel { radius: self.radius, sparse_cells: self.settings.solver.sparse_cells }
     }
 
     /// What the density projection of a step with `geometry` reads (None when it is off).
@@ -782,7 +810,7 @@ impl Simulation {
             weights: &geometry.weights,
             node_sdf: &self.statics.node_sdf,
             centre_in_solid: &geometry.centre_in_solid,
-            radius: self.radius,
+            surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,
             theta_min: solver.theta_min,
             solve: solver.linear(),

@@ -50,6 +50,9 @@ pub struct ParticleRecord {
     pub advected: Vec<Vec3>,
     /// The density projection's potential q (None when no cell was over full or it is off).
     pub density: Option<Vec<f64>>,
+    /// Per cell, the particle (at the end of the step) whose distance the step's φ_L is
+    /// (`NONE` where φ does not move with a particle).
+    pub nearest: Vec<u32>,
 }
 
 /// The recorded forward pass.
@@ -79,6 +82,7 @@ impl Tape {
                     + s.particles.as_ref().map_or(0, |r| {
                         24 * (r.start.len() + r.advected.len())
                             + 8 * r.density.as_ref().map_or(0, Vec::len)
+                            + 4 * r.nearest.len()
                     })
             })
             .sum();
