@@ -254,6 +254,17 @@ fn particles_per_cell_not_a_cube() {
     assert_refused(&output, &dir.out(), &["solver.particles_per_cell", "got 5", &line]);
 }
 
+/// 254 extrapolation layers overflowed the layer counter and tripped an assertion in the
+/// first step (a panic from a scene file); now the setting is checked with the others.
+#[test]
+fn too_many_extrapolation_layers() {
+    let dir = TempDir::new("layers");
+    let text = broken("extrapolation_layers = 3\n", "extrapolation_layers = 254\n");
+    let line = at_line(line_of(&text, "extrapolation_layers ="));
+    let output = run(&dir.scene(&text), &dir.out(), &[]);
+    assert_refused(&output, &dir.out(), &["solver.extrapolation_layers", "got 254", &line]);
+}
+
 /// Positive control: the unmodified scene runs, so the failures above are due to the edits.
 #[test]
 fn valid_scene_runs_and_writes_outputs() {

@@ -67,6 +67,10 @@ impl Fluid {
     }
 }
 
+/// The most extrapolation layers a scene may ask for: far more than advection ever reads
+/// (Δt·|u|/dx cells), and below what the layer counter of `extrapolate.rs` holds (253).
+pub const MAX_EXTRAPOLATION_LAYERS: usize = 64;
+
 /// Solver settings (a scene's `[solver]` table). Every field has a default, given with its
 /// reason.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -161,6 +165,16 @@ impl SolverSettings {
         }
         if self.max_iterations == 0 {
             return Err(SettingError::new("solver.max_iterations", "must be at least 1"));
+        }
+        if self.extrapolation_layers > MAX_EXTRAPOLATION_LAYERS {
+            return Err(SettingError::new(
+                "solver.extrapolation_layers",
+                format!(
+                    "must be at most {MAX_EXTRAPOLATION_LAYERS} (advection reads a few cells \
+                     beyond the surface), got {}",
+                    self.extrapolation_layers
+                ),
+            ));
         }
         let m = (self.particles_per_cell as f64).cbrt().round() as usize;
         if !(1..=4).contains(&m) || m * m * m != self.particles_per_cell {
