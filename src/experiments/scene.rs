@@ -27,6 +27,7 @@ pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("recover_box", include_str!("../../assets/scenes/recover_box.toml")),
     ("gradcheck_live", include_str!("../../assets/scenes/gradcheck_live.toml")),
     ("surge_ball", include_str!("../../assets/scenes/surge_ball.toml")),
+    ("surge_target", include_str!("../../assets/scenes/surge_target.toml")),
 ];
 
 /// A whole scene.

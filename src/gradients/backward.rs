@@ -5,14 +5,19 @@
 //!
 //! 6ᵀ rigid integration (quaternion product and normalisation), 5ᵀ velocity correction
 //! (rigid faces, closed faces, extrapolation layers), 4ᵀ projection (one more solve with the
-//! same operator, and the pose derivative of its geometry), 2ᵀ forces (the identity, and the
-//! torque's pose derivative), 1ᵀ advection ((W + ∂W/∂u·u)ᵀ).
+//! same operator, the pose derivative of its geometry, and ∂L/∂φ_L through the ghost-fluid
+//! θ), 2ᵀ forces (the identity, and the torque's pose derivative), 1ᵀ advection
+//! ((W + ∂W/∂u·u)ᵀ), 0ᵀ the marker particles (density projection, push-outs, advection),
+//! whose positions are part of the state: the adjoint carries ∂L/∂(particles) from step to
+//! step.
 //!
-//! The liquid surface (particles, φ_L) is held fixed in the backward pass, as in the paper;
-//! with `solver.freeze_surface` the forward pass holds it fixed too, and the gradient is then
-//! the exact gradient of the forward map. [`GradientMode::Full`] carries the dependence of
-//! the geometry on the body poses (face fractions, J, the world inertia, the rigid velocity
-//! set inside bodies); [`GradientMode::Paper`] drops it, as the paper does.
+//! [`SurfaceGradient::Live`] (the default) differentiates the surface's motion, so the
+//! gradient is that of the forward map wherever no cell or face changes kind;
+//! [`SurfaceGradient::Frozen`] holds the surface fixed in the backward pass, as the paper did
+//! (exact only when `solver.freeze_surface` holds it fixed in the forward pass too).
+//! [`GradientMode::Full`] carries the dependence of the geometry on the body poses (face
+//! fractions, J, the world inertia, the rigid velocity set inside bodies, the push-outs);
+//! [`GradientMode::Paper`] drops it, as the paper does.
 
 use super::loss::{AdjointState, BodyAdjoint, BodyGradient, Gradient};
 use crate::error::{Error, Result};

@@ -1,4 +1,5 @@
-//! The free surface: marker particles, their advection, and the liquid signed distance φ_L.
+//! The free surface: marker particles, their advection, and the liquid signed distance φ_L,
+//! each with its adjoint (the live-surface gradient of `gradients::backward`).
 //!
 //! Particles are seeded on a regular sub-lattice (m³ per cell), advected with RK2 in the
 //! grid velocity, pushed out of static solids and kept inside the tank. φ_L at a cell centre
