@@ -646,8 +646,16 @@ impl Simulation {
             sys.coupled.iter().map(|&i| body_velocity(&self.bodies[i], v3(gravity), dt)).collect();
         lap(&mut times.forces);
 
-        // 4. Projection, coupled with the bodies, contact held inside it.
-        let contact = self.contact_on(dt);
+        // 4. Projection, coupled with the bodies, contact held inside it (when contact is
+        // possible for the bodies moving at their velocities before the pressure acts).
+        let contact = self.settings.contact.enabled && {
+            let mut moving = self.bodies.clone();
+            for (&i, v) in sys.coupled.iter().zip(&v_hat) {
+                moving[i].v = Vec3::new(v[0], v[1], v[2]);
+                moving[i].w = Vec3::new(v[3], v[4], v[5]);
+            }
+            contact_possible(&moving, grid.size(), dt)
+        };
         let proj = self.project(&sys, &u_hat, &v_hat, dt, contact)?;
         for ((&i, v), f) in sys.coupled.iter().zip(&proj.v_after).zip(&proj.forces) {
             let b = &mut self.bodies[i];
@@ -683,6 +691,8 @@ impl Simulation {
         correct_velocity(&mut u, &mut valid, &self.statics.weights, &grid, layers);
         lap(&mut times.correct_velocity);
 
+        // Whether rapier integrates the bodies: contact possible at their new velocities.
+        let contact_moves = self.contact_on(dt);
         if let (Some(t), Some((u0, bodies))) = (tape, start) {
             t.steps.push(StepRecord {
                 u: u0,
@@ -692,13 +702,13 @@ impl Simulation {
                 p: proj.p.clone(),
                 phi: taped_phi,
                 body_faces: sys.geometry.body_faces.clone(),
-                contact,
+                contact: contact || contact_moves,
                 particles: particle_record,
             });
         }
 
         // 6. Rigid integration (or contact).
-        self.move_bodies(dt, contact)?;
+        self.move_bodies(dt, contact_moves)?;
         lap(&mut times.rigid);
 
         self.step += 1;
