@@ -191,6 +191,34 @@ fn pictures(
     plot::animation_gif(&out.join("optimized.gif"), domain, &gif, 80)
 }
 
+/// The smoothness study's two charts: the spread of the central differences over ε
+/// (`smoothness_spread.png`) and the adjoint's error against the smallest ε
+/// (`smoothness_adjoint.png`), per settings and parameter, against the horizon.
+pub fn smoothness_charts(out: &Path, rows: &[bench::SmoothnessRow]) -> Result<()> {
+    let h = |r: &bench::SmoothnessRow| r.horizon as f64;
+    let spread = series(
+        rows.iter().map(|r| (format!("{} {}", r.settings, r.param), (h(r), r.spread.max(1e-12)))),
+    );
+    plot::line_chart(
+        &out.join("smoothness_spread.png"),
+        "surge: spread of the central differences over eps = 1e-3 ... 1e-6",
+        ("horizon, steps", "(max - min) / |fd(1e-6)|"),
+        (false, true),
+        &spread,
+    )?;
+    let adjoint = series(
+        rows.iter()
+            .map(|r| (format!("{} {}", r.settings, r.param), (h(r), r.adjoint_error.max(1e-12)))),
+    );
+    plot::line_chart(
+        &out.join("smoothness_adjoint.png"),
+        "surge: live-surface adjoint against fd(1e-6)",
+        ("horizon, steps", "relative error (floored at 1e-12)"),
+        (false, true),
+        &adjoint,
+    )
+}
+
 /// Points grouped into one series per label, in the order the labels first appear.
 fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> {
     let mut out: Vec<Series> = Vec::new();
@@ -278,23 +306,7 @@ pub fn write_bench(out: &Path, quick: bool, mut progress: impl FnMut(&str)) -> R
     progress("smoothness over long horizons");
     let sm = bench::smoothness(quick)?;
     write_csv(&at("smoothness.csv"), &sm)?;
-    let s = series(sm.iter().flat_map(|r| {
-        let h = r.horizon as f64;
-        [
-            (format!("{} {}: spread of fd over ε", r.settings, r.param), (h, r.spread.max(1e-12))),
-            (
-                format!("{} {}: adjoint vs fd(1e-6)", r.settings, r.param),
-                (h, r.adjoint_error.max(1e-12)),
-            ),
-        ]
-    }));
-    plot::line_chart(
-        &at("smoothness.png"),
-        "surge: smoothness of the forward map and the adjoint's error",
-        ("horizon, steps", "relative (floored at 1e-12)"),
-        (false, true),
-        &s,
-    )?;
+    smoothness_charts(out, &sm)?;
 
     let mut lines = Vec::new();
     let air: Vec<&bench::CostRow> = cost.iter().filter(|r| r.series == "air").collect();
