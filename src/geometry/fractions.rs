@@ -3,10 +3,12 @@
 //! The solid fraction of a face is the solid part of the face's *control volume*: the box
 //! that spans the face and reaches from the cell centre on one side to the cell centre on
 //! the other, the volume a face velocity stands for in the variational pressure solve
-//! (Batty et al. 2007). It is computed from the signed distance at the box's 8 corners,
-//! taken linear on each of the 6 tetrahedra of the box's Kuhn split, where the volume of
+//! (Batty et al. 2007). It is computed from the signed distance sampled every dx/2 (the
+//! control volume is 2×2×2 sub-boxes, [`SUBSAMPLE`]), each sub-box split into 24 congruent
+//! tetrahedra (box centre, a face centre, an edge of that face; see
+//! [`box_fraction_inside`]) with the distance taken linear on each, where the volume of
 //! `{phi < 0}` has a closed form. The result is continuous and piecewise smooth in the
-//! corner values for every orientation of the boundary.
+//! samples for every orientation of the boundary.
 //!
 //! (An earlier version used the *area* fraction of the face from its 4 corners, as Batty's
 //! 2D code does. That jumps from 0 to 1 when a body's face lies in the plane of a grid face
