@@ -265,6 +265,17 @@ fn too_many_extrapolation_layers() {
     assert_refused(&output, &dir.out(), &["solver.extrapolation_layers", "got 254", &line]);
 }
 
+/// A 800 × 300 × 400 tank (96M cells) needs some 40 GB: refused before anything is allocated
+/// with the estimate and what is available (it used to abort on a failed allocation, or take
+/// the machine's memory until the OS killed it).
+#[test]
+fn a_grid_too_large_for_the_machine_is_refused() {
+    let dir = TempDir::new("huge");
+    let text = broken("dx = 0.1\n", "dx = 0.005\n");
+    let output = run(&dir.scene(&text), &dir.out(), &[]);
+    assert_refused(&output, &dir.out(), &["needs about", "GB", "solver.memory_limit_gb"]);
+}
+
 /// Positive control: the unmodified scene runs, so the failures above are due to the edits.
 #[test]
 fn valid_scene_runs_and_writes_outputs() {

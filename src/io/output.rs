@@ -92,14 +92,27 @@ pub fn write_csv<T: Serialize>(path: &Path, rows: &[T]) -> Result<()> {
     write_atomic(path, &bytes)
 }
 
-/// Writes a file through a temporary and a rename, so a reader never sees half a file.
+/// Writes a file through a temporary and a rename, so a reader never sees half a file: the
+/// temporary is flushed to the disk (fsync) before the rename and the folder after it, so a
+/// power loss leaves the old file or the new one, never an empty one.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(write_err(dir))?;
-    }
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir).map_err(write_err(&dir))?;
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).map_err(write_err(&tmp))?;
-    std::fs::rename(&tmp, path).map_err(write_err(path))
+    let mut f = std::fs::File::create(&tmp).map_err(write_err(&tmp))?;
+    f.write_all(bytes).map_err(write_err(&tmp))?;
+    f.sync_all().map_err(write_err(&tmp))?;
+    drop(f);
+    std::fs::rename(&tmp, path).map_err(write_err(path))?;
+    // The rename lives in the folder's entries: flush them too (where the platform lets a
+    // folder be opened; elsewhere the rename is as durable as the file system makes it).
+    if let Ok(d) = std::fs::File::open(&dir) {
+        d.sync_all().ok();
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -109,6 +109,12 @@ pub struct SolverSettings {
     /// (cheap, but the count changes as the flow speeds up, a jump of the forward map). A
     /// fixed count (at least that many, up to 64) makes the map smooth there.
     pub particle_substeps: usize,
+    /// The most memory a simulation may take, GB. Default: none given, so the memory the
+    /// machine has available (its free memory, or the cgroup limit) is the limit. Before
+    /// anything is allocated, a scene's needs are estimated (see
+    /// [`crate::world::SimulationBuilder::memory_estimate`]) and a scene over the limit is
+    /// refused; a larger value here lets it run anyway.
+    pub memory_limit_gb: Option<f64>,
     /// Hold the free surface fixed: the marker particles do not move and the liquid signed
     /// distance keeps its initial value (extended into the solids where they are now). The
     /// backward pass always holds the surface fixed (as the paper does); with this switch the
@@ -138,6 +144,7 @@ impl Default for SolverSettings {
             density_correction: true,
             sparse_cells: true,
             particle_substeps: 0,
+            memory_limit_gb: None,
             freeze_surface: false,
             coupling: Coupling::Monolithic,
             cfl: 1.0,
@@ -193,6 +200,9 @@ impl SolverSettings {
             ));
         }
         check_positive("solver.cfl", self.cfl)?;
+        if let Some(gb) = self.memory_limit_gb {
+            check_positive("solver.memory_limit_gb", gb)?;
+        }
         if self.particle_substeps > 64 {
             return Err(SettingError::new(
                 "solver.particle_substeps",
