@@ -98,9 +98,11 @@ impl Checkpoint {
         })
     }
 
-    /// Writes it atomically (write, then rename): a kill leaves the previous one intact.
+    /// Writes it atomically (write, then rename) and durably (fsync of the file and its
+    /// folder): a kill or a power loss leaves the previous one intact.
     pub fn save(&self, path: &Path) -> Result<()> {
-        crate::io::output::write_json(path, self)
+        let text = serde_json::to_vec_pretty(self).expect("serialisable");
+        crate::io::output::write_durable(path, &text)
     }
 }
 

@@ -92,10 +92,19 @@ pub fn write_csv<T: Serialize>(path: &Path, rows: &[T]) -> Result<()> {
     write_atomic(path, &bytes)
 }
 
-/// Writes a file through a temporary and a rename, so a reader never sees half a file: the
-/// temporary is flushed to the disk (fsync) before the rename and the folder after it, so a
-/// power loss leaves the old file or the new one, never an empty one.
+/// Writes a file through a temporary and a rename, so a reader never sees half a file.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_via_rename(path, bytes, false)
+}
+
+/// [`write_atomic`] for what must survive a power loss (checkpoints): the temporary is
+/// flushed to the disk (fsync) before the rename and the folder after it, so the old file or
+/// the new one is there afterwards, never an empty one.
+pub fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_via_rename(path, bytes, true)
+}
+
+fn write_via_rename(path: &Path, bytes: &[u8], sync: bool) -> Result<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => std::path::PathBuf::from("."),
@@ -104,13 +113,17 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
     let mut f = std::fs::File::create(&tmp).map_err(write_err(&tmp))?;
     f.write_all(bytes).map_err(write_err(&tmp))?;
-    f.sync_all().map_err(write_err(&tmp))?;
+    if sync {
+        f.sync_all().map_err(write_err(&tmp))?;
+    }
     drop(f);
     std::fs::rename(&tmp, path).map_err(write_err(path))?;
-    // The rename lives in the folder's entries: flush them too (where the platform lets a
-    // folder be opened; elsewhere the rename is as durable as the file system makes it).
-    if let Ok(d) = std::fs::File::open(&dir) {
-        d.sync_all().ok();
+    if sync {
+        // The rename lives in the folder's entries: flush them too (where the platform lets
+        // a folder be opened).
+        if let Ok(d) = std::fs::File::open(&dir) {
+            d.sync_all().ok();
+        }
     }
     Ok(())
 }
