@@ -265,3 +265,39 @@ fn a_failed_run_stops_and_keeps_the_last_good_parameters() {
     assert!(reason.contains("exploding") && reason.contains("last good"), "{reason}");
     assert_eq!(out.params, problem.initial_params());
 }
+
+/// A checkpoint resumes only the run that wrote it: with the learning rate, the optimiser,
+/// the optimised parameters or the scene changed, `--resume` is refused with the key that
+/// changed (it used to check only the scene's name and went on with the new settings).
+#[test]
+fn resume_refuses_a_changed_setting_and_names_it() {
+    let dir = std::env::temp_dir().join(format!("diffluid-resume-check-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let ck = dir.join("checkpoint.json");
+    let mut scene = Scene::builtin("recover_box").unwrap();
+    scene.time.steps = 4;
+    scene.optimize.as_mut().unwrap().epochs = 2;
+    Optimization::new(scene.clone()).unwrap().run(Some(&ck), None, |_| {}).unwrap();
+    let resume = |s: &Scene| {
+        let c = diffluid::experiments::optimize::Checkpoint::load(&ck).unwrap();
+        Optimization::new(s.clone()).unwrap().run(Some(&dir.join("other.json")), Some(c), |_| {})
+    };
+    // More epochs are fine: that is what resuming is for.
+    let mut more = scene.clone();
+    more.optimize.as_mut().unwrap().epochs = 3;
+    assert!(resume(&more).is_ok());
+    let mut lr = scene.clone();
+    lr.optimize.as_mut().unwrap().optimizer =
+        diffluid::experiments::scene::OptimizerSpec::Gd { learning_rate: 2.0 };
+    let err = resume(&lr).unwrap_err().to_string();
+    assert!(err.contains("optimize.optimizer.learning_rate") && err.contains("5.0"), "{err}");
+    let mut params = scene.clone();
+    params.optimize.as_mut().unwrap().params.push(diffluid::geometry::body::Param::W);
+    let err = resume(&params).unwrap_err().to_string();
+    assert!(err.contains("optimize.params"), "{err}");
+    let mut dense = scene.clone();
+    dense.body[0].density = Some(700.0);
+    let err = resume(&dense).unwrap_err().to_string();
+    assert!(err.contains("body"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

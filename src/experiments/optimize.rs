@@ -85,6 +85,33 @@ pub struct Checkpoint {
     /// Loss-and-gradient evaluations so far.
     #[serde(default)]
     pub evaluations: usize,
+    /// The scene's settings the run was started with (everything a resumed run must share:
+    /// see [`Optimization::fingerprint`]); absent in checkpoints of older versions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub settings: Option<serde_json::Value>,
+}
+
+/// The first dotted key at which two JSON values differ, with both values.
+fn first_difference(
+    path: &str,
+    a: &serde_json::Value,
+    b: &serde_json::Value,
+) -> Option<(String, String, String)> {
+    use serde_json::Value;
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            let mut keys: Vec<&String> = x.keys().chain(y.keys()).collect();
+            keys.sort();
+            keys.dedup();
+            keys.into_iter().find_map(|k| {
+                let p = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                let null = Value::Null;
+                first_difference(&p, x.get(k).unwrap_or(&null), y.get(k).unwrap_or(&null))
+            })
+        }
+        _ if a == b => None,
+        _ => Some((path.to_string(), a.to_string(), b.to_string())),
+    }
 }
 
 impl Checkpoint {
@@ -195,6 +222,22 @@ impl Optimization {
         })
     }
 
+    /// What a resumed run must share with the one that wrote the checkpoint: the whole
+    /// scene as it was parsed (domain, time, fluid, liquid, obstacles, solver, bodies, contact,
+    /// loss, optimizer and its settings), but for the number of epochs (`--epochs` may extend a
+    /// run), the description and the outputs.
+    pub fn fingerprint(&self) -> serde_json::Value {
+        let mut v = serde_json::to_value(&self.scene).expect("a scene serialises");
+        if let Some(o) = v.get_mut("optimize").and_then(|o| o.as_object_mut()) {
+            o.remove("epochs");
+        }
+        if let Some(m) = v.as_object_mut() {
+            m.remove("description");
+            m.remove("output");
+        }
+        v
+    }
+
     /// The scene's initial parameters.
     pub fn initial_params(&self) -> BodyState {
         self.initial.bodies()[self.body].state()
@@ -292,6 +335,18 @@ impl Optimization {
                         message: format!("the checkpoint is for scene {:?}", c.scene),
                     });
                 }
+                if let Some(saved) = &c.settings {
+                    if let Some((key, was, now)) = first_difference("", saved, &self.fingerprint())
+                    {
+                        return Err(Error::InvalidScene {
+                            origin: self.scene.name.clone(),
+                            message: format!(
+                                "cannot resume: {key} was {was} when the checkpoint was written \
+                                 and is {now} now"
+                            ),
+                        });
+                    }
+                }
                 let lbfgs_state = matches!(c.optimizer, OptimizerState::Lbfgs { .. });
                 let lbfgs = matches!(self.optimizer, OptimizerSpec::Lbfgs { .. });
                 let fresh = c.next_epoch == 0 && c.history.is_empty();
@@ -310,6 +365,7 @@ impl Optimization {
                 optimizer: self.start_state(),
                 history: Vec::new(),
                 evaluations: 0,
+                settings: Some(self.fingerprint()),
             },
         };
         match &self.optimizer {
