@@ -61,7 +61,9 @@ angular_velocity = [0.4, -0.2, 0.6]"#
 
 #[test]
 fn obj_cube_and_cuboid_give_the_same_trajectory() {
-    let mesh = trajectory(r#"{ kind = "mesh", obj = "../meshes/cube.obj" }"#);
+    // A relative mesh path starts from the current folder (the crate root under `cargo
+    // test`), not from a folder fixed when diffluid was compiled.
+    let mesh = trajectory(r#"{ kind = "mesh", obj = "assets/meshes/cube.obj" }"#);
     let cuboid = trajectory(r#"{ kind = "cuboid", half_extents = [0.1, 0.1, 0.1] }"#);
     let travelled = (mesh.last().unwrap().0 - mesh[0].0).length().max(1e-3);
     let mut worst: f64 = 0.0;

@@ -420,13 +420,9 @@ impl Scene {
     }
 
     /// Parses and validates a scene from TOML text; `origin` names it in errors. Relative
-    /// mesh paths start from `assets/scenes/`.
+    /// mesh paths start from the current folder (use [`Scene::from_toml_in`] to give another).
     pub fn from_toml(text: &str, origin: &str) -> Result<Scene> {
-        Scene::from_toml_in(
-            text,
-            origin,
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes"),
-        )
+        Scene::from_toml_in(text, origin, PathBuf::from("."))
     }
 
     fn parse(text: &str, origin: &str) -> Result<Scene> {
@@ -473,12 +469,16 @@ impl Scene {
                     message: format!("no built-in scene named {name:?}"),
                 }
             })?;
-        Scene::from_toml(text, &format!("<builtin {name}>"))
+        // The built-in scenes ship with the crate: their relative mesh paths start from its
+        // `assets/scenes/`.
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes");
+        Scene::from_toml_in(text, &format!("<builtin {name}>"), base)
     }
 
     /// The embedded default scene.
     pub fn embedded_default() -> Scene {
-        Scene::from_toml(DEFAULT_SCENE, "<embedded>").expect("the embedded scene is valid")
+        let base = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes");
+        Scene::from_toml_in(DEFAULT_SCENE, "<embedded>", base).expect("the embedded scene is valid")
     }
 
     /// Re-checks a scene built or edited in code.

@@ -197,7 +197,9 @@ impl SimulationBuilder {
         if particles > u32::MAX as f64 {
             return Err(SettingError::new(
                 "solver.particles_per_cell",
-                format!("about {particles:.3e} marker particles: more than the 2³² a bin can index"),
+                format!(
+                    "about {particles:.3e} marker particles: more than the 2³² a bin can index"
+                ),
             ));
         }
         let limit = match self.settings.solver.memory_limit_gb {
