@@ -156,6 +156,9 @@ fn run(args: RunArgs) -> Outcome {
     }
     let out = args.out.unwrap_or_else(|| PathBuf::from("out").join(&scene.name));
     let mut sim = scene.build()?;
+    for w in sim.warnings() {
+        eprintln!("warning: {w}");
+    }
     let frames =
         Frames { every: scene.output.every, particles: scene.output.particles, vtk: args.vtk };
     let mut rec = RunRecorder::new(&out, &scene.name, frames, &sim)?;
@@ -170,6 +173,9 @@ fn run(args: RunArgs) -> Outcome {
     for _ in 0..scene.time.steps {
         match sim.step() {
             Ok(r) => {
+                for w in &r.warnings {
+                    bar.suspend(|| eprintln!("warning: {w}"));
+                }
                 bar.set_message(format!("{} cg {:>3} it", scene.name, r.cg_iterations));
                 rec.record(&sim, r)?;
                 bar.inc(1);

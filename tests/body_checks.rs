@@ -194,3 +194,28 @@ position = [0.41, 0.1001, 0.38]"#;
     assert!(liquid < 0.02, "the resting cube stirred the liquid to {liquid} m/s");
     assert!(body_speed < 0.01, "the resting cube moved at {body_speed} m/s");
 }
+
+/// A body the grid cannot represent says so instead of silently losing its coupling: a
+/// plate a fifth of a cell thick, between the dx/2 distance samples, is warned about when the world is built (its thickness and
+/// the dx that would resolve it), and its first step reports that its face fractions miss
+/// its whole volume (the volume correction's λ clamped), so its buoyancy is gone. A plate two
+/// cells thick gets neither.
+#[test]
+fn bodies_too_thin_for_the_grid_are_reported() {
+    let plate = |half: f64| {
+        let body = format!(
+            "[[body]]\nname = \"plate\"\nshape = {{ kind = \"cuboid\", half_extents = [0.2, {half}, 0.2] }}\ndensity = 500.0\nposition = [0.41, 0.31, 0.38]"
+        );
+        let mut sim = Scene::from_toml(&tank(&body, 1, false), "<test>").unwrap().build().unwrap();
+        let built = sim.warnings().to_vec();
+        let r = sim.step().unwrap();
+        (built, r.warnings, r.bodies[0].volume_error)
+    };
+    let (built, step, err) = plate(0.005);
+    assert!(built.iter().any(|w| w.contains("plate") && w.contains("cells thick")), "{built:?}");
+    assert!(step.iter().any(|w| w.contains("miss")), "{step:?}");
+    assert!(err > 0.5, "volume error {err}");
+    let (built, step, err) = plate(0.05);
+    assert!(built.is_empty() && step.is_empty(), "{built:?} {step:?}");
+    assert!(err < 1e-9, "volume error {err}");
+}

@@ -300,6 +300,20 @@ pub struct BodyFaces {
     pub faces: [Vec<(usize, f64)>; 3],
 }
 
+impl BodyFaces {
+    /// The largest relative error, over the three axes, of the volume the fractions hold,
+    /// |Σβ·dx³ − V| / V. The volume correction of [`body_faces`] makes it zero unless its λ
+    /// had to be clamped (a body too small or too thin for the grid): then the pressure's
+    /// buoyancy is off by as much.
+    pub fn volume_error(&self, grid: &Grid, volume: f64) -> f64 {
+        let cell = grid.dx.powi(3);
+        self.faces
+            .iter()
+            .map(|f| (f.iter().map(|(_, b)| b).sum::<f64>() * cell - volume).abs() / volume)
+            .fold(0.0, f64::max)
+    }
+}
+
 /// Solid fractions of one body on the interior faces near it (control-volume fractions, as
 /// for static solids), from its signed distance `sdf` over its bounding box grown by a cell.
 ///

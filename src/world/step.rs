@@ -227,6 +227,9 @@ pub struct BodyForce {
     pub force: [f64; 3],
     /// Pressure torque about the centre of mass, N·m.
     pub torque: [f64; 3],
+    /// |Σβ·dx³ − V| / V of its face fractions (see [`BodyFaces::volume_error`]): zero
+    /// unless the body is too small or thin for the grid.
+    pub volume_error: f64,
 }
 
 /// What one step did, as written to `summary.json`.
@@ -259,6 +262,10 @@ pub struct StepReport {
     pub contact_residual: f64,
     /// Wall time per stage.
     pub stage_seconds: StageSeconds,
+    /// What this step found that a user should know and that is not an error (each kind
+    /// once per run): a body whose face fractions cannot hold its volume.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated. Sequential on purpose: the
