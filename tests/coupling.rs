@@ -13,6 +13,7 @@
 
 use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
 use diffluid::geometry::grid::Grid;
+use diffluid::math::Vec3;
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
 use diffluid::world::step::dt_minv;
 use diffluid::{Scene, Simulation};
@@ -200,4 +201,51 @@ fn very_light_body_stays_stable() {
     }
     eprintln!("light body: max kinetic energy {max_ke:.3e} J");
     assert!(max_ke < 10.0, "kinetic energy grew to {max_ke} J");
+}
+
+/// A body that is not dynamic but has a velocity is a paddle: it moves along that velocity,
+/// and the pressure solve sees it as a moving boundary, so the liquid it pushes stays
+/// divergence-free with the paddle's flux counted. (It used to stay where it was while its
+/// velocity was written onto the faces it covers, a flow the pressure never saw.) In a
+/// closed tank full of water, a cube driven at 0.2 m/s for 10 steps: it has moved 0.02 m, the
+/// projection's divergence (paddle flux included) stays at the solver's tolerance, and the
+/// water moves.
+#[test]
+fn a_paddle_moves_and_the_solve_sees_it() {
+    let text = r#"
+name = "paddle"
+[domain]
+size = [0.8, 0.6, 0.6]
+dx = 0.05
+[time]
+dt = 0.01
+steps = 10
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = { kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.6, 0.6] }
+[[body]]
+name = "paddle"
+shape = { kind = "cuboid", half_extents = [0.05, 0.15, 0.15] }
+density = 1000.0
+position = [0.3113, 0.3071, 0.2987]
+velocity = [0.2, 0.0, 0.0]
+dynamic = false
+[solver]
+tolerance = 1e-10
+density_correction = false
+"#;
+    let mut sim = Scene::from_toml(text, "<test>").unwrap().build().unwrap();
+    let x0 = sim.bodies()[0].x;
+    let mut last = None;
+    for _ in 0..10 {
+        last = Some(sim.step().unwrap());
+    }
+    let r = last.unwrap();
+    let moved = sim.bodies()[0].x - x0;
+    assert!((moved - Vec3::new(0.02, 0.0, 0.0)).length() < 1e-12, "moved {moved}");
+    // Divergence in 1/s; the paddle pushes 0.2 m/s × 0.09 m² of flux.
+    assert!(r.max_divergence < 1e-6, "max divergence {}", r.max_divergence);
+    assert!(r.kinetic_energy > 1e-4, "the water did not move: {} J", r.kinetic_energy);
 }

@@ -106,7 +106,10 @@ pub struct BodySpec {
     /// Initial angular velocity (world frame), rad/s.
     #[serde(default)]
     pub angular_velocity: Arr3,
-    /// False for a body held still (it still couples, with zero velocity). Default true.
+    /// False for a body the liquid does not move: held still (it still couples, with zero
+    /// velocity), or, with a `velocity` or `angular_velocity`, moved along it at that
+    /// constant velocity (a paddle or wave maker, a moving boundary of the solve). Default
+    /// true.
     #[serde(default = "yes")]
     pub dynamic: bool,
 }
@@ -565,7 +568,14 @@ impl Scene {
         }
         body.v = v3(b.velocity);
         body.w = v3(b.angular_velocity);
-        body.motion = if b.dynamic { Motion::Dynamic } else { Motion::Fixed };
+        // A body that is not dynamic but has a velocity moves along it: a prescribed motion
+        // (a paddle, a wave maker) the pressure solve sees.
+        let still = b.velocity == [0.0; 3] && b.angular_velocity == [0.0; 3];
+        body.motion = match (b.dynamic, still) {
+            (true, _) => Motion::Dynamic,
+            (false, true) => Motion::Fixed,
+            (false, false) => Motion::Kinematic,
+        };
         Ok(body)
     }
 

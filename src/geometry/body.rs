@@ -50,6 +50,10 @@ pub enum Motion {
     /// engine): diffluid sets its velocity after the solve and leaves its pose alone. See
     /// [`crate::world::Simulation::set_body_state`].
     External,
+    /// Moved along its own velocity (a paddle, a wave maker): a prescribed motion the
+    /// pressure solve sees as a moving boundary, which no force changes. Its velocity enters
+    /// the solve's right-hand side; diffluid integrates its pose.
+    Kinematic,
 }
 
 /// A body's state: the centre of mass `x`, the orientation `q` of the shape frame, the
@@ -144,9 +148,9 @@ impl Param {
 }
 
 impl Motion {
-    /// Whether diffluid integrates a body that moves this way (only dynamic ones).
+    /// Whether diffluid integrates a body that moves this way (dynamic and kinematic ones).
     pub fn integrated_here(self) -> bool {
-        self == Motion::Dynamic
+        matches!(self, Motion::Dynamic | Motion::Kinematic)
     }
 }
 
@@ -241,7 +245,7 @@ impl RigidBody {
     /// Whether the body moves under the liquid's forces: it is one of the coupled solve's
     /// bodies (dynamic or external).
     pub fn moves(&self) -> bool {
-        self.motion != Motion::Fixed
+        matches!(self.motion, Motion::Dynamic | Motion::External)
     }
 
     /// The state.
@@ -330,7 +334,7 @@ impl RigidBody {
 
     /// Stage 6: x += Δt·v; q += Δt/2·[0, ω]⊗q, then normalised (the paper's f_x).
     pub fn integrate(&mut self, dt: f64) {
-        if self.motion != Motion::Dynamic {
+        if !self.motion.integrated_here() {
             return;
         }
         self.x += dt * self.v;

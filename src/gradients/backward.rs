@@ -21,7 +21,7 @@
 
 use super::loss::{AdjointState, BodyAdjoint, BodyGradient, Gradient};
 use crate::error::{Error, Result};
-use crate::geometry::body::{quat_step_adjoint, RigidBody};
+use crate::geometry::body::{quat_step_adjoint, Motion, RigidBody};
 use crate::geometry::fractions;
 use crate::geometry::grid::on_pool;
 use crate::geometry::grid::Mac;
@@ -303,6 +303,13 @@ fn step_adjoint(
     );
     let mut pose_grad = vec![[0.0f64; 6]; bodies.len()];
     for (i, r) in bva.iter().enumerate() {
+        if bodies[i].motion == Motion::Kinematic {
+            // A prescribed motion: its velocity's adjoint, not its pose's.
+            for d in 0..6 {
+                vbar[i][d] += r.vel[d];
+            }
+            continue;
+        }
         if !bodies[i].moves() {
             continue;
         }
@@ -352,6 +359,13 @@ fn step_adjoint(
     for (k, &i) in sys.coupled.iter().enumerate() {
         out[i].v = Vec3::new(vhat_bar[k][0], vhat_bar[k][1], vhat_bar[k][2]);
         out[i].w = Vec3::new(vhat_bar[k][3], vhat_bar[k][4], vhat_bar[k][5]);
+    }
+    // Kinematic bodies: b ∋ −Jᵀ·v, so v̄ −= J·s; the pressure does not change their velocity.
+    for (i, c, _) in &sys.kinematic {
+        let js = c.force(&s);
+        let vb: [f64; 6] = std::array::from_fn(|d| vbar[*i][d] - js[d]);
+        out[*i].v = Vec3::new(vb[0], vb[1], vb[2]);
+        out[*i].w = Vec3::new(vb[3], vb[4], vb[5]);
     }
     if mode == GradientMode::Full {
         let inputs = PoseAdjointInputs {

@@ -161,7 +161,7 @@ pub fn contact_possible(bodies: &[RigidBody], domain: Vec3, dt: f64) -> bool {
         .map(|b| {
             let (lo, hi) = b.bounds();
             let diag = (hi - lo).length();
-            let moving = b.moves();
+            let moving = b.motion != crate::geometry::body::Motion::Fixed;
             let reach = if moving { (b.v.length() + b.w.length() * diag) * dt } else { 0.0 };
             let pad = reach + 0.01 * diag;
             (lo - Vec3::splat(pad), hi + Vec3::splat(pad), moving)

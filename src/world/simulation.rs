@@ -30,7 +30,7 @@ use super::step::{
 };
 use super::tape::{ParticleRecord, StepRecord, Tape};
 use crate::error::{Error, Result};
-use crate::geometry::body::{BodyState, RigidBody};
+use crate::geometry::body::{BodyState, Motion, RigidBody};
 use crate::geometry::fractions;
 use crate::geometry::grid::{on_pool, Grid, Mac};
 use crate::geometry::shape::Solid;
@@ -803,10 +803,7 @@ impl Simulation {
             b.w = Vec3::new(v[3], v[4], v[5]);
             self.fluid_forces[i] = *f;
         }
-        let mut flux = sys.pressure.fluid_flux(&proj.u, &sys.geometry.weights);
-        for (coupling, v) in sys.couplings().iter().zip(&proj.v_after) {
-            coupling.add_jt(v, &mut flux);
-        }
+        let flux = sys.flux(&proj.u, &proj.v_after);
         let max_divergence = flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / grid.dx.powi(3);
         let kinetic_energy = kinetic_energy(
             &proj.u,
@@ -1082,6 +1079,11 @@ impl Simulation {
                 &self.settings.contact,
             )
             .step(&mut self.bodies, dt);
+            // rapier holds kinematic bodies fixed at their pose; they move along their own
+            // velocity.
+            for b in self.bodies.iter_mut().filter(|b| b.motion == Motion::Kinematic) {
+                b.integrate(dt);
+            }
             return Ok(());
         }
         let _ = contact;

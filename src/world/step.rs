@@ -107,6 +107,9 @@ pub struct StepSystem {
     pub coupled: Vec<usize>,
     /// With weak coupling, the coupled bodies' J and Δt·M⁻¹ (outside the operator).
     weak: Vec<BodyCoupling>,
+    /// Kinematic bodies: index, J (its Δt·M⁻¹ unused) and the prescribed [v; ω], a moving
+    /// boundary of the solve.
+    pub kinematic: Vec<(usize, BodyCoupling, [f64; 6])>,
 }
 
 impl StepSystem {
@@ -132,6 +135,18 @@ impl StepSystem {
                 BodyCoupling::new(&pressure.row_of_cell, &jac, dt_minv(b, dt))
             })
             .collect();
+        let kinematic = (0..bodies.len())
+            .filter(|&i| bodies[i].motion == crate::geometry::body::Motion::Kinematic)
+            .map(|i| {
+                let b = &bodies[i];
+                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x);
+                (
+                    i,
+                    BodyCoupling::new(&pressure.row_of_cell, &jac, [[0.0; 6]; 6]),
+                    generalized_velocity(b),
+                )
+            })
+            .collect();
         let weak = match params.coupling {
             Coupling::Monolithic => {
                 pressure.bodies = couplings;
@@ -139,7 +154,7 @@ impl StepSystem {
             }
             Coupling::Weak => couplings,
         };
-        StepSystem { geometry, phi, needed, pressure, coupled, weak }
+        StepSystem { geometry, phi, needed, pressure, coupled, weak, kinematic }
     }
 
     /// The coupled bodies' J and Δt·M⁻¹, in the order of [`StepSystem::coupled`].
@@ -154,15 +169,34 @@ impl StepSystem {
     /// The right-hand side for the fluid velocity `u` and the coupled bodies' velocities
     /// `v` (one per coupled body): minus the volume flux out of each liquid cell.
     pub fn rhs(&self, u: &Mac, v: &[[f64; 6]]) -> Vec<f64> {
-        if self.weak.is_empty() {
-            return self.pressure.rhs(u, &self.geometry.weights, v);
-        }
-        // Partitioned: the bodies are boundaries moving at their current velocity.
-        let mut b = self.pressure.rhs(u, &self.geometry.weights, &[]);
-        for (c, v) in self.weak.iter().zip(v) {
+        let mut b = if self.weak.is_empty() {
+            self.pressure.rhs(u, &self.geometry.weights, v)
+        } else {
+            // Partitioned: the bodies are boundaries moving at their current velocity.
+            let mut b = self.pressure.rhs(u, &self.geometry.weights, &[]);
+            for (c, v) in self.weak.iter().zip(v) {
+                c.add_jt(&v.map(|x| -x), &mut b);
+            }
+            b
+        };
+        // Kinematic bodies push their volume flux at their prescribed velocity.
+        for (_, c, v) in &self.kinematic {
             c.add_jt(&v.map(|x| -x), &mut b);
         }
         b
+    }
+
+    /// The volume flux out of each liquid cell after the projection: through the fluid
+    /// faces of `u`, pushed by the coupled bodies at `v` and by the kinematic ones.
+    pub fn flux(&self, u: &Mac, v: &[[f64; 6]]) -> Vec<f64> {
+        let mut flux = self.pressure.fluid_flux(u, &self.geometry.weights);
+        for (coupling, v) in self.couplings().iter().zip(v) {
+            coupling.add_jt(v, &mut flux);
+        }
+        for (_, c, v) in &self.kinematic {
+            c.add_jt(v, &mut flux);
+        }
+        flux
     }
 
     /// The faces the velocity correction treats as known: those the projection updated and
