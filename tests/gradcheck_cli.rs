@@ -1,12 +1,12 @@
 //! `diffluid gradcheck assets/scenes/gradcheck_box.toml --json` checks the adjoint gradient
 //! of every initial body parameter against central differences of the same forward map
 //! (surface held fixed), and reports the paper's approximation beside it. Every full
-//! rel_error must be at most 1e-3 (the command itself fails otherwise).
+//! rel_error must be at most 1e-6 (measured 7.7e-8; the command itself fails above 1e-3).
 
 use std::process::Command;
 
 #[test]
-fn gradcheck_box_json_has_every_rel_error_below_1e_3() {
+fn gradcheck_box_json_has_every_rel_error_below_1e_6() {
     let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/scenes/gradcheck_box.toml");
     let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
         .args(["gradcheck", scene, "--json"])
@@ -18,7 +18,7 @@ fn gradcheck_box_json_has_every_rel_error_below_1e_3() {
     assert_eq!(params.len(), 12, "v, ω, x, q of the box");
     for p in params {
         let rel = p["rel_error"].as_f64().unwrap();
-        assert!(rel <= 1e-3, "{}: rel_error {rel}", p["name"]);
+        assert!(rel <= 1e-6, "{}: rel_error {rel}", p["name"]);
         assert!(
             p["adjoint"].as_f64().unwrap().is_finite() && p["fd"].as_f64().unwrap().is_finite()
         );
@@ -51,7 +51,8 @@ fn gradcheck_live_follows_the_moving_surface() {
     assert_eq!(params.len(), 12);
     for p in params {
         assert!(p["pass"].as_bool().unwrap(), "{}: {p}", p["name"]);
-        assert!(p["rel_error"].as_f64().unwrap() <= 1e-3, "{}", p["name"]);
+        // Measured 4.6e-5 at worst.
+        assert!(p["rel_error"].as_f64().unwrap() <= 4e-4, "{}", p["name"]);
     }
     let worst_paper = v["paper"]
         .as_array()

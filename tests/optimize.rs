@@ -198,9 +198,10 @@ fn bad_optimisation_input_is_rejected() {
 }
 
 /// The paper's block drop: plain gradient descent with learning rate 1.0 on v and ω for 50
-/// epochs must bring the loss down at least 100× (the paper's Figure 2 falls about that).
+/// epochs brings the loss down 2798× (measured; the paper's Figure 2 falls about 100×); held
+/// to within 10× of that.
 #[test]
-fn block_drop_loss_falls_a_hundredfold_in_fifty_epochs() {
+fn block_drop_loss_falls_nearly_three_thousandfold_in_fifty_epochs() {
     let problem = Optimization::new(Scene::builtin("block_drop").unwrap()).unwrap();
     assert_eq!(problem.epochs, 50);
     let out = problem.run(None, None, |_| {}).unwrap();
@@ -211,7 +212,7 @@ fn block_drop_loss_falls_a_hundredfold_in_fifty_epochs() {
         out.final_loss,
         first / out.final_loss
     );
-    assert!(out.final_loss * 100.0 < first, "loss fell only {}x", first / out.final_loss);
+    assert!(out.final_loss * 280.0 < first, "loss fell only {}x", first / out.final_loss);
 }
 
 /// Why the dam break with a ball cannot fall 10×: contact has no restitution and the collapsed
@@ -300,4 +301,21 @@ fn resume_refuses_a_changed_setting_and_names_it() {
     let err = resume(&dense).unwrap_err().to_string();
     assert!(err.contains("body"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Adam where it works: at lr 0.2 it finds v* within 1% (measured after 69 evaluations; the
+/// other Adam test runs it at lr 0.1, where it does not get there in time).
+#[test]
+fn adam_at_a_working_rate_recovers_the_initial_velocity() {
+    let scene =
+        Scene::from_toml(&recover_box_with("{ kind = \"adam\", learning_rate = 0.2 }"), "<adam>")
+            .unwrap();
+    let vstar = scene.optimize.as_ref().unwrap().recover_velocity.unwrap();
+    let mut problem = Optimization::new(scene).unwrap();
+    problem.epochs = 75;
+    let out = problem.run(None, None, |_| {}).unwrap();
+    let first =
+        out.history.iter().find(|r| relative_error(&r.params, vstar) < 0.01).map(|r| r.evaluations);
+    eprintln!("Adam 0.2: within 1% of v* after {first:?} evaluations");
+    assert!(first.is_some_and(|n| n <= 75), "Adam 0.2 not within 1% in 75 evaluations");
 }
