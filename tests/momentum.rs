@@ -82,3 +82,43 @@ tolerance = 1e-10
     // centroid is a fraction of a millimetre off.
     assert!(worst_physical < 1e-5, "momentum not conserved: {worst_physical:e}");
 }
+
+/// Euler's equations in free flight: an asymmetric box (0.6 × 0.2 × 0.4 m) spinning at
+/// ω = (1.1, −0.4, 2.3) rad/s in an empty tank without gravity keeps its world angular
+/// momentum I_w·ω to 1e-6 over 1,000 steps of 0.01 s (the rigid stage carries it to each new
+/// orientation: measured 2e-15; a step that kept ω turned the momentum with the body, by
+/// 14% here).
+#[test]
+fn a_spinning_asymmetric_box_keeps_its_angular_momentum() {
+    let text = r#"
+name = "spin"
+[domain]
+size = [1.0, 1.0, 1.0]
+dx = 0.1
+[time]
+dt = 0.01
+steps = 1000
+[fluid]
+density = 1000.0
+gravity = [0.0, 0.0, 0.0]
+[[body]]
+shape = { kind = "cuboid", half_extents = [0.3, 0.1, 0.2] }
+density = 700.0
+position = [0.5, 0.5, 0.5]
+angular_velocity = [1.1, -0.4, 2.3]
+[output]
+particles = false
+"#;
+    let mut sim = Scene::from_toml(text, "<test>").unwrap().build().unwrap();
+    let momentum = |s: &diffluid::Simulation| {
+        let b = &s.bodies()[0];
+        b.world_inertia() * b.w
+    };
+    let l0 = momentum(&sim);
+    for _ in 0..1000 {
+        sim.step().unwrap();
+    }
+    let err = (momentum(&sim) - l0).length() / l0.length();
+    eprintln!("angular momentum drift over 1000 steps: {err:.2e}");
+    assert!(err < 1e-6, "drift {err:e}");
+}

@@ -21,7 +21,9 @@
 
 use super::loss::{AdjointState, BodyAdjoint, BodyGradient, Gradient};
 use crate::error::{Error, Result};
-use crate::geometry::body::{quat_step_adjoint, Motion, RigidBody};
+use crate::geometry::body::{
+    carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, Motion, RigidBody,
+};
 use crate::geometry::fractions;
 use crate::geometry::grid::on_pool;
 use crate::geometry::grid::Mac;
@@ -191,6 +193,11 @@ pub fn backward_adjoint(
     })
 }
 
+/// a + b, component-wise (two adjoints in the quaternion embedding).
+fn add_quat(a: Rotation, b: Rotation) -> Rotation {
+    Rotation::from_xyzw(a.x + b.x, a.y + b.y, a.z + b.z, a.w + b.w)
+}
+
 /// The bodies of `initial` in the states `rec` recorded at the start of its step.
 fn bodies_at(initial: &Simulation, rec: &StepRecord) -> Vec<RigidBody> {
     let mut bodies = initial.bodies().to_vec();
@@ -259,11 +266,22 @@ fn step_adjoint(
             continue;
         }
         let va = rec.v_after[i];
-        let (qbar, wbar) =
-            quat_step_adjoint(rec.bodies[i].q, Vec3::new(va[3], va[4], va[5]), dt, a.q);
-        out[i].q = qbar;
+        let (q0, w_after) = (rec.bodies[i].q, Vec3::new(va[3], va[4], va[5]));
+        let q1 = quat_step(q0, w_after, dt);
+        // A dynamic body carries its angular momentum to the new orientation.
+        let (mut qbar1, mut w_carry, mut q0_carry) =
+            (a.q, a.w, Rotation::from_xyzw(0.0, 0.0, 0.0, 0.0));
+        if b.motion == Motion::Dynamic {
+            let (t0, t1, wb) =
+                carry_angular_momentum_adjoint(&b.local_inertia, q0, q1, w_after, a.w);
+            qbar1 = add_quat(a.q, so3::from_tangent_gradient(q1, t1));
+            q0_carry = so3::from_tangent_gradient(q0, t0);
+            w_carry = wb;
+        }
+        let (qbar, wbar) = quat_step_adjoint(q0, w_after, dt, qbar1);
+        out[i].q = add_quat(qbar, q0_carry);
         let vb = a.v + dt * a.x;
-        let wb = a.w + wbar;
+        let wb = w_carry + wbar;
         vbar[i] = [vb.x, vb.y, vb.z, wb.x, wb.y, wb.z];
     }
     lap(&mut times.rigid);

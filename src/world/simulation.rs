@@ -1073,12 +1073,26 @@ impl Simulation {
         if contact {
             // A fresh world per step: the fluid step changed every velocity, and rebuilding
             // a handful of colliders costs microseconds.
+            let before: Vec<_> = self.bodies.iter().map(|b| b.q).collect();
             crate::stages::contact::ContactWorld::new(
                 self.grid.size(),
                 &self.bodies,
                 &self.settings.contact,
             )
             .step(&mut self.bodies, dt);
+            // rapier's step keeps ω (its gyroscopic forces are off, see contact.rs): carry
+            // the dynamic bodies' angular momentum to their new orientation, as our integrator
+            // does.
+            for (b, q0) in self.bodies.iter_mut().zip(&before) {
+                if b.motion == Motion::Dynamic {
+                    b.w = crate::geometry::body::carry_angular_momentum(
+                        &b.local_inertia,
+                        *q0,
+                        b.q,
+                        b.w,
+                    );
+                }
+            }
             // rapier holds kinematic bodies fixed at their pose; they move along their own
             // velocity.
             for b in self.bodies.iter_mut().filter(|b| b.motion == Motion::Kinematic) {
