@@ -92,6 +92,53 @@ pub struct PressureSystem {
     /// Per axis, the faces the velocity update acts on (open faces next to a liquid cell),
     /// in increasing face order, with their pressure gradients.
     pub faces: [Vec<ProjectedFace>; 3],
+    /// The preconditioner, factored from the stencil at the first solve and reused by every
+    /// later one (a step's contact iterations solve up to five times with one operator).
+    preconditioner: PreconditionerCache,
+}
+
+/// A factored preconditioner.
+enum Prepared {
+    Mic0(Mic0),
+    Multigrid(Multigrid),
+    None,
+}
+
+/// The preconditioners a system has factored, by kind (a clone starts empty).
+#[derive(Default)]
+struct PreconditionerCache(std::sync::Mutex<Vec<(Preconditioner, std::sync::Arc<Prepared>)>>);
+
+impl Clone for PreconditionerCache {
+    fn clone(&self) -> Self {
+        PreconditionerCache::default()
+    }
+}
+
+impl std::fmt::Debug for PreconditionerCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("PreconditionerCache")
+    }
+}
+
+impl PreconditionerCache {
+    /// The `kind` preconditioner of `sys`, factored now if it was not yet.
+    fn get(&self, kind: Preconditioner, sys: &PressureSystem) -> std::sync::Arc<Prepared> {
+        let mut cache = self.0.lock().expect("no solve panicked while holding the cache");
+        if let Some((_, p)) = cache.iter().find(|(k, _)| *k == kind) {
+            return p.clone();
+        }
+        let p = std::sync::Arc::new(match kind {
+            Preconditioner::Mic0 => {
+                Prepared::Mic0(Mic0::new(&sys.stencil, sys.grid.n, &sys.cell_of_row))
+            }
+            Preconditioner::Multigrid => {
+                Prepared::Multigrid(Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil))
+            }
+            Preconditioner::None | Preconditioner::Auto => Prepared::None,
+        });
+        cache.push((kind, p.clone()));
+        p
+    }
 }
 
 /// A face the velocity update acts on.
@@ -268,6 +315,7 @@ impl PressureSystem {
             has_air,
             bodies: Vec::new(),
             faces: Default::default(),
+            preconditioner: PreconditionerCache::default(),
         };
         sys.faces = [0, 1, 2].map(|a| sys.projected_faces(a, weights, phi));
         sys
@@ -400,28 +448,27 @@ impl PressureSystem {
         // The solve runs as one task on a rayon worker, so its many small parallel loops
         // (dozens per wavefront-scheduled MIC(0) or per V-cycle) are forked from inside the
         // pool instead of each waking a worker from outside (two thread switches apiece).
-        let stats = rayon::scope(|_| match how.preconditioner.resolve(self.len()) {
-            Preconditioner::Mic0 => {
-                let m = Mic0::new(&self.stencil, self.grid.n, &self.cell_of_row);
-                pcg_from(
+        let stats = rayon::scope(|_| {
+            let prepared = self.preconditioner.get(how.preconditioner.resolve(self.len()), self);
+            match prepared.as_ref() {
+                Prepared::Mic0(m) => pcg_from(
                     apply,
                     |r: &[f64], z: &mut [f64]| m.apply(&self.stencil, r, z),
                     b,
                     &mut p,
                     &settings,
-                )
+                ),
+                Prepared::Multigrid(m) => {
+                    pcg_from(apply, |r: &[f64], z: &mut [f64]| m.apply(r, z), b, &mut p, &settings)
+                }
+                Prepared::None => pcg_from(
+                    apply,
+                    |r: &[f64], z: &mut [f64]| z.copy_from_slice(r),
+                    b,
+                    &mut p,
+                    &settings,
+                ),
             }
-            Preconditioner::Multigrid => {
-                let m = Multigrid::new(self.grid.n, &self.cell_of_row, &self.stencil);
-                pcg_from(apply, |r: &[f64], z: &mut [f64]| m.apply(r, z), b, &mut p, &settings)
-            }
-            Preconditioner::None | Preconditioner::Auto => pcg_from(
-                apply,
-                |r: &[f64], z: &mut [f64]| z.copy_from_slice(r),
-                b,
-                &mut p,
-                &settings,
-            ),
         });
         (p, stats)
     }
