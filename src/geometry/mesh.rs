@@ -66,11 +66,7 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
     for model in &models {
         let base = positions.len();
         let mesh = &model.mesh;
-        positions.extend(
-            mesh.positions
-                .chunks_exact(3)
-                .map(|p| Vec3::new(decimal(p[0]), decimal(p[1]), decimal(p[2]))),
-        );
+        positions.extend(mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
         for t in mesh.indices.chunks_exact(3) {
             let mut tri = [0u32; 3];
             for (k, &i) in t.iter().enumerate() {
@@ -88,12 +84,6 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
     }
     SharedShape::trimesh_with_flags(closed.vertices, closed.triangles, TriMeshFlags::ORIENTED)
         .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))
-}
-
-/// The `f64` with the shortest decimal form that tobj's parsed value stands for: OBJ files
-/// are decimal text, tobj keeps `f32`, and `0.1f32 as f64` is not `0.1`.
-fn decimal<T: std::fmt::Display>(x: T) -> f64 {
-    x.to_string().parse().unwrap_or(f64::NAN)
 }
 
 /// A validated closed, consistently oriented triangle mesh.
@@ -318,6 +308,21 @@ mod tests {
         let path = dir.join(format!("{test}.obj"));
         std::fs::write(&path, text).unwrap();
         TempObj(path)
+    }
+
+    /// Vertices keep every digit an OBJ file gives: tobj reads them as f64 (its `use_f64`),
+    /// where f32 would round 0.123456789012 to 0.12345679 (a 3e-9 m error in a body's
+    /// shape, mass and distance field).
+    #[test]
+    fn vertices_are_read_in_double_precision() {
+        let x = 0.123456789012_f64;
+        let text = CUBE_VERTICES.replace("v 0.1 0.1 0.1", &format!("v {x} 0.1 0.1"));
+        let faces: String =
+            CUBE_FACES.iter().map(|f| format!("f {} {} {}\n", f[0], f[1], f[2])).collect();
+        let obj = temp_obj("f64", &format!("{text}{faces}"));
+        let shape = load_obj(&obj, 1.0).unwrap();
+        let aabb = shape.compute_local_aabb();
+        assert_eq!(aabb.maxs.x, x, "the vertex lost digits");
     }
 
     const CUBE_VERTICES: &str = "v -0.1 -0.1 -0.1\nv 0.1 -0.1 -0.1\nv 0.1 0.1 -0.1\n\
