@@ -165,7 +165,20 @@ fn bad_bodies_are_rejected_with_a_clear_message() {
             "[[body]]\nshape = {{ kind = \"mesh\", obj = \"{}\" }}\ndensity = 500.0\nposition = [0.4, 0.5, 0.4]",
             path.display()
         ),
-        &["body[0]", "not closed"],
+        &["body[0]", "not closed", "convex_hull"],
+    );
+    // With repair = "convex_hull" the same mesh is used as its hull (here the whole cube:
+    // 0.2³ m³ at 500 kg/m³ is 4 kg), and the simulation warns that it was.
+    let body = format!(
+        "[[body]]\nshape = {{ kind = \"mesh\", obj = \"{}\", repair = \"convex_hull\" }}\ndensity = 500.0\nposition = [0.4, 0.5, 0.4]",
+        path.display()
+    );
+    let sim = Scene::from_toml(&tank(&body, 1, false), "<test>").unwrap().build().unwrap();
+    assert!((sim.bodies()[0].mass - 4.0).abs() < 1e-9, "mass {}", sim.bodies()[0].mass);
+    assert!(
+        sim.warnings().iter().any(|w| w.contains("not closed") && w.contains("convex hull")),
+        "{:?}",
+        sim.warnings()
     );
     std::fs::remove_dir_all(dir).ok();
 }

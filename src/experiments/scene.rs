@@ -530,22 +530,33 @@ impl Scene {
     fn builder(&self) -> std::result::Result<SimulationBuilder, Problem> {
         let base = self.base();
         let mut b = Simulation::builder(self.domain.size, self.domain.dx).settings(self.settings());
+        let mut notes = Vec::new();
         for (i, l) in self.liquid.iter().enumerate() {
-            b = b.liquid(l.build(&base).map_err(|m| problem(format!("liquid[{i}]"), m))?);
+            let s = l.build_noting(&base, &mut notes);
+            b = b.liquid(s.map_err(|m| problem(format!("liquid[{i}]"), m))?);
         }
         for (i, o) in self.obstacle.iter().enumerate() {
-            b = b.obstacle(o.build(&base).map_err(|m| problem(format!("obstacle[{i}]"), m))?);
+            let s = o.build_noting(&base, &mut notes);
+            b = b.obstacle(s.map_err(|m| problem(format!("obstacle[{i}]"), m))?);
         }
         for (i, spec) in self.body.iter().enumerate() {
-            b = b.body(self.build_body(i, spec)?);
+            b = b.body(self.build_body(i, spec, &mut notes)?);
+        }
+        for n in notes {
+            b = b.warning(n);
         }
         Ok(b)
     }
 
     /// The i-th body in its initial state.
-    fn build_body(&self, i: usize, b: &BodySpec) -> std::result::Result<RigidBody, Problem> {
+    fn build_body(
+        &self,
+        i: usize,
+        b: &BodySpec,
+        notes: &mut Vec<String>,
+    ) -> std::result::Result<RigidBody, Problem> {
         let key = format!("body[{i}]");
-        let solid = b.placed().build(&self.base()).map_err(|m| problem(&key, m))?;
+        let solid = b.placed().build_noting(&self.base(), notes).map_err(|m| problem(&key, m))?;
         let (density, mass) = match (b.density, b.mass) {
             (Some(d), None) => {
                 check_positive(&format!("{key}.density"), d)?;

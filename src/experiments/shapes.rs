@@ -55,7 +55,24 @@ pub enum ShapeSpec {
         /// Uniform scale applied to the vertices.
         #[serde(default = "one")]
         scale: f64,
+        /// What to do with a mesh that fails its checks (not closed, inconsistently wound,
+        /// non-manifold, self-intersecting, wrongly nested shells): `"none"` (default) refuses
+        /// it; `"convex_hull"` uses the convex hull of its vertices instead, with a warning
+        /// (right for a convex object exported with holes, wrong for a concave one).
+        #[serde(default)]
+        repair: MeshRepair,
     },
+}
+
+/// The fallback for a mesh that fails its checks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeshRepair {
+    /// Refuse the mesh.
+    #[default]
+    None,
+    /// Use the convex hull of its vertices.
+    ConvexHull,
 }
 
 fn one() -> f64 {
@@ -106,6 +123,15 @@ impl ShapeSpec {
     /// The parry shape and the offset of its local origin (non-zero only for `box`).
     /// `base` is the folder relative mesh paths start from.
     pub fn build(&self, base: &Path) -> Result<(SharedShape, Vec3), String> {
+        self.build_noting(base, &mut Vec::new())
+    }
+
+    /// [`ShapeSpec::build`], adding to `notes` what was repaired (see [`MeshRepair`]).
+    pub fn build_noting(
+        &self,
+        base: &Path,
+        notes: &mut Vec<String>,
+    ) -> Result<(SharedShape, Vec3), String> {
         match self {
             ShapeSpec::Box { min, max } => {
                 if !all_finite(min) || !all_finite(max) {
@@ -156,10 +182,23 @@ impl ShapeSpec {
                 }
                 Ok((hull, Vec3::ZERO))
             }
-            ShapeSpec::Mesh { obj, scale } => {
+            ShapeSpec::Mesh { obj, scale, repair } => {
                 positive("mesh scale", *scale)?;
                 let path = base.join(obj);
-                crate::geometry::mesh::load_obj(&path, *scale).map(|s| (s, Vec3::ZERO))
+                match (crate::geometry::mesh::load_obj(&path, *scale), repair) {
+                    (Ok(s), _) => Ok((s, Vec3::ZERO)),
+                    (Err(e), MeshRepair::ConvexHull) => {
+                        let hull = crate::geometry::mesh::load_obj_hull(&path, *scale)
+                            .map_err(|h| format!("{e}; and its convex hull failed too: {h}"))?;
+                        notes.push(format!(
+                            "{e}: its convex hull is used instead (repair = \"convex_hull\")"
+                        ));
+                        Ok((hull, Vec3::ZERO))
+                    }
+                    (Err(e), MeshRepair::None) => Err(format!(
+                        "{e} (repair = \"convex_hull\" would use its convex hull instead)"
+                    )),
+                }
             }
         }
     }
@@ -190,10 +229,15 @@ impl Placed {
 
     /// Builds the parry shape at its pose; `base` is the folder relative mesh paths start from.
     pub fn build(&self, base: &Path) -> Result<Solid, String> {
+        self.build_noting(base, &mut Vec::new())
+    }
+
+    /// [`Placed::build`], adding to `notes` what was repaired.
+    pub fn build_noting(&self, base: &Path, notes: &mut Vec<String>) -> Result<Solid, String> {
         if !all_finite(&self.position) {
             return Err(format!("position {:?} must be finite", self.position));
         }
-        let (shape, offset) = self.shape.build(base)?;
+        let (shape, offset) = self.shape.build_noting(base, notes)?;
         let rot = self.rotation()?;
         let pose = Pose::from_parts(v3(self.position) + rot * offset, rot);
         Ok(Solid { shape, pose })

@@ -47,6 +47,20 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
     if !(scale.is_finite() && scale > 0.0) {
         return Err(format!("mesh {name}: scale must be a positive number, got {scale}"));
     }
+    let (positions, triangles) = read_obj(path)?;
+
+    let mut closed =
+        ClosedMesh::new(&positions, &triangles).map_err(|e| format!("mesh {name} {e}"))?.outward();
+    for v in &mut closed.vertices {
+        *v *= scale;
+    }
+    SharedShape::trimesh_with_flags(closed.vertices, closed.triangles, TriMeshFlags::ORIENTED)
+        .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))
+}
+
+/// An OBJ file's vertices and triangles (faces triangulated, points and lines dropped).
+fn read_obj(path: &Path) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
+    let name = path.display();
     // Read the file ourselves: tobj only says "open file failed", not why.
     let bytes = std::fs::read(path).map_err(|e| format!("cannot read mesh {name}: {e}"))?;
     let options = tobj::LoadOptions {
@@ -76,14 +90,18 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
             triangles.push(tri);
         }
     }
+    Ok((positions, triangles))
+}
 
-    let mut closed =
-        ClosedMesh::new(&positions, &triangles).map_err(|e| format!("mesh {name} {e}"))?.outward();
-    for v in &mut closed.vertices {
-        *v *= scale;
-    }
-    SharedShape::trimesh_with_flags(closed.vertices, closed.triangles, TriMeshFlags::ORIENTED)
-        .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))
+/// The convex hull of an OBJ file's vertices (the fallback of a mesh that fails the checks
+/// of [`load_obj`]).
+pub fn load_obj_hull(path: &Path, scale: f64) -> Result<SharedShape, String> {
+    let name = path.display();
+    let (positions, _) = read_obj(path)?;
+    let points: Vec<Vec3> =
+        positions.into_iter().filter(|p| p.is_finite()).map(|p| p * scale).collect();
+    SharedShape::convex_hull(&points)
+        .ok_or_else(|| format!("mesh {name}: its vertices have no convex hull (degenerate)"))
 }
 
 /// A validated closed, consistently oriented triangle mesh.
@@ -185,6 +203,10 @@ impl ClosedMesh {
             ));
         }
 
+        check_vertex_fans(&vertices, &tris)?;
+        check_self_intersections(&vertices, &tris)?;
+        check_shells(&vertices, &tris)?;
+
         // Enclosed volume, about the bounding-box centre for accuracy.
         let (lo, hi) = vertices
             .iter()
@@ -217,6 +239,171 @@ impl ClosedMesh {
         }
         self
     }
+}
+
+/// A disjoint-set forest over `n` items.
+struct Sets(Vec<usize>);
+
+impl Sets {
+    fn new(n: usize) -> Sets {
+        Sets((0..n).collect())
+    }
+    fn find(&mut self, mut i: usize) -> usize {
+        while self.0[i] != i {
+            self.0[i] = self.0[self.0[i]];
+            i = self.0[i];
+        }
+        i
+    }
+    fn join(&mut self, a: usize, b: usize) {
+        let (a, b) = (self.find(a), self.find(b));
+        self.0[a] = b;
+    }
+}
+
+/// Every vertex's triangles form one fan: the edges opposite it (its link) make a single
+/// cycle. Two cones touching at their tips pass the edge checks but not this one.
+fn check_vertex_fans(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String> {
+    let mut link: Vec<Vec<(u32, u32)>> = vec![Vec::new(); vertices.len()];
+    for t in tris {
+        for k in 0..3 {
+            link[t[k] as usize].push((t[(k + 1) % 3], t[(k + 2) % 3]));
+        }
+    }
+    let mut bad = 0;
+    let mut first = None;
+    for (v, edges) in link.iter().enumerate() {
+        let mut ids: Vec<u32> = edges.iter().flat_map(|&(a, b)| [a, b]).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let index = |x: u32| ids.binary_search(&x).expect("in the link");
+        let mut sets = Sets::new(ids.len());
+        for &(a, b) in edges {
+            sets.join(index(a), index(b));
+        }
+        let cycles = (0..ids.len()).filter(|&i| sets.find(i) == i).count();
+        if cycles > 1 {
+            bad += 1;
+            first.get_or_insert(v);
+        }
+    }
+    match first {
+        None => Ok(()),
+        Some(v) => Err(format!(
+            "has {bad} non-manifold vertex{} (vertex {} joins {} separate fans of triangles)",
+            if bad == 1 { "" } else { "es" },
+            v + 1,
+            "two or more"
+        )),
+    }
+}
+
+/// The generalised winding number of closed `shell` at `p`: the solid angle its
+/// triangles subtend, over 4π (±1 inside an outward / inward shell, 0 outside).
+fn winding(vertices: &[Vec3], shell: &[[u32; 3]], p: Vec3) -> f64 {
+    let mut sum = 0.0;
+    for t in shell {
+        let [a, b, c] = t.map(|i| vertices[i as usize] - p);
+        let (la, lb, lc) = (a.length(), b.length(), c.length());
+        let num = a.dot(b.cross(c));
+        let den = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
+        sum += 2.0 * num.atan2(den);
+    }
+    sum / (4.0 * std::f64::consts::PI)
+}
+
+/// A mesh of several shells (connected sets of triangles) must nest them with alternating
+/// orientation: a shell inside an even number of others faces the same way as the whole,
+/// one inside an odd number the other way (a hollow body's inner wall faces in). Two shells
+/// nested with the same orientation, or a loose shell turned inside out, make parry's
+/// inside/outside and the mass properties wrong.
+fn check_shells(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String> {
+    let mut sets = Sets::new(vertices.len());
+    for t in tris {
+        sets.join(t[0] as usize, t[1] as usize);
+        sets.join(t[1] as usize, t[2] as usize);
+    }
+    let mut shells: Vec<(usize, Vec<[u32; 3]>)> = Vec::new();
+    for t in tris {
+        let root = sets.find(t[0] as usize);
+        match shells.iter_mut().find(|(r, _)| *r == root) {
+            Some((_, s)) => s.push(*t),
+            None => shells.push((root, vec![*t])),
+        }
+    }
+    if shells.len() < 2 {
+        return Ok(());
+    }
+    let signed = |s: &[[u32; 3]]| -> f64 {
+        s.iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| vertices[i as usize]);
+                a.dot(b.cross(c))
+            })
+            .sum::<f64>()
+            / 6.0
+    };
+    let volumes: Vec<f64> = shells.iter().map(|(_, s)| signed(s)).collect();
+    let outermost = (0..shells.len())
+        .max_by(|&a, &b| volumes[a].abs().total_cmp(&volumes[b].abs()))
+        .expect("two shells");
+    let whole = volumes[outermost].signum();
+    for (i, (_, shell)) in shells.iter().enumerate() {
+        let p = vertices[shell[0][0] as usize];
+        let depth = shells
+            .iter()
+            .enumerate()
+            .filter(|(j, (_, other))| *j != i && winding(vertices, other, p).abs() > 0.5)
+            .count();
+        let expected = if depth % 2 == 0 { whole } else { -whole };
+        if volumes[i].signum() != expected {
+            return Err(format!(
+                "has {} shells and shell {} (inside {depth} other{}) faces the wrong way:                  nested shells must alternate in orientation",
+                shells.len(),
+                i + 1,
+                plural(depth)
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// No two triangles that share no vertex may intersect. A sweep over the triangles'
+/// bounding boxes along x finds the candidate pairs; parry's intersection test decides.
+fn check_self_intersections(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String> {
+    use parry3d_f64::shape::Triangle;
+    let shapes: Vec<Triangle> = tris
+        .iter()
+        .map(|t| {
+            Triangle::new(vertices[t[0] as usize], vertices[t[1] as usize], vertices[t[2] as usize])
+        })
+        .collect();
+    let boxes: Vec<(Vec3, Vec3)> =
+        shapes.iter().map(|s| (s.a.min(s.b).min(s.c), s.a.max(s.b).max(s.c))).collect();
+    let mut order: Vec<usize> = (0..tris.len()).collect();
+    order.sort_by(|&a, &b| boxes[a].0.x.total_cmp(&boxes[b].0.x));
+    let identity = crate::math::Pose::IDENTITY;
+    for (k, &i) in order.iter().enumerate() {
+        for &j in &order[k + 1..] {
+            if boxes[j].0.x > boxes[i].1.x {
+                break;
+            }
+            let overlap = boxes[i].0.cmple(boxes[j].1).all() && boxes[j].0.cmple(boxes[i].1).all();
+            if !overlap || tris[i].iter().any(|v| tris[j].contains(v)) {
+                continue;
+            }
+            if parry3d_f64::query::intersection_test(&identity, &shapes[i], &identity, &shapes[j])
+                .is_ok_and(|hit| hit.intersecting)
+            {
+                return Err(format!(
+                    "intersects itself (triangles {} and {} cross)",
+                    i.min(j) + 1,
+                    i.max(j) + 1
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 fn plural(n: usize) -> &'static str {
@@ -323,6 +510,40 @@ mod tests {
         let shape = load_obj(&obj, 1.0).unwrap();
         let aabb = shape.compute_local_aabb();
         assert_eq!(aabb.maxs.x, x, "the vertex lost digits");
+    }
+
+    /// The cube of CUBE_VERTICES and CUBE_FACES scaled by `s`, shifted by `d`, wound
+    /// outward (or inward), as OBJ text numbering its vertices from `first`.
+    fn cube_at(s: f64, d: [f64; 3], inward: bool, first: u32) -> String {
+        let mut out = String::new();
+        for line in CUBE_VERTICES.lines() {
+            let c: Vec<f64> = line[2..].split(' ').map(|x| x.parse().unwrap()).collect();
+            out += &format!("v {} {} {}\n", s * c[0] + d[0], s * c[1] + d[1], s * c[2] + d[2]);
+        }
+        for f in CUBE_FACES {
+            let [a, b, c] = f.map(|i| i + first - 1);
+            out += &if inward { format!("f {a} {c} {b}\n") } else { format!("f {a} {b} {c}\n") };
+        }
+        out
+    }
+
+    /// Each new mesh check refuses what it is for, and says which: two cubes touching at one
+    /// corner only (a vertex joining two fans), two cubes that cross, and a cube nested in
+    /// another facing the same way (a hollow body's inner wall must face in; that one loads).
+    #[test]
+    fn non_manifold_crossing_and_wrongly_nested_meshes_are_refused() {
+        let corner = cube_at(1.0, [0.0; 3], false, 1) + &cube_at(1.0, [0.2, 0.2, 0.2], false, 9);
+        let err = load_obj(&temp_obj("corner", &corner), 1.0).unwrap_err();
+        assert!(err.contains("non-manifold vertex"), "{err}");
+        let crossing =
+            cube_at(1.0, [0.0; 3], false, 1) + &cube_at(1.0, [0.13, 0.07, 0.05], false, 9);
+        let err = load_obj(&temp_obj("crossing", &crossing), 1.0).unwrap_err();
+        assert!(err.contains("intersects itself"), "{err}");
+        let nested = cube_at(1.0, [0.0; 3], false, 1) + &cube_at(0.5, [0.0; 3], false, 9);
+        let err = load_obj(&temp_obj("nested", &nested), 1.0).unwrap_err();
+        assert!(err.contains("faces the wrong way"), "{err}");
+        let hollow = cube_at(1.0, [0.0; 3], false, 1) + &cube_at(0.5, [0.0; 3], true, 9);
+        assert!(load_obj(&temp_obj("hollow", &hollow), 1.0).is_ok());
     }
 
     const CUBE_VERTICES: &str = "v -0.1 -0.1 -0.1\nv 0.1 -0.1 -0.1\nv 0.1 0.1 -0.1\n\

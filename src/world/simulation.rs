@@ -117,9 +117,17 @@ pub struct SimulationBuilder {
     liquid: Vec<Solid>,
     obstacles: Vec<Solid>,
     bodies: Vec<RigidBody>,
+    notes: Vec<String>,
 }
 
 impl SimulationBuilder {
+    /// A warning the simulation starts with (what its maker repaired or approximated: a
+    /// scene file's mesh replaced by its convex hull).
+    pub fn warning(mut self, w: String) -> Self {
+        self.notes.push(w);
+        self
+    }
+
     /// All settings at once.
     pub fn settings(mut self, settings: WorldSettings) -> Self {
         self.settings = settings;
@@ -279,7 +287,8 @@ impl SimulationBuilder {
             (None, 0.0)
         };
         let n = self.bodies.len();
-        let warnings = self.bodies.iter().filter_map(|b| thin_body_warning(b, grid.dx)).collect();
+        let mut warnings = self.notes.clone();
+        warnings.extend(self.bodies.iter().filter_map(|b| thin_body_warning(b, grid.dx)));
         Ok(Simulation {
             frozen_phi,
             frozen_volume,
@@ -437,6 +446,7 @@ impl Simulation {
             liquid: Vec::new(),
             obstacles: Vec::new(),
             bodies: Vec::new(),
+            notes: Vec::new(),
         }
     }
 
