@@ -28,6 +28,7 @@ pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("gradcheck_live", include_str!("../../assets/scenes/gradcheck_live.toml")),
     ("surge_ball", include_str!("../../assets/scenes/surge_ball.toml")),
     ("surge_target", include_str!("../../assets/scenes/surge_target.toml")),
+    ("large_tank", include_str!("../../assets/scenes/large_tank.toml")),
 ];
 
 /// A whole scene.

@@ -107,10 +107,14 @@ impl Walls<'_> {
     #[inline]
     pub fn keep(&self, y: Vec3) -> Vec3 {
         let margin = 1e-3 * self.grid.dx;
-        let (d, g) = self.grid.nodes().sample_grad(self.node_sdf, y);
+        let nodes = self.grid.nodes();
         let mut y = y;
-        if d < margin && g.length() > 1e-12 {
-            y += (margin - d) * g.normalize();
+        // The distance alone first: far from the solids (most particles) that is all.
+        if nodes.sample(self.node_sdf, y) < margin {
+            let (d, g) = nodes.sample_grad(self.node_sdf, y);
+            if g.length() > 1e-12 {
+                y += (margin - d) * g.normalize();
+            }
         }
         y.clamp(Vec3::splat(margin), self.grid.size() - Vec3::splat(margin))
     }
