@@ -370,7 +370,7 @@ pub fn carry_angular_momentum(local: &Mat3, q0: Rotation, q1: Rotation, w: Vec3)
 
 /// Adjoint of [`carry_angular_momentum`]: from ∂L/∂ω₁, (∂L/∂θ₀, ∂L/∂θ₁, ∂L/∂ω) with θ the
 /// world-frame tangents of q0 and q1 (q → exp(θ)·q). With L = I₀ω, y = I₁⁻¹ω̄₁ and ω₁ = I₁⁻¹L,
-/// and δI = [δθ]×I − I[δθ]×: ω̄ = I₀·y, θ̄₀ = L × y − ω × I₀y, θ̄₁ = ω₁ × ω̄₁ − L × y.
+/// and δI = \[δθ\]×I − I\[δθ\]×: ω̄ = I₀·y, θ̄₀ = L × y − ω × I₀y, θ̄₁ = ω₁ × ω̄₁ − L × y.
 pub fn carry_angular_momentum_adjoint(
     local: &Mat3,
     q0: Rotation,

@@ -30,7 +30,7 @@ use super::step::{
 };
 use super::tape::{ParticleRecord, StepRecord, Tape};
 use crate::error::{Error, Result};
-use crate::geometry::body::{BodyState, Motion, RigidBody};
+use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::fractions;
 use crate::geometry::grid::{on_pool, Grid, Mac};
 use crate::geometry::shape::Solid;
@@ -1094,7 +1094,7 @@ impl Simulation {
             // the dynamic bodies' angular momentum to their new orientation, as our integrator
             // does.
             for (b, q0) in self.bodies.iter_mut().zip(&before) {
-                if b.motion == Motion::Dynamic {
+                if b.motion == crate::geometry::body::Motion::Dynamic {
                     b.w = crate::geometry::body::carry_angular_momentum(
                         &b.local_inertia,
                         *q0,
@@ -1105,7 +1105,11 @@ impl Simulation {
             }
             // rapier holds kinematic bodies fixed at their pose; they move along their own
             // velocity.
-            for b in self.bodies.iter_mut().filter(|b| b.motion == Motion::Kinematic) {
+            for b in self
+                .bodies
+                .iter_mut()
+                .filter(|b| b.motion == crate::geometry::body::Motion::Kinematic)
+            {
                 b.integrate(dt);
             }
             return Ok(());
