@@ -1,0 +1,49 @@
+"""diffluid: differentiable Eulerian liquid simulation with strong two-way rigid coupling.
+
+A liquid on a MAC grid with marker particles for its free surface, rigid bodies coupled to
+it through one monolithic pressure solve, and an adjoint backward pass that gives the exact
+gradient of a loss on the final state with respect to the initial state. This package is the
+Rust library seen from Python:
+
+- :class:`Scene` (a scene file, TOML text or a built-in name) and :class:`Simulation`
+  (``step``, ``advance``, bodies and fields as NumPy arrays);
+- :func:`value_and_grad` and :class:`BodyTargetLoss`; :func:`optimize`, the Rust optimiser;
+- :mod:`diffluid.torch`: ``rollout`` as a ``torch.autograd.Function`` (needs torch);
+- :mod:`diffluid.ray`: N independent rollouts or gradients as Ray tasks (needs ray).
+
+Every diffluid error is a Python exception with the CLI's message: ``ValueError`` for a bad
+scene or argument, :class:`SolverError` for a pressure solve that does not converge,
+:class:`SimulationError` for a state that blew up or a body that left the tank,
+:class:`GradientError` for a map the backward pass cannot differentiate. Steps and gradients
+release the GIL.
+"""
+
+from ._diffluid import (
+    BodyTargetLoss,
+    GradientError,
+    InternalError,
+    Rollout,
+    Scene,
+    Simulation,
+    SimulationError,
+    SolverError,
+    __version__,
+    optimize,
+    rollout,
+    value_and_grad,
+)
+
+__all__ = [
+    "BodyTargetLoss",
+    "GradientError",
+    "InternalError",
+    "Rollout",
+    "Scene",
+    "Simulation",
+    "SimulationError",
+    "SolverError",
+    "__version__",
+    "optimize",
+    "rollout",
+    "value_and_grad",
+]

@@ -1,0 +1,488 @@
+//! Gradients from Python: a loss's value and gradient (`value_and_grad`), the Rust optimiser
+//! (`optimize`), and a taped rollout whose backward pass is a vector–Jacobian product
+//! (`rollout` and `Rollout`, what `diffluid.torch` builds its `autograd.Function` on).
+
+use crate::scene::Scene;
+use crate::simulation::{state_from, wxyz, Simulation};
+use crate::{lattice, read_rows, row, rows, run, to_py_object, value_error};
+use diffluid::experiments::optimize::Optimization;
+use diffluid::geometry::body::BodyState;
+use diffluid::geometry::grid::Mac;
+use diffluid::gradients::backward::{check_differentiable, SurfaceGradient};
+use diffluid::gradients::{
+    backward_adjoint, value_and_gradient, AdjointState, BodyAdjoint, BodyTargetLoss as RLoss,
+    GradientMode, GradientOptions, GradientSettings, Loss,
+};
+use diffluid::math::{so3, Rotation, Vec3};
+use diffluid::world::Tape;
+use diffluid::Simulation as RSim;
+use numpy::PyReadonlyArrayDyn;
+use pyo3::exceptions::PyTypeError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyTuple};
+
+/// The backward pass's options from their Python names.
+fn options(surface: &str, mode: &str, through_contact: bool) -> PyResult<GradientOptions> {
+    let surface = match surface {
+        "live" => SurfaceGradient::Live,
+        "frozen" => SurfaceGradient::Frozen,
+        s => return Err(value_error(format!("surface: \"live\" or \"frozen\", not {s:?}"))),
+    };
+    let mode = match mode {
+        "full" => GradientMode::Full,
+        "paper" => GradientMode::Paper,
+        m => return Err(value_error(format!("mode: \"full\" or \"paper\", not {m:?}"))),
+    };
+    Ok(GradientOptions { mode, surface, through_contact })
+}
+
+/// A body named by index or by name, resolved against a simulation when the loss is used.
+#[derive(Clone, Debug)]
+enum BodyRef {
+    Index(usize),
+    Name(String),
+}
+
+/// A weighted target and its weight.
+type Target<const N: usize> = Option<([f64; N], f64)>;
+
+/// Weighted squared distances of one body's final position, orientation and velocity to
+/// targets: ``wx·|x − x*|² + wq·(1 − (q·q*)²) + wv·|v − v*|²``.
+///
+/// ``body`` is an index or a name; each target is ``(target, weight)`` or a bare target
+/// (weight 1). The orientation target is a quaternion ``[w, x, y, z]`` (normalised).
+#[pyclass(module = "diffluid._diffluid", name = "BodyTargetLoss", frozen)]
+#[derive(Clone, Debug)]
+pub struct BodyTargetLoss {
+    body: BodyRef,
+    position: Target<3>,
+    orientation: Target<4>,
+    velocity: Target<3>,
+}
+
+/// `(target, weight)` or a bare target from a Python object.
+fn target<const N: usize>(name: &str, t: Option<&Bound<'_, PyAny>>) -> PyResult<Target<N>> {
+    let Some(t) = t else { return Ok(None) };
+    if t.is_none() {
+        return Ok(None);
+    }
+    let (target, weight) = if let Ok(pair) = t.extract::<([f64; N], f64)>() {
+        pair
+    } else if let Ok(bare) = t.extract::<[f64; N]>() {
+        (bare, 1.0)
+    } else {
+        return Err(PyTypeError::new_err(format!(
+            "{name}: a target of {N} numbers, or (target, weight)"
+        )));
+    };
+    crate::check_finite(name, target.iter().chain([weight].iter()))?;
+    if weight < 0.0 {
+        return Err(value_error(format!("{name}: the weight must be ≥ 0, got {weight}")));
+    }
+    Ok(Some((target, weight)))
+}
+
+impl BodyTargetLoss {
+    /// The Rust loss for `sim`'s bodies.
+    fn resolve(&self, sim: &RSim) -> PyResult<RLoss> {
+        let n = sim.bodies().len();
+        let body = match &self.body {
+            BodyRef::Index(i) if *i < n => *i,
+            BodyRef::Index(i) => {
+                return Err(value_error(format!("loss body {i} out of range ({n} bodies)")))
+            }
+            BodyRef::Name(s) => sim.bodies().iter().position(|b| &b.name == s).ok_or_else(|| {
+                value_error(format!("loss: no body named {s:?} in the simulation"))
+            })?,
+        };
+        let v3 = |t: &Target<3>| t.map(|(a, w)| (Vec3::new(a[0], a[1], a[2]), w));
+        let orientation = match self.orientation {
+            None => None,
+            Some((q, w)) => {
+                let n = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+                if n < 1e-12 {
+                    return Err(value_error("orientation: the zero quaternion is no target"));
+                }
+                Some((Rotation::from_xyzw(q[1] / n, q[2] / n, q[3] / n, q[0] / n), w))
+            }
+        };
+        Ok(RLoss { body, position: v3(&self.position), orientation, velocity: v3(&self.velocity) })
+    }
+}
+
+#[pymethods]
+impl BodyTargetLoss {
+    #[new]
+    #[pyo3(signature = (body, position = None, orientation = None, velocity = None))]
+    fn new(
+        body: &Bound<'_, PyAny>,
+        position: Option<&Bound<'_, PyAny>>,
+        orientation: Option<&Bound<'_, PyAny>>,
+        velocity: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<BodyTargetLoss> {
+        let body = if let Ok(i) = body.extract::<usize>() {
+            BodyRef::Index(i)
+        } else if let Ok(s) = body.extract::<String>() {
+            BodyRef::Name(s)
+        } else {
+            return Err(PyTypeError::new_err("body: an index (≥ 0) or a name"));
+        };
+        Ok(BodyTargetLoss {
+            body,
+            position: target("position", position)?,
+            orientation: target("orientation", orientation)?,
+            velocity: target("velocity", velocity)?,
+        })
+    }
+
+    /// The loss at `sim`'s current state.
+    fn value(&self, sim: PyRef<'_, Simulation>) -> PyResult<f64> {
+        Ok(self.resolve(&sim.inner)?.value(&sim.inner))
+    }
+
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>)> {
+        let py = slf.py();
+        let this = slf.get();
+        let body = match &this.body {
+            BodyRef::Index(i) => i.into_pyobject(py)?.into_any(),
+            BodyRef::Name(s) => s.into_pyobject(py)?.into_any(),
+        };
+        let args = (
+            body,
+            this.position.map(|(t, w)| (t.to_vec(), w)),
+            this.orientation.map(|(t, w)| (t.to_vec(), w)),
+            this.velocity.map(|(t, w)| (t.to_vec(), w)),
+        )
+            .into_pyobject(py)?;
+        Ok((slf.get_type().into_any(), args))
+    }
+
+    fn __repr__(&self) -> String {
+        let body = match &self.body {
+            BodyRef::Index(i) => i.to_string(),
+            BodyRef::Name(s) => format!("{s:?}"),
+        };
+        format!(
+            "BodyTargetLoss({body}, position={:?}, orientation={:?}, velocity={:?})",
+            self.position, self.orientation, self.velocity
+        )
+    }
+}
+
+/// The initial simulation, the loss and the horizon a gradient call starts from.
+fn start(
+    py: Python<'_>,
+    scene: &Bound<'_, PyAny>,
+    loss: Option<PyRef<'_, BodyTargetLoss>>,
+    steps: Option<usize>,
+) -> PyResult<(RSim, RLoss, usize)> {
+    let sim = if let Ok(s) = scene.cast::<Scene>() {
+        Simulation::from_scene(py, &s.borrow())?
+    } else if let Ok(s) = scene.cast::<Simulation>() {
+        s.borrow().clone()
+    } else {
+        return Err(PyTypeError::new_err("scene: a diffluid.Scene or a diffluid.Simulation"));
+    };
+    let loss = match loss {
+        Some(l) => l.resolve(&sim.inner)?,
+        None => sim.loss.clone().ok_or_else(|| {
+            value_error("no loss given and the scene has no [loss] section")
+        })?,
+    };
+    let steps = steps.unwrap_or(sim.scene_steps);
+    if steps == 0 {
+        return Err(value_error("steps: must be at least 1"));
+    }
+    Ok((sim.inner, loss, steps))
+}
+
+/// Overrides parts of body `i`'s state from a dict of arrays (v, w, x: 3; q: 4).
+fn apply_state(sim: &mut RSim, i: usize, state: &Bound<'_, PyDict>) -> PyResult<()> {
+    let s = sim.bodies()[i].state();
+    let mut parts: [Vec<f64>; 4] =
+        [s.v.to_array().to_vec(), s.w.to_array().to_vec(), s.x.to_array().to_vec(), wxyz(s.q).to_vec()];
+    for (k, v) in state.iter() {
+        let key: String = k.extract()?;
+        let slot = match key.as_str() {
+            "v" => 0,
+            "w" => 1,
+            "x" => 2,
+            "q" => 3,
+            other => return Err(value_error(format!("state: unknown part {other:?} (v, w, x, q)"))),
+        };
+        let a: PyReadonlyArrayDyn<'_, f64> = v.extract()?;
+        parts[slot] = read_rows(&key, &a, 1, if slot == 3 { 4 } else { 3 })?.remove(0);
+    }
+    let st = state_from(&parts[0], &parts[1], &parts[2], &parts[3])?;
+    let h = sim.handles()[i];
+    sim.set_body_state(h, &st).map_err(crate::to_py)
+}
+
+/// The value of a loss on the final state and its gradient with respect to the initial state.
+///
+/// `scene` is a Scene (its initial state) or a Simulation (its current state). `loss` is a
+/// BodyTargetLoss, or None for the scene's `[loss]`. `params` names what to differentiate
+/// with respect to: any of "v", "w", "x", "q" (the loss body's, or `body`'s, initial linear
+/// and angular velocity, position and orientation) and "u" (the initial fluid velocity).
+/// `state` optionally overrides the loss body's initial state (a dict of arrays v, w, x, q).
+///
+/// Returns ``(loss, grads)``: grads maps each param to a float64 array: (3,) for v, w, x; for
+/// q the gradient in the world-frame tangent space q → exp(θ)·q, (3,); for u a tuple of the
+/// three face arrays. The GIL is released for the whole forward and backward pass.
+#[pyfunction]
+#[pyo3(signature = (
+    scene, loss = None, params = None, *, steps = None, state = None, body = None,
+    surface = "live", mode = "full", checkpoint_every = None, through_contact = false
+))]
+#[allow(clippy::too_many_arguments)]
+pub fn value_and_grad<'py>(
+    py: Python<'py>,
+    scene: &Bound<'py, PyAny>,
+    loss: Option<PyRef<'py, BodyTargetLoss>>,
+    params: Option<Vec<String>>,
+    steps: Option<usize>,
+    state: Option<&Bound<'py, PyDict>>,
+    body: Option<&Bound<'py, PyAny>>,
+    surface: &str,
+    mode: &str,
+    checkpoint_every: Option<usize>,
+    through_contact: bool,
+) -> PyResult<(f64, Bound<'py, PyDict>)> {
+    let opts = options(surface, mode, through_contact)?;
+    let (mut sim, loss, steps) = start(py, scene, loss, steps)?;
+    let params = params.unwrap_or_else(|| ["v", "w", "x", "q"].map(String::from).to_vec());
+    for p in &params {
+        if !["v", "w", "x", "q", "u"].contains(&p.as_str()) {
+            return Err(value_error(format!("params: unknown {p:?} (v, w, x, q, u)")));
+        }
+    }
+    let which = match body {
+        None => loss.body,
+        Some(b) => {
+            let names: Vec<String> = sim.bodies().iter().map(|b| b.name.clone()).collect();
+            if let Ok(i) = b.extract::<usize>() {
+                if i >= names.len() {
+                    return Err(value_error(format!("body index {i} out of range")));
+                }
+                i
+            } else {
+                let s: String = b.extract()?;
+                names.iter().position(|n| *n == s).ok_or_else(|| {
+                    value_error(format!("no body named {s:?} (bodies: {names:?})"))
+                })?
+            }
+        }
+    };
+    if let Some(st) = state {
+        apply_state(&mut sim, loss.body, st)?;
+    }
+    if checkpoint_every == Some(0) {
+        return Err(value_error("checkpoint_every: must be at least 1"));
+    }
+    let settings = GradientSettings { options: opts, checkpoint_every };
+    let out = run(py, || value_and_gradient(&sim, steps, &loss, &settings))?;
+    let g = &out.gradient;
+    let grads = PyDict::new(py);
+    for p in &params {
+        let b = g.bodies[which];
+        match p.as_str() {
+            "v" => grads.set_item("v", row(py, b.v.to_array())?)?,
+            "w" => grads.set_item("w", row(py, b.w.to_array())?)?,
+            "x" => grads.set_item("x", row(py, b.x.to_array())?)?,
+            "q" => grads.set_item("q", row(py, b.q.to_array())?)?,
+            _ => {
+                let parts: Vec<Bound<'py, PyAny>> = (0..3)
+                    .map(|a| lattice(py, sim.grid().faces(a).n, g.u.c[a].clone()))
+                    .collect::<PyResult<_>>()?;
+                grads.set_item("u", PyTuple::new(py, parts)?)?
+            }
+        }
+    }
+    Ok((out.loss, grads))
+}
+
+/// Runs the scene's `[optimize]` section with diffluid's own optimiser (gradient descent,
+/// Adam or L-BFGS), exactly as ``diffluid optimize`` does (without its files), and returns a
+/// dict: history (a list of {epoch, loss, grad_norm, params, evaluations}), params (the
+/// final state {v, w, x, q}), final_loss, stopped, converged, evaluations. `epochs`
+/// overrides the scene's. The GIL is released throughout.
+#[pyfunction]
+#[pyo3(signature = (scene, *, epochs = None))]
+pub fn optimize<'py>(
+    py: Python<'py>,
+    scene: PyRef<'py, Scene>,
+    epochs: Option<usize>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let mut s = scene.inner.clone();
+    if let (Some(e), Some(o)) = (epochs, s.optimize.as_mut()) {
+        o.epochs = e;
+    }
+    let outcome = run(py, || Optimization::new(s)?.run(None, None, |_| {}))?;
+    let d = PyDict::new(py);
+    d.set_item("history", to_py_object(py, &outcome.history)?)?;
+    d.set_item("params", to_py_object(py, &outcome.params)?)?;
+    d.set_item("final_loss", outcome.final_loss)?;
+    d.set_item("stopped", outcome.stopped)?;
+    d.set_item("converged", outcome.converged)?;
+    d.set_item("evaluations", outcome.evaluations)?;
+    Ok(d)
+}
+
+/// A taped forward run from a given initial body state: the final state, and a backward
+/// pass that turns a gradient on the final body state into one on the initial state (a
+/// vector–Jacobian product through diffluid's adjoint). Made by :func:`rollout`; what
+/// ``diffluid.torch.rollout`` keeps between its forward and backward.
+#[pyclass(module = "diffluid._diffluid", name = "Rollout", frozen)]
+pub struct Rollout {
+    initial: RSim,
+    tape: Tape,
+    last: RSim,
+    options: GradientOptions,
+}
+
+/// Body states as four row arrays (v, w, x, q).
+fn state_rows<'py>(py: Python<'py>, s: &[BodyState]) -> PyResult<Bound<'py, PyTuple>> {
+    PyTuple::new(
+        py,
+        [
+            rows(py, s.iter().map(|b| b.v.to_array()))?,
+            rows(py, s.iter().map(|b| b.w.to_array()))?,
+            rows(py, s.iter().map(|b| b.x.to_array()))?,
+            rows(py, s.iter().map(|b| wxyz(b.q)))?,
+        ],
+    )
+}
+
+/// Runs `steps` steps (default: the scene's) of `sim` from the initial body states `v`, `w`,
+/// `x` (bodies, 3) and `q` (bodies, 4) ``[w, x, y, z]`` (normalised), and optionally the
+/// initial fluid velocity `u` (flat, in :meth:`Simulation.velocity_flat`'s order), taping
+/// what the backward pass needs. `sim` itself is not changed. Raises GradientError at once
+/// if the run cannot be differentiated with these options.
+#[pyfunction]
+#[pyo3(signature = (
+    sim, v, w, x, q, u = None, *, steps = None, surface = "live", mode = "full",
+    through_contact = false
+))]
+#[allow(clippy::too_many_arguments)]
+pub fn rollout(
+    py: Python<'_>,
+    sim: PyRef<'_, Simulation>,
+    v: PyReadonlyArrayDyn<'_, f64>,
+    w: PyReadonlyArrayDyn<'_, f64>,
+    x: PyReadonlyArrayDyn<'_, f64>,
+    q: PyReadonlyArrayDyn<'_, f64>,
+    u: Option<PyReadonlyArrayDyn<'_, f64>>,
+    steps: Option<usize>,
+    surface: &str,
+    mode: &str,
+    through_contact: bool,
+) -> PyResult<Rollout> {
+    let options = options(surface, mode, through_contact)?;
+    let n = sim.inner.bodies().len();
+    let (v, w, x, q) =
+        (read_rows("v", &v, n, 3)?, read_rows("w", &w, n, 3)?, read_rows("x", &x, n, 3)?, read_rows("q", &q, n, 4)?);
+    let steps = steps.unwrap_or(sim.scene_steps);
+    if steps == 0 {
+        return Err(value_error("steps: must be at least 1"));
+    }
+    let mut initial = sim.inner.clone();
+    for i in 0..n {
+        let st = state_from(&v[i], &w[i], &x[i], &q[i])?;
+        let h = initial.handles()[i];
+        initial.set_body_state(h, &st).map_err(crate::to_py)?;
+    }
+    if let Some(u) = u {
+        let flat = crate::read_flat("u", &u, sim.faces_len())?;
+        initial.u = sim.mac_from_flat(&flat);
+    }
+    let (tape, last) = run(py, || {
+        let mut s = initial.clone();
+        let mut tape = Tape::default();
+        for _ in 0..steps {
+            s.step_taped(&mut tape)?;
+        }
+        check_differentiable(&initial, &tape, &options)?;
+        Ok((tape, s))
+    })?;
+    Ok(Rollout { initial, tape, last, options })
+}
+
+#[pymethods]
+impl Rollout {
+    /// The final body states: a tuple (v, w, x, q) of arrays (bodies, 3) and (bodies, 4).
+    fn final_state<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let s: Vec<BodyState> = self.last.bodies().iter().map(|b| b.state()).collect();
+        state_rows(py, &s)
+    }
+
+    /// The simulation at the end of the run (a copy).
+    fn final_simulation(&self) -> Simulation {
+        Simulation { inner: self.last.clone(), scene_steps: self.tape.steps.len(), loss: None }
+    }
+
+    /// Steps taped.
+    #[getter]
+    fn steps(&self) -> usize {
+        self.tape.steps.len()
+    }
+
+    /// The vector–Jacobian product: from the gradient of a loss on the final body state
+    /// (gv, gw, gx: (bodies, 3); gq: (bodies, 4) in ``[w, x, y, z]``) the gradient on the
+    /// initial state: a tuple (gv0, gw0, gx0, gq0, gu0). gq0 lies in the tangent space of the
+    /// unit quaternion (the forward pass normalises q, so the radial part is zero); gu0 is the
+    /// gradient on the initial fluid velocity, flat, when `fluid` is true, else None. The
+    /// backward pass is the adjoint of the linear loss L = Σ g·(final state), whose gradient
+    /// is g itself. The tape is kept, so it can run again (``retain_graph``).
+    #[pyo3(signature = (gv, gw, gx, gq, *, fluid = false))]
+    fn backward<'py>(
+        &self,
+        py: Python<'py>,
+        gv: PyReadonlyArrayDyn<'py, f64>,
+        gw: PyReadonlyArrayDyn<'py, f64>,
+        gx: PyReadonlyArrayDyn<'py, f64>,
+        gq: PyReadonlyArrayDyn<'py, f64>,
+        fluid: bool,
+    ) -> PyResult<Bound<'py, PyTuple>> {
+        let n = self.initial.bodies().len();
+        let (gv, gw, gx, gq) = (
+            read_rows("gv", &gv, n, 3)?,
+            read_rows("gw", &gw, n, 3)?,
+            read_rows("gx", &gx, n, 3)?,
+            read_rows("gq", &gq, n, 4)?,
+        );
+        let bodies: Vec<BodyAdjoint> = (0..n)
+            .map(|i| BodyAdjoint {
+                v: Vec3::new(gv[i][0], gv[i][1], gv[i][2]),
+                w: Vec3::new(gw[i][0], gw[i][1], gw[i][2]),
+                x: Vec3::new(gx[i][0], gx[i][1], gx[i][2]),
+                q: Rotation::from_xyzw(gq[i][1], gq[i][2], gq[i][3], gq[i][0]),
+            })
+            .collect();
+        let final_adjoint =
+            AdjointState { u: Mac::zeros(self.initial.grid()), bodies, particles: Vec::new() };
+        let (adj, _) =
+            run(py, || backward_adjoint(&self.initial, &self.tape, final_adjoint, &self.options))?;
+        let q0: Vec<[f64; 4]> = adj
+            .bodies
+            .iter()
+            .zip(self.initial.bodies())
+            .map(|(a, b)| wxyz(so3::from_tangent_gradient(b.q, so3::tangent_gradient(b.q, a.q))))
+            .collect();
+        let gu = if fluid {
+            let flat: Vec<f64> = adj.u.c.iter().flatten().copied().collect();
+            crate::read_only(numpy::PyArray1::from_vec(py, flat))?
+        } else {
+            py.None().into_bound(py)
+        };
+        PyTuple::new(
+            py,
+            [
+                rows(py, adj.bodies.iter().map(|a| a.v.to_array()))?,
+                rows(py, adj.bodies.iter().map(|a| a.w.to_array()))?,
+                rows(py, adj.bodies.iter().map(|a| a.x.to_array()))?,
+                rows(py, q0.into_iter())?,
+                gu,
+            ],
+        )
+    }
+}
