@@ -7,9 +7,9 @@ the adjoint of a linear loss on it, and one backward pass over the forward run's
 it into the gradient on the initial state (a vector–Jacobian product). Nothing is run twice:
 the forward pass keeps its tape for the backward pass.
 
-Orientations are unit quaternions ``[w, x, y, z]``. ``rollout`` normalises ``q`` with torch
-operations before the simulation sees it, so a gradient on ``q`` is that of the map through
-``q / |q|`` (it has no component along ``q``).
+Orientations are quaternions ``[w, x, y, z]``. The simulation starts from ``q / |q|`` (a unit
+``q`` is used bit for bit), and the gradient on ``q`` is that of the map through the
+normalisation (it has no component along ``q``).
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import numpy as np
 import torch
 
 from . import _diffluid
-from ._diffluid import Simulation
+from ._diffluid import BodyTargetLoss, Simulation
 
-__all__ = ["BodyState", "initial_state", "rollout"]
+__all__ = ["BodyState", "initial_state", "rollout", "target_loss"]
 
 
 class BodyState(NamedTuple):
@@ -115,7 +115,6 @@ def rollout(
                 f"{sim.num_bodies}: pass (bodies, 3)"
             )
         v, w, x, q = (t.unsqueeze(0) for t in (v, w, x, q))
-    q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
     options = dict(steps=steps, surface=surface, mode=mode, through_contact=through_contact)
     out = _RolloutFunction.apply(sim, options, v, w, x, q, fluid_velocity)
     if single:
@@ -133,3 +132,29 @@ def initial_state(sim: Simulation, requires_grad: bool = False) -> BodyState:
     return BodyState(
         t(sim.velocities), t(sim.angular_velocities), t(sim.positions), t(sim.orientations)
     )
+
+
+def target_loss(loss: BodyTargetLoss, sim: Simulation, final: BodyState) -> torch.Tensor:
+    """`loss` (a :class:`diffluid.BodyTargetLoss`, e.g. ``scene.loss``) evaluated in torch on
+    a :func:`rollout`'s final state: ``wx·|x − x*|² + wq·(1 − (q·q*)²) + wv·|v − v*|²`` for
+    the loss's body, the same terms in the same order as diffluid's own."""
+    i = loss.body_index(sim)
+    pick = (lambda t: t) if final.x.dim() == 1 else (lambda t: t[i])
+    out = torch.zeros((), dtype=torch.float64, device=final.x.device)
+    if loss.position is not None:
+        t, wt = loss.position
+        out = out + wt * _squared(pick(final.x) - torch.tensor(t, dtype=torch.float64))
+    if loss.orientation is not None:
+        t, wt = loss.orientation
+        qt = torch.tensor(t, dtype=torch.float64)
+        qt = qt / torch.linalg.vector_norm(qt)
+        out = out + wt * (1.0 - (pick(final.q) * qt).sum() ** 2)
+    if loss.velocity is not None:
+        t, wt = loss.velocity
+        out = out + wt * _squared(pick(final.v) - torch.tensor(t, dtype=torch.float64))
+    return out
+
+
+def _squared(d: torch.Tensor) -> torch.Tensor:
+    """|d|² summed left to right, as diffluid sums it (x·x + y·y + z·z)."""
+    return d[0] * d[0] + d[1] * d[1] + d[2] * d[2]

@@ -83,6 +83,17 @@ fn target<const N: usize>(name: &str, t: Option<&Bound<'_, PyAny>>) -> PyResult<
 }
 
 impl BodyTargetLoss {
+    /// The Python form of a scene's loss (its body by index; the orientation target
+    /// `[w, x, y, z]`).
+    pub(crate) fn from_rust(l: &RLoss) -> BodyTargetLoss {
+        BodyTargetLoss {
+            body: BodyRef::Index(l.body),
+            position: l.position.map(|(t, w)| (t.to_array(), w)),
+            orientation: l.orientation.map(|(q, w)| (wxyz(q), w)),
+            velocity: l.velocity.map(|(t, w)| (t.to_array(), w)),
+        }
+    }
+
     /// The Rust loss for `sim`'s bodies.
     fn resolve(&self, sim: &RSim) -> PyResult<RLoss> {
         let n = sim.bodies().len();
@@ -99,7 +110,7 @@ impl BodyTargetLoss {
         let orientation = match self.orientation {
             None => None,
             Some((q, w)) => {
-                let n = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+                let n = crate::simulation::quat_norm(&q);
                 if n < 1e-12 {
                     return Err(value_error("orientation: the zero quaternion is no target"));
                 }
@@ -135,6 +146,38 @@ impl BodyTargetLoss {
         })
     }
 
+    /// The body: an index or a name, as given.
+    #[getter]
+    fn body<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        Ok(match &self.body {
+            BodyRef::Index(i) => i.into_pyobject(py)?.into_any(),
+            BodyRef::Name(s) => s.into_pyobject(py)?.into_any(),
+        })
+    }
+
+    /// The body's index in `sim`.
+    fn body_index(&self, sim: PyRef<'_, Simulation>) -> PyResult<usize> {
+        Ok(self.resolve(&sim.inner)?.body)
+    }
+
+    /// ``(target, weight)`` of the position term, or None.
+    #[getter]
+    fn position(&self) -> Target<3> {
+        self.position
+    }
+
+    /// ``(target [w, x, y, z], weight)`` of the orientation term, or None.
+    #[getter]
+    fn orientation(&self) -> Target<4> {
+        self.orientation
+    }
+
+    /// ``(target, weight)`` of the velocity term, or None.
+    #[getter]
+    fn velocity(&self) -> Target<3> {
+        self.velocity
+    }
+
     /// The loss at `sim`'s current state.
     fn value(&self, sim: PyRef<'_, Simulation>) -> PyResult<f64> {
         Ok(self.resolve(&sim.inner)?.value(&sim.inner))
@@ -143,12 +186,8 @@ impl BodyTargetLoss {
     fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>)> {
         let py = slf.py();
         let this = slf.get();
-        let body = match &this.body {
-            BodyRef::Index(i) => i.into_pyobject(py)?.into_any(),
-            BodyRef::Name(s) => s.into_pyobject(py)?.into_any(),
-        };
         let args = (
-            body,
+            this.body(py)?,
             this.position.map(|(t, w)| (t.to_vec(), w)),
             this.orientation.map(|(t, w)| (t.to_vec(), w)),
             this.velocity.map(|(t, w)| (t.to_vec(), w)),
@@ -338,6 +377,8 @@ pub struct Rollout {
     tape: Tape,
     last: RSim,
     options: GradientOptions,
+    /// |q| of each body's initial quaternion as given (the run starts from q/|q|).
+    q_norms: Vec<f64>,
 }
 
 /// Body states as four row arrays (v, w, x, q).
@@ -354,9 +395,11 @@ fn state_rows<'py>(py: Python<'py>, s: &[BodyState]) -> PyResult<Bound<'py, PyTu
 }
 
 /// Runs `steps` steps (default: the scene's) of `sim` from the initial body states `v`, `w`,
-/// `x` (bodies, 3) and `q` (bodies, 4) ``[w, x, y, z]`` (normalised), and optionally the
+/// `x` (bodies, 3) and `q` (bodies, 4) ``[w, x, y, z]``, and optionally the
 /// initial fluid velocity `u` (flat, in :meth:`Simulation.velocity_flat`'s order), taping
-/// what the backward pass needs. `sim` itself is not changed. Raises GradientError at once
+/// what the backward pass needs. The run starts from q/|q| (q unchanged when it is a unit
+/// quaternion to round-off), and the backward pass differentiates through that
+/// normalisation. `sim` itself is not changed. Raises GradientError at once
 /// if the run cannot be differentiated with these options.
 #[pyfunction]
 #[pyo3(signature = (
@@ -404,7 +447,8 @@ pub fn rollout(
         check_differentiable(&initial, &tape, &options)?;
         Ok((tape, s))
     })?;
-    Ok(Rollout { initial, tape, last, options })
+    let q_norms = q.iter().map(|r| crate::simulation::quat_norm(r)).collect();
+    Ok(Rollout { initial, tape, last, options, q_norms })
 }
 
 #[pymethods]
@@ -428,8 +472,8 @@ impl Rollout {
 
     /// The vector–Jacobian product: from the gradient of a loss on the final body state
     /// (gv, gw, gx: (bodies, 3); gq: (bodies, 4) in ``[w, x, y, z]``) the gradient on the
-    /// initial state: a tuple (gv0, gw0, gx0, gq0, gu0). gq0 lies in the tangent space of the
-    /// unit quaternion (the forward pass normalises q, so the radial part is zero); gu0 is the
+    /// initial state: a tuple (gv0, gw0, gx0, gq0, gu0). gq0 is the gradient on the q given,
+    /// through q/|q| (so it has no component along q); gu0 is the
     /// gradient on the initial fluid velocity, flat, when `fluid` is true, else None. The
     /// backward pass is the adjoint of the linear loss L = Σ g·(final state), whose gradient
     /// is g itself. The tape is kept, so it can run again (``retain_graph``).
@@ -462,11 +506,16 @@ impl Rollout {
             AdjointState { u: Mac::zeros(self.initial.grid()), bodies, particles: Vec::new() };
         let (adj, _) =
             run(py, || backward_adjoint(&self.initial, &self.tape, final_adjoint, &self.options))?;
+        // The tangent part at q̂ = q/|q|, over |q|: the gradient through the normalisation.
         let q0: Vec<[f64; 4]> = adj
             .bodies
             .iter()
             .zip(self.initial.bodies())
-            .map(|(a, b)| wxyz(so3::from_tangent_gradient(b.q, so3::tangent_gradient(b.q, a.q))))
+            .zip(&self.q_norms)
+            .map(|((a, b), n)| {
+                let t = so3::from_tangent_gradient(b.q, so3::tangent_gradient(b.q, a.q));
+                wxyz(t).map(|c| c / n)
+            })
             .collect();
         let gu = if fluid {
             let flat: Vec<f64> = adj.u.c.iter().flatten().copied().collect();

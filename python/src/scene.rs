@@ -1,6 +1,7 @@
 //! `diffluid.Scene`: a validated scene (a scene file, TOML text, or a built-in name).
 
-use crate::{run, simulation::Simulation, value_error};
+use crate::gradients::BodyTargetLoss;
+use crate::{run, simulation::Simulation, to_py_object, value_error};
 use diffluid::experiments::scene::BUILTIN_SCENES;
 use diffluid::Scene as RScene;
 use pyo3::prelude::*;
@@ -140,6 +141,19 @@ impl Scene {
     #[getter]
     fn has_loss(&self) -> bool {
         self.inner.loss.is_some()
+    }
+
+    /// The scene's `[loss]` as a BodyTargetLoss (None without one).
+    #[getter]
+    fn loss(&self) -> Option<BodyTargetLoss> {
+        self.inner.loss().as_ref().map(BodyTargetLoss::from_rust)
+    }
+
+    /// The scene's `[optimize]` section as a dict (params, optimizer {kind, learning_rate,
+    /// ...}, epochs, freeze_surface, ...), or None.
+    #[getter]
+    fn optimize_spec<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        self.inner.optimize.as_ref().map(|o| to_py_object(py, o)).transpose()
     }
 
     /// The simulation in the scene's initial state (the same as ``Simulation(scene)``).

@@ -82,18 +82,26 @@ impl Simulation {
     }
 }
 
-/// A body state from rows of numbers (v, ω, x as 3, q as `[w, x, y, z]`, normalised).
+/// A body state from rows of numbers (v, ω, x as 3, q as `[w, x, y, z]`). `q` is
+/// normalised unless it is already a unit quaternion to round-off, which is kept bit for bit
+/// (so that handing a simulation its own state back changes nothing).
 pub(crate) fn state_from(v: &[f64], w: &[f64], x: &[f64], q: &[f64]) -> PyResult<BodyState> {
-    let norm = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+    let norm = quat_norm(q);
     if norm < 1e-12 {
         return Err(value_error("q: the zero quaternion is no orientation"));
     }
+    let s = if (norm - 1.0).abs() <= 4.0 * f64::EPSILON { 1.0 } else { 1.0 / norm };
     Ok(BodyState {
         v: Vec3::new(v[0], v[1], v[2]),
         w: Vec3::new(w[0], w[1], w[2]),
         x: Vec3::new(x[0], x[1], x[2]),
-        q: Rotation::from_xyzw(q[1] / norm, q[2] / norm, q[3] / norm, q[0] / norm),
+        q: Rotation::from_xyzw(q[1] * s, q[2] * s, q[3] * s, q[0] * s),
     })
+}
+
+/// |q| of a quaternion's four numbers.
+pub(crate) fn quat_norm(q: &[f64]) -> f64 {
+    q.iter().map(|c| c * c).sum::<f64>().sqrt()
 }
 
 /// `[w, x, y, z]`.

@@ -1,0 +1,118 @@
+"""Scenes from files, TOML text and built-in names; bad scenes are ValueErrors with the
+CLI's message; scenes pickle exactly."""
+
+import os
+import pathlib
+import pickle
+import subprocess
+
+import pytest
+
+import diffluid
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+
+def test_builtin_names_load():
+    names = diffluid.Scene.builtin_names()
+    assert "block_drop" in names and "gradcheck_box" in names
+    s = diffluid.Scene.builtin("block_drop")
+    assert s.name == "block_drop" and s.steps == 50 and s.dt == 0.005
+    assert s.body_names == ["block"] and s.size == [3.5, 1.5, 2.0]
+
+
+def test_load_resolves_paths_and_builtin_names_like_the_cli():
+    by_name = diffluid.Scene.load("block_drop")
+    by_path = diffluid.Scene.load(str(ROOT / "assets/scenes/block_drop.toml"))
+    assert by_name.to_json() == by_path.to_json()
+    with pytest.raises(FileNotFoundError, match="no_such_scene"):
+        diffluid.Scene.load("no_such_scene")
+
+
+def test_from_toml_and_from_file_agree(tmp_path, small_toml):
+    p = tmp_path / "small.toml"
+    p.write_text(small_toml)
+    a = diffluid.Scene.from_file(p)
+    b = diffluid.Scene.from_toml(small_toml, base_dir=str(tmp_path))
+    assert a == b
+    assert a.body_names == ["ball"] and a.steps == 3
+
+
+def test_unknown_builtin_is_a_value_error():
+    with pytest.raises(ValueError, match='no built-in scene named "nope"'):
+        diffluid.Scene.builtin("nope")
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (("dx = 0.05", "dx = -0.05"), "domain.dx"),
+        (("steps = 3", "steps = 0"), "time.steps: must be at least 1"),
+        (("density = 500.0", "density = 500.0\nfoo = 1"), "unknown field `foo`"),
+        (("radius = 0.06", "radius = nan"), "body[0]"),
+        (("[0.2, 0.22, 0.2]", "[0.2, 0.22, 9.0]"), "body[0]"),
+        (("name = \"small\"", "name = "), "line 2"),
+    ],
+)
+def test_bad_scenes_are_value_errors(small_toml, edit, message):
+    text = small_toml.replace(*edit)
+    assert text != small_toml
+    with pytest.raises(ValueError) as e:
+        diffluid.Scene.from_toml(text, origin="bad.toml")
+    assert message in str(e.value)
+    assert str(e.value).startswith("scene bad.toml: ")
+
+
+def test_missing_file_is_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError, match="cannot read scene file"):
+        diffluid.Scene.from_file(tmp_path / "missing.toml")
+
+
+CLI = os.environ.get("DIFFLUID_CLI")
+
+
+@pytest.mark.skipif(not CLI, reason="set DIFFLUID_CLI to the diffluid binary (python/ci.sh does)")
+def test_messages_are_the_clis(tmp_path, small_toml):
+    """The exception's message is the line the CLI prints after 'error: '."""
+    p = tmp_path / "bad.toml"
+    p.write_text(small_toml.replace("dx = 0.05", "dx = 0.0"))
+    out = subprocess.run([CLI, "run", str(p), "--out", str(tmp_path / "o"), "--quiet"],
+                         capture_output=True, text=True)
+    assert out.returncode != 0
+    line = [l for l in out.stderr.splitlines() if l.startswith("error: ")][-1]
+    with pytest.raises(ValueError) as e:
+        diffluid.Scene.from_file(p)
+    assert line == "error: " + str(e.value)
+
+
+def test_settable_steps_and_surface(box_scene):
+    box_scene.steps = 2
+    assert box_scene.steps == 2
+    with pytest.raises(ValueError):
+        box_scene.steps = 0
+    assert box_scene.freeze_surface
+    box_scene.freeze_surface = False
+    assert not box_scene.freeze_surface
+
+
+def test_scenes_pickle_exactly():
+    s = diffluid.Scene.builtin("gradcheck_box")
+    s.steps = 7
+    t = pickle.loads(pickle.dumps(s))
+    assert t == s and t.steps == 7 and t.to_json() == s.to_json()
+    # The copy runs the same simulation bit for bit.
+    a, b = diffluid.Simulation(s), diffluid.Simulation(t)
+    a.run(2)
+    b.run(2)
+    assert (a.positions == b.positions).all()
+
+
+def test_loss_and_optimize_spec():
+    s = diffluid.Scene.builtin("block_drop")
+    loss = s.loss
+    assert loss.body == 0 and loss.position == ([1.45, 0.3, 1.3], 1.0)
+    assert loss.orientation is None and loss.velocity is None
+    spec = s.optimize_spec
+    assert spec["params"] == ["v", "w"] and spec["optimizer"]["kind"] == "gd"
+    assert spec["epochs"] == 50 and spec["freeze_surface"] is True
+    assert diffluid.Scene.builtin("still_water").loss is None
