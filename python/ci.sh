@@ -7,7 +7,8 @@
 # libraries): PyTorch's CPU-only index is not reachable from this machine. The tests run on
 # the CPU either way.
 set -euo pipefail
-cd "$(dirname "${BASH_SOURCE[0]}")"
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+cd "$here"
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 python3 -m venv "$work/venv"
@@ -19,13 +20,13 @@ t1=$(date +%s)
 "$py" -m pip install -q .
 t2=$(date +%s)
 echo "python/ci.sh: numpy, pytest, ray, torch installed in $((t1 - t0)) s; diffluid built and installed in $((t2 - t1)) s"
-"$py" -c "import diffluid, torch, ray; print('diffluid', diffluid.__version__, '| torch', torch.__version__, '| ray', ray.__version__)"
-
 # The CLI, when the root's `cargo test --release` has built it: the exceptions' messages are
 # compared with what it prints.
 if [ -x ../target/release/diffluid ]; then
-    export DIFFLUID_CLI="$PWD/../target/release/diffluid"
+    export DIFFLUID_CLI="$here/../target/release/diffluid"
 fi
-# From the package's folder, pytest imports the installed diffluid (the source folder has no
-# compiled module), and tests/ finds the examples beside it.
-"$work/venv/bin/pytest" -q -p no:cacheprovider tests
+# Away from the source folder (whose diffluid/ has no compiled module), so that Python
+# imports the installed package.
+cd "$work"
+"$py" -c "import diffluid, torch, ray; print('diffluid', diffluid.__version__, 'from', diffluid.__file__, '| torch', torch.__version__, '| ray', ray.__version__)"
+"$work/venv/bin/pytest" -q -p no:cacheprovider "$here/tests"

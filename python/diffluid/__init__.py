@@ -5,7 +5,8 @@ it through one monolithic pressure solve, and an adjoint backward pass that give
 gradient of a loss on the final state with respect to the initial state. This package is the
 Rust library seen from Python:
 
-- :class:`Scene` (a scene file, TOML text or a built-in name) and :class:`Simulation`
+- :class:`Scene` (a scene file, TOML text or a built-in name), :class:`WorldBuilder` (a
+  world in code) and :class:`Simulation`
   (``step``, ``advance``, bodies and fields as NumPy arrays);
 - :func:`value_and_grad` and :class:`BodyTargetLoss`; :func:`optimize`, the Rust optimiser;
 - :mod:`diffluid.torch`: ``rollout`` as a ``torch.autograd.Function`` (needs torch);
@@ -32,6 +33,7 @@ from ._diffluid import (
     rollout,
     value_and_grad,
 )
+from .builder import WorldBuilder
 
 __all__ = [
     "BodyTargetLoss",
@@ -46,4 +48,5 @@ __all__ = [
     "optimize",
     "rollout",
     "value_and_grad",
+    "WorldBuilder",
 ]

@@ -156,6 +156,7 @@ class Simulation:
         x: Optional[F64] = None,
         q: Optional[F64] = None,
     ) -> None: ...
+    def set_external_force(self, body: Body, force: F64, torque: Optional[F64] = None) -> None: ...
     @property
     def particles(self) -> F64:
         """(particles, 3)"""

@@ -310,6 +310,27 @@ impl Simulation {
         self.inner.set_body_state(h, &state).map_err(crate::to_py)
     }
 
+    /// Sets the external force (N, on the centre of mass) and torque (N·m) on body `body`,
+    /// world frame, float64 arrays of 3; they act every step, with gravity, until changed.
+    #[pyo3(signature = (body, force, torque = None))]
+    fn set_external_force(
+        &mut self,
+        body: &Bound<'_, PyAny>,
+        force: PyReadonlyArrayDyn<'_, f64>,
+        torque: Option<PyReadonlyArrayDyn<'_, f64>>,
+    ) -> PyResult<()> {
+        let i = self.body_index(body)?;
+        let f = read_rows("force", &force, 1, 3)?.remove(0);
+        let t = match torque {
+            Some(t) => read_rows("torque", &t, 1, 3)?.remove(0),
+            None => vec![0.0; 3],
+        };
+        let h = self.inner.handles()[i];
+        self.inner
+            .set_external_force(h, Vec3::new(f[0], f[1], f[2]), Vec3::new(t[0], t[1], t[2]))
+            .map_err(crate::to_py)
+    }
+
     /// Marker particle positions, shape (particles, 3), m (a copy).
     #[getter]
     fn particles<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {

@@ -177,3 +177,13 @@ def test_steps_release_the_gil(box_scene):
     assert end - start > 0.1, "the call is long enough for the test to mean something"
     middle = [s for s in stamps if start + 0.25 * (end - start) < s < start + 0.75 * (end - start)]
     assert len(middle) > 100, len(middle)
+
+
+def test_external_force_pushes_the_body(sim):
+    other = sim.copy()
+    sim.set_external_force("ball", np.array([3.0, 0.0, 0.0]), np.zeros(3))
+    sim.run(3)
+    other.run(3)
+    assert sim.velocities[0, 0] > other.velocities[0, 0] + 0.01
+    with pytest.raises(ValueError, match="force: element 1 is NaN"):
+        sim.set_external_force(0, np.array([0.0, np.nan, 0.0]))
