@@ -102,9 +102,11 @@ impl BodyTargetLoss {
             BodyRef::Index(i) => {
                 return Err(value_error(format!("loss body {i} out of range ({n} bodies)")))
             }
-            BodyRef::Name(s) => sim.bodies().iter().position(|b| &b.name == s).ok_or_else(|| {
-                value_error(format!("loss: no body named {s:?} in the simulation"))
-            })?,
+            BodyRef::Name(s) => {
+                sim.bodies().iter().position(|b| &b.name == s).ok_or_else(|| {
+                    value_error(format!("loss: no body named {s:?} in the simulation"))
+                })?
+            }
         };
         let v3 = |t: &Target<3>| t.map(|(a, w)| (Vec3::new(a[0], a[1], a[2]), w));
         let orientation = match self.orientation {
@@ -183,7 +185,9 @@ impl BodyTargetLoss {
         Ok(self.resolve(&sim.inner)?.value(&sim.inner))
     }
 
-    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>)> {
+    fn __reduce__<'py>(
+        slf: &Bound<'py, Self>,
+    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>)> {
         let py = slf.py();
         let this = slf.get();
         let args = (
@@ -224,9 +228,10 @@ fn start(
     };
     let loss = match loss {
         Some(l) => l.resolve(&sim.inner)?,
-        None => sim.loss.clone().ok_or_else(|| {
-            value_error("no loss given and the scene has no [loss] section")
-        })?,
+        None => sim
+            .loss
+            .clone()
+            .ok_or_else(|| value_error("no loss given and the scene has no [loss] section"))?,
     };
     let steps = steps.unwrap_or(sim.scene_steps);
     if steps == 0 {
@@ -238,8 +243,12 @@ fn start(
 /// Overrides parts of body `i`'s state from a dict of arrays (v, w, x: 3; q: 4).
 fn apply_state(sim: &mut RSim, i: usize, state: &Bound<'_, PyDict>) -> PyResult<()> {
     let s = sim.bodies()[i].state();
-    let mut parts: [Vec<f64>; 4] =
-        [s.v.to_array().to_vec(), s.w.to_array().to_vec(), s.x.to_array().to_vec(), wxyz(s.q).to_vec()];
+    let mut parts: [Vec<f64>; 4] = [
+        s.v.to_array().to_vec(),
+        s.w.to_array().to_vec(),
+        s.x.to_array().to_vec(),
+        wxyz(s.q).to_vec(),
+    ];
     for (k, v) in state.iter() {
         let key: String = k.extract()?;
         let slot = match key.as_str() {
@@ -247,7 +256,9 @@ fn apply_state(sim: &mut RSim, i: usize, state: &Bound<'_, PyDict>) -> PyResult<
             "w" => 1,
             "x" => 2,
             "q" => 3,
-            other => return Err(value_error(format!("state: unknown part {other:?} (v, w, x, q)"))),
+            other => {
+                return Err(value_error(format!("state: unknown part {other:?} (v, w, x, q)")))
+            }
         };
         let a: PyReadonlyArrayDyn<'_, f64> = v.extract()?;
         parts[slot] = read_rows(&key, &a, 1, if slot == 3 { 4 } else { 3 })?.remove(0);
@@ -422,8 +433,12 @@ pub fn rollout(
 ) -> PyResult<Rollout> {
     let options = options(surface, mode, through_contact)?;
     let n = sim.inner.bodies().len();
-    let (v, w, x, q) =
-        (read_rows("v", &v, n, 3)?, read_rows("w", &w, n, 3)?, read_rows("x", &x, n, 3)?, read_rows("q", &q, n, 4)?);
+    let (v, w, x, q) = (
+        read_rows("v", &v, n, 3)?,
+        read_rows("w", &w, n, 3)?,
+        read_rows("x", &x, n, 3)?,
+        read_rows("q", &q, n, 4)?,
+    );
     let steps = steps.unwrap_or(sim.scene_steps);
     if steps == 0 {
         return Err(value_error("steps: must be at least 1"));

@@ -127,7 +127,10 @@ pub(crate) fn rows<'py, const W: usize>(
 }
 
 /// One row of `W` numbers as a `(W,)` read-only array.
-pub(crate) fn row<'py, const W: usize>(py: Python<'py>, r: [f64; W]) -> PyResult<Bound<'py, PyAny>> {
+pub(crate) fn row<'py, const W: usize>(
+    py: Python<'py>,
+    r: [f64; W],
+) -> PyResult<Bound<'py, PyAny>> {
     read_only(PyArray1::from_vec(py, r.to_vec()))
 }
 

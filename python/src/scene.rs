@@ -7,6 +7,10 @@ use diffluid::Scene as RScene;
 use pyo3::prelude::*;
 use std::path::{Path, PathBuf};
 
+/// What `Scene.__reduce__` returns: `Scene.from_json` and its arguments (the JSON, the base
+/// folder).
+type Reduced<'py> = (Bound<'py, PyAny>, (String, Option<String>));
+
 /// A scene: the tank, the liquid, the bodies, the solver settings, and optionally a
 /// `[loss]` and an `[optimize]` section. Build one with :meth:`Scene.from_file`,
 /// :meth:`Scene.from_toml`, :meth:`Scene.builtin` or :meth:`Scene.load` (a path or a
@@ -177,9 +181,7 @@ impl Scene {
         run(py, || inner.check().map(|()| inner)).map(|inner| Scene { inner })
     }
 
-    fn __reduce__<'py>(
-        slf: &Bound<'py, Self>,
-    ) -> PyResult<(Bound<'py, PyAny>, (String, Option<String>))> {
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<Reduced<'py>> {
         let this = slf.borrow();
         let from_json = slf.get_type().getattr("from_json")?;
         let base = this.inner.base_dir.as_deref().map(|p: &Path| p.display().to_string());
