@@ -4,7 +4,7 @@ use clap::{Parser, Subcommand};
 use diffluid::experiments::optimize::{Checkpoint, Optimization};
 use diffluid::experiments::outputs::{write_bench, write_optimization};
 use diffluid::gradients::{gradcheck, GradcheckSettings};
-use diffluid::io::recorder::{Frames, RunRecorder};
+use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
 use diffluid::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -159,8 +159,15 @@ fn run(args: RunArgs) -> Outcome {
     for w in sim.warnings() {
         eprintln!("warning: {w}");
     }
-    let frames =
-        Frames { every: scene.output.every, particles: scene.output.particles, vtk: args.vtk };
+    let frames = Frames {
+        every: scene.output.every,
+        particles: scene.output.particles,
+        vtk: args.vtk,
+        surface: scene.output.surface.then_some(SurfaceFrames {
+            samples: scene.output.surface_samples,
+            format: scene.output.surface_format,
+        }),
+    };
     let mut rec = RunRecorder::new(&out, &scene.name, frames, &sim)?;
     let bar = bar(
         scene.time.steps,

@@ -242,20 +242,20 @@ impl ClosedMesh {
 }
 
 /// A disjoint-set forest over `n` items.
-struct Sets(Vec<usize>);
+pub(crate) struct Sets(Vec<usize>);
 
 impl Sets {
-    fn new(n: usize) -> Sets {
+    pub(crate) fn new(n: usize) -> Sets {
         Sets((0..n).collect())
     }
-    fn find(&mut self, mut i: usize) -> usize {
+    pub(crate) fn find(&mut self, mut i: usize) -> usize {
         while self.0[i] != i {
             self.0[i] = self.0[self.0[i]];
             i = self.0[i];
         }
         i
     }
-    fn join(&mut self, a: usize, b: usize) {
+    pub(crate) fn join(&mut self, a: usize, b: usize) {
         let (a, b) = (self.find(a), self.find(b));
         self.0[a] = b;
     }

@@ -2,6 +2,8 @@
 //! (`recorder`, feature `csv`), ParaView frames (`vtk`, feature `vtk`) and pictures
 //! (`plot`, feature `plots`).
 
+#[cfg(feature = "surface")]
+pub mod liquid_mesh;
 pub mod output;
 #[cfg(feature = "plots")]
 pub mod plot;

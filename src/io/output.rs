@@ -35,18 +35,7 @@ pub fn write_ply_points(path: &Path, points: &[Vec3]) -> Result<()> {
 /// ParaView, Blender and MeshLab read. A triangle index past the vertices (or beyond what an
 /// `int` holds) is an error and nothing is written.
 pub fn write_ply_mesh(path: &Path, vertices: &[Vec3], triangles: &[[u32; 3]]) -> Result<()> {
-    let limit = vertices.len().min(i32::MAX as usize);
-    if let Some((n, t)) =
-        triangles.iter().enumerate().find(|(_, t)| t.iter().any(|&i| i as usize >= limit))
-    {
-        return Err(Error::Write {
-            path: path.to_path_buf(),
-            source: std::io::Error::new(
-                std::io::ErrorKind::InvalidInput,
-                format!("triangle {n} {t:?} refers past the {} vertices", vertices.len()),
-            ),
-        });
-    }
+    check_triangles(path, vertices.len(), triangles)?;
     let mut buf = Vec::with_capacity(256 + 12 * vertices.len() + 13 * triangles.len());
     write!(
         buf,
@@ -69,6 +58,72 @@ pub fn write_ply_mesh(path: &Path, vertices: &[Vec3], triangles: &[[u32; 3]]) ->
         }
     }
     write_atomic(path, &buf)
+}
+
+/// How a triangle mesh is written.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MeshFormat {
+    /// Binary little-endian PLY ([`write_ply_mesh`]).
+    #[default]
+    Ply,
+    /// Wavefront OBJ, text ([`write_obj_mesh`]).
+    Obj,
+}
+
+impl MeshFormat {
+    /// The file extension, without the dot.
+    pub fn extension(self) -> &'static str {
+        match self {
+            MeshFormat::Ply => "ply",
+            MeshFormat::Obj => "obj",
+        }
+    }
+
+    /// Writes a mesh in this format.
+    pub fn write(self, path: &Path, vertices: &[Vec3], triangles: &[[u32; 3]]) -> Result<()> {
+        match self {
+            MeshFormat::Ply => write_ply_mesh(path, vertices, triangles),
+            MeshFormat::Obj => write_obj_mesh(path, vertices, triangles),
+        }
+    }
+}
+
+/// Writes a triangle mesh as a Wavefront OBJ (`v x y z` lines with every f64 digit that
+/// reads back to the same value, then `f a b c` lines, 1-based). A triangle index past the
+/// vertices is an error and nothing is written.
+pub fn write_obj_mesh(path: &Path, vertices: &[Vec3], triangles: &[[u32; 3]]) -> Result<()> {
+    check_triangles(path, vertices.len(), triangles)?;
+    let mut buf = Vec::with_capacity(64 * vertices.len() + 32 * triangles.len());
+    writeln!(
+        buf,
+        "# diffluid surface mesh: {} vertices, {} triangles",
+        vertices.len(),
+        triangles.len()
+    )
+    .expect("writing to memory");
+    for p in vertices {
+        writeln!(buf, "v {} {} {}", p.x, p.y, p.z).expect("writing to memory");
+    }
+    for t in triangles {
+        writeln!(buf, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1).expect("writing to memory");
+    }
+    write_atomic(path, &buf)
+}
+
+/// Every triangle index below `count` (and within what an `i32` holds).
+fn check_triangles(path: &Path, count: usize, triangles: &[[u32; 3]]) -> Result<()> {
+    let limit = count.min(i32::MAX as usize);
+    match triangles.iter().enumerate().find(|(_, t)| t.iter().any(|&i| i as usize >= limit)) {
+        None => Ok(()),
+        Some((n, t)) => Err(Error::Write {
+            path: path.to_path_buf(),
+            source: std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("triangle {n} {t:?} refers past the {count} vertices"),
+            ),
+        }),
+    }
 }
 
 /// Writes a value as pretty JSON.

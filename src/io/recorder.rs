@@ -5,7 +5,7 @@
 
 use crate::error::Result;
 use crate::geometry::mesh::surface_mesh;
-use crate::io::output::{write_csv, write_json, write_ply_mesh, write_ply_points};
+use crate::io::output::{write_csv, write_json, write_ply_mesh, write_ply_points, MeshFormat};
 use crate::world::{Simulation, StepReport};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -69,6 +69,18 @@ pub struct Frames {
     pub particles: bool,
     /// ParaView frames under `vtk/` (needs the `vtk` feature).
     pub vtk: bool,
+    /// The liquid's surface mesh under `surface/` (and in the ParaView frames), when the
+    /// `surface` feature is on; without it, asking for one is an error.
+    pub surface: Option<SurfaceFrames>,
+}
+
+/// How a run writes the liquid's surface.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SurfaceFrames {
+    /// Distance samples per cell along each axis (see `liquid_mesh::liquid_surface`).
+    pub samples: usize,
+    /// The file format.
+    pub format: MeshFormat,
 }
 
 /// Records a run into a folder.
@@ -86,6 +98,13 @@ pub struct RunRecorder {
 impl RunRecorder {
     /// A recorder of the run `name` into `out`; writes frame 0 of `sim`.
     pub fn new(out: &Path, name: &str, frames: Frames, sim: &Simulation) -> Result<RunRecorder> {
+        if frames.surface.is_some() && !cfg!(feature = "surface") {
+            return Err(crate::error::Error::InvalidSettings {
+                key: "output.surface".into(),
+                message: "needs diffluid built with the `surface` feature (a default feature)"
+                    .into(),
+            });
+        }
         let mut r = RunRecorder {
             out: out.to_path_buf(),
             name: name.into(),
@@ -128,6 +147,20 @@ impl RunRecorder {
         #[cfg(feature = "vtk")]
         if let Some(v) = self.vtk.as_mut() {
             v.write_frame(sim, n)?;
+        }
+        #[cfg(feature = "surface")]
+        if let Some(s) = self.frames.surface {
+            let mesh = crate::io::liquid_mesh::liquid_surface(sim, s.samples);
+            let file = format!("{n:04}.{}", s.format.extension());
+            s.format.write(
+                &self.out.join("surface").join(file),
+                &mesh.vertices,
+                &mesh.triangles,
+            )?;
+            #[cfg(feature = "vtk")]
+            if let Some(v) = self.vtk.as_mut() {
+                v.write_surface(sim.time(), n, &mesh.vertices, &mesh.triangles)?;
+            }
         }
         if self.frames.particles {
             write_ply_points(

@@ -74,16 +74,18 @@ pub fn body_data(sim: &Simulation, b: usize) -> DataSet {
     let pose = body.pose();
     let world: Vec<Vec3> = verts.iter().map(|v| pose.transform_point(*v)).collect();
     let velocity = flat(world.iter().map(|p| body.velocity_at(*p)));
+    triangles_data(&world, &tris, vec![Attribute::vectors("velocity").with_data(velocity)])
+}
+
+/// A triangle mesh as PolyData, with `point` attributes.
+fn triangles_data(vertices: &[Vec3], triangles: &[[u32; 3]], point: Vec<Attribute>) -> DataSet {
     DataSet::inline(PolyDataPiece {
-        points: flat(world.iter().copied()).into(),
+        points: flat(vertices.iter().copied()).into(),
         polys: Some(VertexNumbers::XML {
-            connectivity: tris.iter().flat_map(|t| t.map(u64::from)).collect(),
-            offsets: (1..=tris.len() as u64).map(|c| 3 * c).collect(),
+            connectivity: triangles.iter().flat_map(|t| t.map(u64::from)).collect(),
+            offsets: (1..=triangles.len() as u64).map(|c| 3 * c).collect(),
         }),
-        data: Attributes {
-            point: vec![Attribute::vectors("velocity").with_data(velocity)],
-            cell: Vec::new(),
-        },
+        data: Attributes { point, cell: Vec::new() },
         ..Default::default()
     })
 }
@@ -156,6 +158,22 @@ impl VtkSeries {
             write_vtk(&self.dir.join(&file), &title, data)?;
             self.add(&series, time, file);
         }
+        self.write_collections()
+    }
+
+    /// Writes the liquid's surface mesh of frame `n` at `time` as PolyData triangles (series
+    /// "surface") and rewrites the `.pvd` files.
+    pub fn write_surface(
+        &mut self,
+        time: f64,
+        n: usize,
+        vertices: &[Vec3],
+        triangles: &[[u32; 3]],
+    ) -> Result<()> {
+        let title = format!("diffluid {} liquid surface frame {n} t = {time} s", self.name);
+        let file = format!("surface_{n:04}.vtp");
+        write_vtk(&self.dir.join(&file), &title, triangles_data(vertices, triangles, Vec::new()))?;
+        self.add("surface", time, file);
         self.write_collections()
     }
 
