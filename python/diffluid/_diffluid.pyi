@@ -1,7 +1,7 @@
 """Type stubs for diffluid's native module (the docstrings are the Rust side's)."""
 
 from os import PathLike
-from typing import Any, Optional, Sequence, Tuple, TypedDict, Union
+from typing import Any, Optional, Sequence, Tuple, TypedDict, Union, final
 
 import numpy as np
 import numpy.typing as npt
@@ -25,6 +25,7 @@ class GradientError(ValueError):
 class InternalError(RuntimeError):
     """A Rust panic caught at the boundary: a bug in diffluid."""
 
+@final
 class Scene:
     """A validated scene. Pickles (as JSON, every number exact)."""
 
@@ -73,7 +74,7 @@ class Scene:
     def optimize_spec(self) -> Optional[dict[str, Any]]: ...
     def __copy__(self) -> Scene: ...
     def __deepcopy__(self, memo: Any) -> Scene: ...
-    def __eq__(self, other: object) -> bool: ...
+    def __eq__(self, other: object, /) -> bool: ...
 
 class BodyForceReport(TypedDict):
     name: str
@@ -103,11 +104,12 @@ class BodyStateDict(TypedDict):
     x: F64
     q: F64
 
+@final
 class Simulation:
     """A running simulation. Arrays are float64 read-only copies; quaternions [w, x, y, z];
     grid fields indexed [i, j, k]. step/run/advance release the GIL."""
 
-    def __init__(self, scene: Scene) -> None: ...
+    def __new__(cls, scene: Scene) -> Simulation: ...
     def step(self) -> StepReport: ...
     def run(self, steps: Optional[int] = None) -> StepReport: ...
     def advance(self, frame_dt: float) -> list[StepReport]: ...
@@ -173,16 +175,17 @@ class Simulation:
     def set_velocity_flat(self, u: F64) -> None: ...
     def scene_loss(self) -> Optional[float]: ...
 
+@final
 class BodyTargetLoss:
     """wx·|x − x*|² + wq·(1 − (q·q*)²) + wv·|v − v*|² on one body's final state."""
 
-    def __init__(
-        self,
+    def __new__(
+        cls,
         body: Body,
         position: Optional[Target3] = None,
         orientation: Optional[Target4] = None,
         velocity: Optional[Target3] = None,
-    ) -> None: ...
+    ) -> BodyTargetLoss: ...
     @property
     def body(self) -> Body: ...
     def body_index(self, sim: Simulation) -> int: ...
@@ -194,6 +197,7 @@ class BodyTargetLoss:
     def velocity(self) -> Optional[Tuple[list[float], float]]: ...
     def value(self, sim: Simulation) -> float: ...
 
+@final
 class Rollout:
     """A taped forward run; backward() is the vector–Jacobian product."""
 
@@ -235,3 +239,5 @@ def rollout(
     mode: str = "full",
     through_contact: bool = False,
 ) -> Rollout: ...
+def _panic_for_tests() -> None:
+    """Panics inside the boundary guard (raises InternalError); for the tests."""
