@@ -42,7 +42,7 @@ def main() -> None:
     v = starts[best]["v"]
     for it in range(5):
         # Four step sizes at once: one Ray task each.
-        rates = [0.25, 0.5, 1.0, 2.0]
+        rates = [0.5, 1.0, 2.0, 4.0]
         loss, g = dray.value_and_grads(scene, [{"v": v}], params=["v"])[0]
         trials = [{"v": v - r * g["v"]} for r in rates]
         losses = [l for l, _ in dray.value_and_grads(scene, trials, params=["v"])]
