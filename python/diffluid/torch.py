@@ -35,7 +35,7 @@ class BodyState(NamedTuple):
     q: torch.Tensor
 
 
-def _numpy(name: str, t: torch.Tensor) -> np.ndarray:
+def _numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
 
 
@@ -54,11 +54,11 @@ class _RolloutFunction(torch.autograd.Function):
     def forward(ctx, sim, options, v, w, x, q, u):  # type: ignore[override]
         r = _diffluid.rollout(
             sim,
-            _numpy("v", v),
-            _numpy("w", w),
-            _numpy("x", x),
-            _numpy("q", q),
-            None if u is None else _numpy("fluid_velocity", u),
+            _numpy(v),
+            _numpy(w),
+            _numpy(x),
+            _numpy(q),
+            None if u is None else _numpy(u),
             **options,
         )
         ctx.rollout = r
@@ -71,7 +71,7 @@ class _RolloutFunction(torch.autograd.Function):
     def backward(ctx, gv, gw, gx, gq):  # type: ignore[override]
         fluid = ctx.fluid and ctx.needs_input_grad[6]
         g = ctx.rollout.backward(
-            _numpy("gv", gv), _numpy("gw", gw), _numpy("gx", gx), _numpy("gq", gq), fluid=fluid
+            _numpy(gv), _numpy(gw), _numpy(gx), _numpy(gq), fluid=fluid
         )
         out = [torch.from_numpy(np.array(a)).to(ctx.device) for a in g[:4]]
         gu = None if g[4] is None else torch.from_numpy(np.array(g[4])).to(ctx.device)
