@@ -87,6 +87,14 @@ pub enum Error {
         /// Its bounds then.
         bounds: ([f64; 3], [f64; 3]),
     },
+    /// An input other than a scene (a run's frames, a mesh) that cannot be read.
+    #[error("cannot read {path}: {message}")]
+    Read {
+        /// The file or folder.
+        path: PathBuf,
+        /// Why.
+        message: String,
+    },
     /// Writing an output failed.
     #[error("cannot write {path}: {source}")]
     Write {

@@ -2,7 +2,7 @@
 
 use clap::{Parser, Subcommand};
 use diffluid::experiments::optimize::{Checkpoint, Optimization};
-use diffluid::experiments::outputs::{write_bench, write_optimization};
+use diffluid::experiments::outputs::{render_run, write_bench, write_optimization, RenderRequest};
 use diffluid::gradients::{gradcheck, GradcheckSettings};
 use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
 use diffluid::Scene;
@@ -38,6 +38,32 @@ enum Command {
     /// of the monolithic and the weak coupling, thin plates, and time per step against liquid
     /// cells. Writes CSV tables and PNG charts.
     Bench(BenchArgs),
+    /// Draw a run's frames (a folder `run` wrote with output.surface = true): the liquid's
+    /// shaded surface and the bodies, seen from the side, as DIR/render.gif, or one frame as
+    /// a PNG with --frame.
+    Render(RenderArgs),
+}
+
+#[derive(clap::Args)]
+struct RenderArgs {
+    /// The run's output folder.
+    dir: PathBuf,
+    /// Draw only the frame of this step, as a PNG.
+    #[arg(long)]
+    frame: Option<usize>,
+    /// The file to write [default: DIR/render.gif, or DIR/render_NNNN.png with --frame].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Width in pixels (the height follows the tank).
+    #[arg(long, default_value_t = 800)]
+    width: u32,
+}
+
+fn render(args: RenderArgs) -> Outcome {
+    let request = RenderRequest { frame: args.frame, out: args.out, width: args.width };
+    let (path, frames) = render_run(&args.dir, &request)?;
+    println!("drew {frames} frame{}; wrote {}", if frames == 1 { "" } else { "s" }, path.display());
+    Ok(())
 }
 
 /// What ends a command, as the one line it prints: a library error or a bad argument.
@@ -334,6 +360,7 @@ fn main() -> ExitCode {
         Some(Command::Gradcheck(args)) => gradcheck_cmd(args),
         Some(Command::Optimize(args)) => optimize(args),
         Some(Command::Bench(args)) => bench(args),
+        Some(Command::Render(args)) => render(args),
         // The main job: the embedded block drop forward, then its optimisation.
         None => run(RunArgs::default()).and_then(|()| optimize(OptimizeArgs::default())),
     };

@@ -4,11 +4,14 @@
 
 use super::bench;
 use super::optimize::{Optimization, Outcome};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::geometry::body::BodyState;
+use crate::io::liquid_mesh::{body_surfaces, liquid_surface};
 use crate::io::output::{write_csv, write_json};
 use crate::io::plot::{self, Frame, Series, Track};
+use crate::io::render::Picture;
 use crate::math::Vec3;
+use crate::world::Simulation;
 use serde::Serialize;
 use std::path::Path;
 
@@ -128,11 +131,16 @@ fn vtk_frames(_: &Optimization, _: &BodyState, _: &Path) -> Result<()> {
     })
 }
 
-/// A run's body path, liquid snapshots and animation frames.
-type Recording = (Vec<Vec3>, Vec<(String, Vec<Vec3>)>, Vec<Frame>);
+/// A run's body path and animation frames (the last one is the final state).
+type Recording = (Vec<Vec3>, Vec<Frame>);
 
-/// loss.png, trajectory.png (the body's path before and after, over the liquid at a few
-/// frames) and optimized.gif (the optimised run).
+/// The liquid's surface and the bodies' of `sim` now, captioned.
+fn frame(sim: &Simulation, label: String) -> Frame {
+    Frame { liquid: liquid_surface(sim, 2), bodies: body_surfaces(sim), label }
+}
+
+/// loss.png, trajectory.png (the body's path before and after, over the liquid's shaded
+/// surface at the end of the optimised run) and optimized.gif (the optimised run).
 fn pictures(
     problem: &Optimization,
     start: &BodyState,
@@ -146,11 +154,10 @@ fn pictures(
     }
     let steps = problem.scene.time.steps;
     let body = problem.body;
-    let (verts, _) = crate::geometry::mesh::surface_mesh(&problem.initial.bodies()[body].shape);
+    let name = &problem.scene.name;
     let record = |p: &BodyState, frames: bool| -> Result<Recording> {
         let mut sim = problem.simulation(p);
         let mut path = vec![sim.bodies()[body].x];
-        let mut snaps = Vec::new();
         let mut gif = Vec::new();
         let every = (steps / 25).max(1);
         for n in 0..=steps {
@@ -158,26 +165,18 @@ fn pictures(
                 sim.step()?;
                 path.push(sim.bodies()[body].x);
             }
-            if frames && (n == 0 || n == steps / 2 || n == steps) {
-                snaps.push((format!("liquid, step {n}"), sim.particles.clone()));
-            }
-            if frames && n % every == 0 {
-                let pose = sim.bodies()[body].pose();
-                gif.push(Frame {
-                    // Every other particle is plenty for a 2D picture, and halves what the
-                    // frames hold in memory until the GIF is written.
-                    particles: sim.particles.iter().step_by(2).copied().collect(),
-                    bodies: vec![verts.iter().map(|v| pose.transform_point(*v)).collect()],
-                    label: format!("{} optimised, step {n}", problem.scene.name),
-                });
+            if frames && (n % every == 0 || n == steps) {
+                gif.push(frame(&sim, format!("{name} optimised, step {n}")));
             }
         }
-        Ok((path, snaps, gif))
+        Ok((path, gif))
     };
-    let (before, _, _) = record(start, false)?;
-    let (after, snaps, gif) = record(&outcome.params, true)?;
+    let (before, _) = record(start, false)?;
+    let (after, gif) = record(&outcome.params, true)?;
     let target = problem.loss.position.map(|(t, _)| t);
     let domain = problem.initial.grid().size();
+    let last = gif.last().expect("the final frame");
+    let picture = Picture { domain, liquid: &last.liquid, bodies: &last.bodies };
     plot::trajectory_plot(
         &out.join("trajectory.png"),
         domain,
@@ -186,9 +185,103 @@ fn pictures(
             Track { label: "after".into(), points: after },
         ],
         target,
-        &snaps,
+        Some((&format!("liquid and body after, step {steps}"), &picture)),
     )?;
-    plot::animation_gif(&out.join("optimized.gif"), domain, &gif, 80)
+    plot::animation_gif(&out.join("optimized.gif"), domain, &gif, (640, 320), 80)
+}
+
+/// What [`render_run`] draws.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RenderRequest {
+    /// One frame (by step) as a PNG, instead of every frame as a GIF.
+    pub frame: Option<usize>,
+    /// The file to write [default: DIR/render.gif, or DIR/render_NNNN.png for one frame].
+    pub out: Option<std::path::PathBuf>,
+    /// The picture's width in pixels; the height follows the tank's side.
+    pub width: u32,
+}
+
+/// Draws a run's frames (a folder `diffluid run` wrote with `output.surface = true`): the
+/// liquid's surface from `surface/NNNN.ply` (or `.obj`) and every body from
+/// `bodies/<name>_NNNN.ply`, seen from the side, as an animated GIF or one PNG. Returns the
+/// file written and the number of frames drawn.
+pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::PathBuf, usize)> {
+    let fail = |path: &Path, message: String| Error::Read { path: path.to_path_buf(), message };
+    let summary_path = dir.join("summary.json");
+    let text = std::fs::read_to_string(&summary_path)
+        .map_err(|e| fail(&summary_path, format!("{e} (not a folder `diffluid run` wrote?)")))?;
+    let summary: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| fail(&summary_path, e.to_string()))?;
+    let grid: Vec<f64> = summary["grid"]
+        .as_array()
+        .map(|a| a.iter().filter_map(|n| n.as_f64()).collect())
+        .unwrap_or_default();
+    let (Some(dx), Some(dt), [nx, ny, nz]) =
+        (summary["dx"].as_f64(), summary["dt"].as_f64(), grid.as_slice())
+    else {
+        return Err(fail(&summary_path, "no grid, dx and dt".into()));
+    };
+    let domain = Vec3::new(nx * dx, ny * dx, nz * dx);
+    let name = summary["scene"].as_str().unwrap_or("run").to_string();
+    // The surface frames by step.
+    let surface = dir.join("surface");
+    let mut frames: Vec<(usize, std::path::PathBuf)> = std::fs::read_dir(&surface)
+        .map_err(|e| {
+            fail(&surface, format!("{e}: the run wrote no surface (set output.surface = true)"))
+        })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter_map(|p| {
+            let ext = p.extension()?.to_str()?;
+            let n = p.file_stem()?.to_str()?.parse().ok()?;
+            (ext == "ply" || ext == "obj").then_some((n, p))
+        })
+        .collect();
+    frames.sort();
+    if let Some(n) = request.frame {
+        frames.retain(|(m, _)| *m == n);
+        if frames.is_empty() {
+            return Err(fail(&surface, format!("no surface frame for step {n}")));
+        }
+    }
+    if frames.is_empty() {
+        return Err(fail(&surface, "no surface frames (NNNN.ply or NNNN.obj)".into()));
+    }
+    let body_files: Vec<std::path::PathBuf> = std::fs::read_dir(dir.join("bodies"))
+        .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).collect())
+        .unwrap_or_default();
+    let mut drawn = Vec::with_capacity(frames.len());
+    for (n, path) in &frames {
+        let suffix = format!("_{n:04}.ply");
+        let mut bodies = Vec::new();
+        for b in body_files.iter().filter(|p| {
+            p.file_name().and_then(|f| f.to_str()).is_some_and(|f| f.ends_with(&suffix))
+        }) {
+            bodies.push(crate::io::output::read_mesh(b)?);
+        }
+        drawn.push(Frame {
+            liquid: crate::io::output::read_mesh(path)?,
+            bodies,
+            label: format!("{name}, step {n}, t = {:.2} s", *n as f64 * dt),
+        });
+    }
+    let width = request.width.max(64);
+    // The plot's margins and caption take about 60 pixels around the tank's side.
+    let height = ((width as f64 - 45.0) * domain.y / domain.x + 60.0).round() as u32;
+    let out = match (&request.out, request.frame) {
+        (Some(p), _) => p.clone(),
+        (None, Some(n)) => dir.join(format!("render_{n:04}.png")),
+        (None, None) => dir.join("render.gif"),
+    };
+    match request.frame {
+        Some(_) => plot::frame_png(&out, domain, &drawn[0], (width, height))?,
+        None => {
+            // Real time when the frames allow it, between 20 ms and 0.2 s a frame.
+            let step = frames.get(1).map_or(1, |f| f.0 - frames[0].0).max(1);
+            let delay = (1e3 * dt * step as f64).clamp(20.0, 200.0) as u32;
+            plot::animation_gif(&out, domain, &drawn, (width, height), delay)?
+        }
+    }
+    Ok((out, drawn.len()))
 }
 
 /// The smoothness study's two charts: the spread of the central differences over ε

@@ -10,7 +10,7 @@
 //! the liquid's box, air. Surface nets leave two defects that a closed mesh cannot have, and
 //! both are repaired: a lattice face with liquid on one diagonal and air on the other would
 //! join two cubes by an edge in four triangles (its mean decides which sign wins, and a corner
-//! moves just across zero), and two sheets meeting in one cube share its vertex (it is split
+//! moves across zero), and two sheets meeting in one cube share its vertex (it is split
 //! into one per fan). The triangles face out of the liquid.
 //!
 //! The enclosed volume follows φ_L, not the particles: where the liquid thins to a sheet one
@@ -24,39 +24,22 @@ use fast_surface_nets::ndshape::{RuntimeShape, Shape};
 use fast_surface_nets::{surface_nets, SurfaceNetsBuffer};
 use rayon::prelude::*;
 
-/// A triangle mesh in world coordinates.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct TriangleMesh {
-    /// Vertices, m.
-    pub vertices: Vec<Vec3>,
-    /// Triangles, counter-clockwise seen from outside the liquid.
-    pub triangles: Vec<[u32; 3]>,
-}
+pub use crate::io::render::TriangleMesh;
 
-impl TriangleMesh {
-    /// The volume the mesh encloses (divergence theorem), m³.
-    pub fn volume(&self) -> f64 {
-        self.triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
-                a.dot(b.cross(c))
-            })
-            .sum::<f64>()
-            / 6.0
-    }
-
-    /// Edges in other than two triangles (0 for a closed mesh).
-    pub fn open_edges(&self) -> usize {
-        let mut count = std::collections::HashMap::new();
-        for t in &self.triangles {
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                *count.entry((a.min(b), a.max(b))).or_insert(0u32) += 1;
+/// Each body's surface where it is now, in world coordinates (see
+/// [`crate::geometry::mesh::surface_mesh`]).
+pub fn body_surfaces(sim: &Simulation) -> Vec<TriangleMesh> {
+    sim.bodies()
+        .iter()
+        .map(|b| {
+            let (vertices, triangles) = crate::geometry::mesh::surface_mesh(&b.shape);
+            let pose = b.pose();
+            TriangleMesh {
+                vertices: vertices.iter().map(|v| pose.transform_point(*v)).collect(),
+                triangles,
             }
-        }
-        count.values().filter(|&&n| n != 2).count()
-    }
+        })
+        .collect()
 }
 
 /// The liquid surface of `sim` now, with `samples` distance samples per cell along each axis
@@ -160,7 +143,7 @@ pub fn liquid_surface(sim: &Simulation, samples: usize) -> TriangleMesh {
             }
         }
     }
-    resolve_saddles(&mut sdf, n);
+    resolve_saddles(&mut sdf, n, h as f32);
     let mut buffer = SurfaceNetsBuffer::default();
     surface_nets(&sdf, &shape, [0; 3], n.map(|x| x - 1), &mut buffer);
     // A vertex in a cube that straddles a wall (its samples 1 and 2 along an axis, the wall
@@ -235,13 +218,12 @@ fn mixed_cells(phi: &[f64], n: [usize; 3]) -> Vec<bool> {
 /// the other). Surface nets would join the two cubes beside such a face by an edge in four
 /// triangles; here the face's centre value (the mean of its corners, the bilinear
 /// interpolant there) decides whether the liquid joins across it, and the corner of the other
-/// sign nearest zero moves just across, which changes the surface by less than that corner's
-/// distance. A move can make a neighbouring face alternate, so the scan repeats until none
+/// sign nearest zero moves across, to a tenth of its distance on the other side, which moves
+/// the surface by less than that corner's distance. A move can make a neighbouring face alternate, so the scan repeats until none
 /// does.
-fn resolve_saddles(sdf: &mut [f32], n: [u32; 3]) {
+fn resolve_saddles(sdf: &mut [f32], n: [u32; 3], h: f32) {
     let n = n.map(|x| x as usize);
     let stride = [1, n[0], n[0] * n[1]];
-    let tiny = f32::MIN_POSITIVE.sqrt();
     // The face spanned by axes AXES[f] at lattice point p has corners p, p + a, p + a + b,
     // p + b.
     const AXES: [(usize, usize); 3] = [(0, 1), (1, 2), (2, 0)];
@@ -306,7 +288,10 @@ fn resolve_saddles(sdf: &mut [f32], n: [u32; 3]) {
             let Some(m) = pick(true).or_else(|| pick(false)) else {
                 continue;
             };
-            sdf[m] = if sdf[m] < 0.0 { tiny } else { -tiny };
+            // A tenth of its distance across: not onto zero, where the cubes around the
+            // corner would all put their vertex on it, one point.
+            let across = (0.1 * sdf[m].abs()).max(1e-4 * h);
+            sdf[m] = if sdf[m] < 0.0 { across } else { -across };
             moved.insert(m);
             // The twelve faces with m as a corner.
             let ijk = [m % n[0], (m / n[0]) % n[1], m / stride[2]];
@@ -468,8 +453,8 @@ mod tests {
         sdf[at(2, 2, 1)] = -1.0;
         sdf[at(2, 1, 1)] = 0.1;
         sdf[at(1, 2, 1)] = 0.5;
-        resolve_saddles(&mut sdf, n);
-        assert!(sdf[at(2, 1, 1)] < 0.0 && sdf[at(2, 1, 1)] > -1e-6);
+        resolve_saddles(&mut sdf, n, 1.0);
+        assert!((sdf[at(2, 1, 1)] + 0.01).abs() < 1e-6, "{}", sdf[at(2, 1, 1)]);
         assert_eq!(sdf[at(1, 2, 1)], 0.5);
     }
 }

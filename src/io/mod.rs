@@ -1,6 +1,7 @@
-//! Input and output: PLY, JSON and CSV writers ([`output`]), a run's recorder
-//! (`recorder`, feature `csv`), ParaView frames (`vtk`, feature `vtk`) and pictures
-//! (`plot`, feature `plots`).
+//! Input and output: PLY, OBJ, JSON and CSV writers ([`output`]), a run's recorder
+//! (`recorder`, feature `csv`), ParaView frames (`vtk`, feature `vtk`), the liquid's surface
+//! mesh (`liquid_mesh`, feature `surface`), a software rasteriser of meshes ([`render`]) and
+//! pictures (`plot`, feature `plots`).
 
 #[cfg(feature = "surface")]
 pub mod liquid_mesh;
@@ -9,5 +10,6 @@ pub mod output;
 pub mod plot;
 #[cfg(feature = "csv")]
 pub mod recorder;
+pub mod render;
 #[cfg(feature = "vtk")]
 pub mod vtk;

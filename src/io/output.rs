@@ -2,6 +2,7 @@
 //! all written atomically.
 
 use crate::error::{Error, Result};
+use crate::io::render::TriangleMesh;
 use crate::math::Vec3;
 use serde::Serialize;
 use std::io::Write;
@@ -126,6 +127,119 @@ fn check_triangles(path: &Path, count: usize, triangles: &[[u32; 3]]) -> Result<
     }
 }
 
+/// Reads a triangle mesh written by [`MeshFormat::write`], by the file's extension: a binary
+/// little-endian PLY of `float x y z` vertices and `uchar`-counted `int` (or `uint`) index
+/// lists of three, or an OBJ (through tobj, triangulated).
+pub fn read_mesh(path: &Path) -> Result<TriangleMesh> {
+    let fail = |message: String| Error::Read { path: path.to_path_buf(), message };
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("ply") => {
+            let bytes = std::fs::read(path).map_err(|e| fail(e.to_string()))?;
+            read_ply_mesh(&bytes).map_err(fail)
+        }
+        Some("obj") => {
+            let options = tobj::LoadOptions { triangulate: true, ..Default::default() };
+            let (models, _) = tobj::load_obj(path, &options).map_err(|e| fail(e.to_string()))?;
+            let mut mesh = TriangleMesh::default();
+            for m in models {
+                let base = mesh.vertices.len() as u32;
+                mesh.vertices
+                    .extend(m.mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
+                mesh.triangles
+                    .extend(m.mesh.indices.chunks_exact(3).map(|t| [0, 1, 2].map(|k| base + t[k])));
+            }
+            Ok(mesh)
+        }
+        _ => Err(fail("not a .ply or .obj mesh".into())),
+    }
+}
+
+/// The PLY reader of [`read_mesh`]; the error says what is not as written.
+fn read_ply_mesh(bytes: &[u8]) -> std::result::Result<TriangleMesh, String> {
+    const END: &[u8] = b"end_header\n";
+    let at =
+        bytes.windows(END.len()).position(|w| w == END).ok_or("not a PLY file (no end_header)")?
+            + END.len();
+    let header = std::str::from_utf8(&bytes[..at]).map_err(|_| "a PLY header that is not text")?;
+    let mut lines = header.lines();
+    if lines.next() != Some("ply") {
+        return Err("not a PLY file".into());
+    }
+    let (mut vertices, mut faces, mut element) = (None, None, "");
+    let mut vertex_props = Vec::new();
+    let mut index_type = "";
+    for line in lines {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            ["format", f, _] if *f != "binary_little_endian" => {
+                return Err(format!("PLY format {f}: only binary_little_endian is read"))
+            }
+            ["element", name, count] => {
+                let count: usize = count.parse().map_err(|_| format!("bad count in '{line}'"))?;
+                element = match *name {
+                    "vertex" => {
+                        vertices = Some(count);
+                        "vertex"
+                    }
+                    "face" => {
+                        faces = Some(count);
+                        "face"
+                    }
+                    other => return Err(format!("unexpected PLY element '{other}'")),
+                };
+            }
+            ["property", "float", name] if element == "vertex" => vertex_props.push(*name),
+            ["property", "list", "uchar", t, "vertex_indices"] if element == "face" => {
+                index_type = if *t == "int" || *t == "uint" {
+                    t
+                } else {
+                    return Err(format!("face indices of type {t}"));
+                }
+            }
+            ["property", ..] => return Err(format!("unexpected PLY property '{line}'")),
+            _ => {}
+        }
+    }
+    if vertex_props != ["x", "y", "z"] {
+        return Err(format!("vertex properties {vertex_props:?}, not float x y z"));
+    }
+    let (nv, nf) = (vertices.ok_or("no vertex element")?, faces.unwrap_or(0));
+    if nf > 0 && index_type.is_empty() {
+        return Err("faces without vertex_indices".into());
+    }
+    let body = &bytes[at..];
+    if body.len() != 12 * nv + 13 * nf {
+        return Err(format!(
+            "{} bytes of data for {nv} vertices and {nf} triangles (expected {})",
+            body.len(),
+            12 * nv + 13 * nf
+        ));
+    }
+    let word = |b: &[u8], i: usize| -> [u8; 4] { b[4 * i..4 * i + 4].try_into().expect("4 bytes") };
+    let vertices: Vec<Vec3> = body[..12 * nv]
+        .chunks_exact(12)
+        .map(|b| {
+            Vec3::new(
+                f32::from_le_bytes(word(b, 0)) as f64,
+                f32::from_le_bytes(word(b, 1)) as f64,
+                f32::from_le_bytes(word(b, 2)) as f64,
+            )
+        })
+        .collect();
+    let mut triangles = Vec::with_capacity(nf);
+    for (n, f) in body[12 * nv..].chunks_exact(13).enumerate() {
+        if f[0] != 3 {
+            return Err(format!("face {n} has {} vertices, not 3", f[0]));
+        }
+        let t = [0, 1, 2].map(|k| u32::from_le_bytes(word(&f[1..], k)));
+        if t.iter().any(|&i| i as usize >= nv) {
+            return Err(format!("face {n} {t:?} refers past the {nv} vertices"));
+        }
+        triangles.push(t);
+    }
+    Ok(TriangleMesh { vertices, triangles })
+}
+
 /// Writes a value as pretty JSON.
 pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     let text = serde_json::to_vec_pretty(value).expect("serialisable");
@@ -234,6 +348,37 @@ mod tests {
         assert_eq!(idx, [0, 1, 3]);
         assert!(write_ply_mesh(&dir.join("bad.ply"), &vertices, &[[0, 1, 4]]).is_err());
         assert!(!dir.join("bad.ply").exists());
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    #[test]
+    fn meshes_read_back_as_written() {
+        let dir = std::env::temp_dir().join(format!("diffluid-meshio-{}", std::process::id()));
+        let vertices = vec![Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::new(0.1, 0.2, 2.5)];
+        let triangles = vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]];
+        for format in [MeshFormat::Ply, MeshFormat::Obj] {
+            let path = dir.join(format!("m.{}", format.extension()));
+            format.write(&path, &vertices, &triangles).unwrap();
+            let m = read_mesh(&path).unwrap();
+            // The same triangles corner by corner (tobj numbers the vertices by first use);
+            // PLY holds f32, OBJ every digit.
+            let tol = if format == MeshFormat::Ply { 1e-7 } else { 0.0 };
+            assert_eq!(m.triangles.len(), triangles.len());
+            for (s, t) in m.triangles.iter().zip(&triangles) {
+                for k in 0..3 {
+                    let (a, b) = (m.vertices[s[k] as usize], vertices[t[k] as usize]);
+                    assert!((a - b).abs().max_element() <= tol, "{format:?}: {a} against {b}");
+                }
+            }
+        }
+        // A truncated PLY, a text file and an unknown extension are errors naming the file.
+        let ply = std::fs::read(dir.join("m.ply")).unwrap();
+        write_atomic(&dir.join("cut.ply"), &ply[..ply.len() - 5]).unwrap();
+        let e = read_mesh(&dir.join("cut.ply")).unwrap_err().to_string();
+        assert!(e.contains("cut.ply") && e.contains("bytes of data"), "{e}");
+        write_atomic(&dir.join("text.ply"), b"hello").unwrap();
+        assert!(read_mesh(&dir.join("text.ply")).unwrap_err().to_string().contains("not a PLY"));
+        assert!(read_mesh(&dir.join("m.stl")).is_err());
         std::fs::remove_dir_all(dir).ok();
     }
 }

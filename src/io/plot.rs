@@ -1,8 +1,11 @@
 //! Pictures of an optimisation: the loss curve, the body's path over the liquid, and an
-//! animated GIF. Text is drawn with the embedded DejaVu Sans (no system fonts needed).
+//! animated GIF of the liquid's shaded surface with the bodies in it (a run's frames, too).
+//! Text is drawn with the embedded DejaVu Sans (no system fonts needed).
 
 use crate::error::{Error, Result};
+use crate::io::render::{render, Picture, TriangleMesh, View};
 use crate::math::Vec3;
+use plotters::element::BitMapElement;
 use plotters::prelude::*;
 use std::path::Path;
 
@@ -81,21 +84,49 @@ pub struct Track {
     pub points: Vec<Vec3>,
 }
 
-/// Side (x–y) and top (x–z) views of body paths over liquid particle snapshots, as a PNG.
+/// Draws `picture` seen from `view` under a chart whose axes span the domain in that view.
+fn draw_picture<DB: DrawingBackend>(
+    chart: &mut ChartContext<
+        '_,
+        DB,
+        Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>,
+    >,
+    picture: &Picture,
+    view: View,
+    path: &Path,
+) -> Result<()> {
+    let (w, h) = chart.plotting_area().dim_in_pixel();
+    let image = render(picture, view, w, h);
+    let top = match view {
+        View::Side => picture.domain.y,
+        View::Top => picture.domain.z,
+    };
+    let element = BitMapElement::with_owned_buffer((0.0, top), (w, h), image.rgb)
+        .expect("the image fits its size");
+    chart.draw_series(std::iter::once(element)).map_err(|e| err(path, e))?;
+    Ok(())
+}
+
+/// The liquid's colour in legends.
+const WATER: RGBColor = RGBColor(100, 150, 215);
+
+/// Side (x–y) and top (x–z) views of body paths over the liquid's shaded surface (and the
+/// bodies) at one moment, `liquid` with its legend label, as a PNG.
 pub fn trajectory_plot(
     path: &Path,
     domain: Vec3,
     tracks: &[Track],
     target: Option<Vec3>,
-    particles: &[(String, Vec<Vec3>)],
+    liquid: Option<(&str, &Picture)>,
 ) -> Result<()> {
     font();
     let root = BitMapBackend::new(path, (1200, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     let panels = root.split_evenly((1, 2));
     let colours = [BLUE, RED, GREEN, MAGENTA, BLACK];
-    for (panel, (title, b)) in
-        panels.iter().zip([("side view (x–y)", 1usize), ("top view (x–z)", 2usize)])
+    for (panel, (title, b, view)) in panels
+        .iter()
+        .zip([("side view (x–y)", 1usize, View::Side), ("top view (x–z)", 2usize, View::Top)])
     {
         let pick = |v: Vec3| (v.x, v.to_array()[b]);
         let mut chart = ChartBuilder::on(panel)
@@ -105,23 +136,22 @@ pub fn trajectory_plot(
             .y_label_area_size(45)
             .build_cartesian_2d(0.0..domain.x, 0.0..domain.to_array()[b])
             .map_err(|e| err(path, e))?;
+        if let Some((label, picture)) = liquid {
+            draw_picture(&mut chart, picture, view, path)?;
+            chart
+                .draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
+                .map_err(|e| err(path, e))?
+                .label(label)
+                .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], WATER.filled()));
+        }
         chart
             .configure_mesh()
+            .light_line_style(TRANSPARENT)
+            .bold_line_style(BLACK.mix(0.12))
             .x_desc("x (m)")
             .y_desc(if b == 1 { "y (m)" } else { "z (m)" })
             .draw()
             .map_err(|e| err(path, e))?;
-        let light = [RGBColor(120, 170, 230), RGBColor(150, 210, 150), RGBColor(230, 180, 120)];
-        for (k, (label, pts)) in particles.iter().enumerate() {
-            let c = light[k % light.len()];
-            chart
-                .draw_series(
-                    pts.iter().step_by(2).map(|p| Circle::new(pick(*p), 1, c.mix(0.35).filled())),
-                )
-                .map_err(|e| err(path, e))?
-                .label(label.as_str())
-                .legend(move |(x, y)| Circle::new((x + 10, y), 4, c.filled()));
-        }
         for (k, t) in tracks.iter().enumerate() {
             let c = colours[k % colours.len()];
             chart
@@ -154,46 +184,61 @@ pub fn trajectory_plot(
     root.present().map_err(|e| err(path, e))
 }
 
-/// One frame of an animation.
+/// One frame of an animation: the liquid's surface and the bodies', in world coordinates.
 #[derive(Clone, Debug)]
 pub struct Frame {
-    /// Liquid particles to draw (a caller may pass a subset: every one is drawn).
-    pub particles: Vec<Vec3>,
-    /// Each body's surface points (e.g. mesh vertices).
-    pub bodies: Vec<Vec<Vec3>>,
+    /// The liquid's surface.
+    pub liquid: TriangleMesh,
+    /// Each body's surface.
+    pub bodies: Vec<TriangleMesh>,
     /// Caption.
     pub label: String,
 }
 
-/// An animated GIF of the side view (x–y).
-pub fn animation_gif(path: &Path, domain: Vec3, frames: &[Frame], delay_ms: u32) -> Result<()> {
+/// The side view (x–y) of one frame, `size` pixels, as a PNG.
+pub fn frame_png(path: &Path, domain: Vec3, frame: &Frame, size: (u32, u32)) -> Result<()> {
+    font();
+    let root = BitMapBackend::new(path, size).into_drawing_area();
+    draw_frame(&root, domain, frame, path)?;
+    root.present().map_err(|e| err(path, e))
+}
+
+fn draw_frame<DB: DrawingBackend>(
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    domain: Vec3,
+    frame: &Frame,
+    path: &Path,
+) -> Result<()> {
+    root.fill(&WHITE).map_err(|e| err(path, e))?;
+    let mut chart = ChartBuilder::on(root)
+        .caption(&frame.label, ("sans-serif", 16))
+        .margin(8)
+        .x_label_area_size(25)
+        .y_label_area_size(35)
+        .build_cartesian_2d(0.0..domain.x, 0.0..domain.y)
+        .map_err(|e| err(path, e))?;
+    let picture = Picture { domain, liquid: &frame.liquid, bodies: &frame.bodies };
+    draw_picture(&mut chart, &picture, View::Side, path)?;
+    chart.configure_mesh().disable_mesh().draw().map_err(|e| err(path, e))?;
+    Ok(())
+}
+
+/// An animated GIF of the side view (x–y), `size` pixels.
+pub fn animation_gif(
+    path: &Path,
+    domain: Vec3,
+    frames: &[Frame],
+    size: (u32, u32),
+    delay_ms: u32,
+) -> Result<()> {
     font();
     if frames.is_empty() {
         return Err(err(path, "no frames"));
     }
-    let root = BitMapBackend::gif(path, (640, 320), delay_ms)
-        .map_err(|e| err(path, e))?
-        .into_drawing_area();
+    let root =
+        BitMapBackend::gif(path, size, delay_ms).map_err(|e| err(path, e))?.into_drawing_area();
     for f in frames {
-        root.fill(&WHITE).map_err(|e| err(path, e))?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(&f.label, ("sans-serif", 16))
-            .margin(8)
-            .x_label_area_size(25)
-            .y_label_area_size(35)
-            .build_cartesian_2d(0.0..domain.x, 0.0..domain.y)
-            .map_err(|e| err(path, e))?;
-        chart.configure_mesh().disable_mesh().draw().map_err(|e| err(path, e))?;
-        chart
-            .draw_series(
-                f.particles.iter().map(|p| Circle::new((p.x, p.y), 1, BLUE.mix(0.4).filled())),
-            )
-            .map_err(|e| err(path, e))?;
-        for b in &f.bodies {
-            chart
-                .draw_series(b.iter().map(|p| Circle::new((p.x, p.y), 2, BLACK.filled())))
-                .map_err(|e| err(path, e))?;
-        }
+        draw_frame(&root, domain, f, path)?;
         root.present().map_err(|e| err(path, e))?;
     }
     Ok(())
@@ -379,26 +424,36 @@ mod tests {
             label: "path".into(),
             points: vec![Vec3::new(0.2, 0.6, 0.3), Vec3::new(0.5, 0.3, 0.4)],
         };
-        let liquid = vec![Vec3::new(0.5, 0.1, 0.5); 10];
+        // A pool and a box body, as closed meshes.
+        let cuboid = |lo: Vec3, hi: Vec3| {
+            let (vertices, triangles) =
+                parry3d_f64::shape::Cuboid::new(nalgebra::Vector3::from((hi - lo) / 2.0).into())
+                    .to_trimesh();
+            let c = (lo + hi) / 2.0;
+            TriangleMesh { vertices: vertices.into_iter().map(|v| v + c).collect(), triangles }
+        };
+        let pool = cuboid(Vec3::ZERO, Vec3::new(1.0, 0.3, 1.0));
         let p = tmp("traj.png");
-        trajectory_plot(
-            &p,
-            d,
-            &[tr],
-            Some(Vec3::new(0.6, 0.2, 0.5)),
-            &[("liquid, step 0".into(), liquid.clone())],
-        )
-        .unwrap();
+        let body = [cuboid(Vec3::new(0.4, 0.2, 0.4), Vec3::new(0.6, 0.4, 0.6))];
+        let picture = Picture { domain: d, liquid: &pool, bodies: &body };
+        trajectory_plot(&p, d, &[tr], Some(Vec3::new(0.6, 0.2, 0.5)), Some(("liquid", &picture)))
+            .unwrap();
         assert!(starts_with(&p, b"\x89PNG"));
         let p = tmp("anim.gif");
         let frames: Vec<Frame> = (0..3)
             .map(|k| Frame {
-                particles: liquid.clone(),
-                bodies: vec![vec![Vec3::new(0.3, 0.5 - 0.1 * k as f64, 0.5)]],
+                liquid: pool.clone(),
+                bodies: vec![cuboid(
+                    Vec3::new(0.3, 0.5 - 0.1 * k as f64, 0.4),
+                    Vec3::new(0.4, 0.6 - 0.1 * k as f64, 0.5),
+                )],
                 label: format!("step {k}"),
             })
             .collect();
-        animation_gif(&p, d, &frames, 100).unwrap();
+        animation_gif(&p, d, &frames, (320, 240), 100).unwrap();
         assert!(starts_with(&p, b"GIF8"));
+        let p = tmp("frame.png");
+        frame_png(&p, d, &frames[0], (400, 300)).unwrap();
+        assert!(starts_with(&p, b"\x89PNG"));
     }
 }
