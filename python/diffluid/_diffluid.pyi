@@ -238,6 +238,7 @@ def rollout(
     surface: str = "live",
     mode: str = "full",
     through_contact: bool = False,
+    checkpoint_every: Optional[int] = None,
 ) -> Rollout: ...
 def _panic_for_tests() -> None:
     """Panics inside the boundary guard (raises InternalError); for the tests."""

@@ -90,6 +90,7 @@ def rollout(
     surface: str = "live",
     mode: str = "full",
     through_contact: bool = False,
+    checkpoint_every: Optional[int] = None,
 ) -> BodyState:
     """Runs `steps` steps (default: the scene's ``time.steps``) of `sim` from the initial
     body state (v, w, x, q) and returns the final body state, differentiably.
@@ -102,7 +103,10 @@ def rollout(
     is not changed: the run starts from a copy of it with this state.
 
     `surface`, `mode` and `through_contact` are the backward pass's options, as in
-    :func:`diffluid.value_and_grad`. The GIL is released in both passes.
+    :func:`diffluid.value_and_grad`. With `checkpoint_every` = k the forward pass keeps the
+    state every k steps instead of the whole tape and the backward pass re-runs one segment
+    at a time (memory for k steps, one more forward pass, the same gradient bit for bit).
+    The GIL is released in both passes.
     """
     v, w, x, q = (_check(n, t) for n, t in (("v", v), ("w", w), ("x", x), ("q", q)))
     if fluid_velocity is not None:
@@ -115,7 +119,13 @@ def rollout(
                 f"{sim.num_bodies}: pass (bodies, 3)"
             )
         v, w, x, q = (t.unsqueeze(0) for t in (v, w, x, q))
-    options = dict(steps=steps, surface=surface, mode=mode, through_contact=through_contact)
+    options = dict(
+        steps=steps,
+        surface=surface,
+        mode=mode,
+        through_contact=through_contact,
+        checkpoint_every=checkpoint_every,
+    )
     out = _RolloutFunction.apply(sim, options, v, w, x, q, fluid_velocity)
     if single:
         out = tuple(t.squeeze(0) for t in out)

@@ -384,12 +384,45 @@ pub fn optimize<'py>(
 /// ``diffluid.torch.rollout`` keeps between its forward and backward.
 #[pyclass(module = "diffluid._diffluid", name = "Rollout", frozen)]
 pub struct Rollout {
-    initial: RSim,
-    tape: Tape,
+    /// The run in segments, first to last: one holding the whole tape, or with
+    /// checkpointing one per `checkpoint_every` steps, each its start state alone.
+    segments: Vec<Segment>,
     last: RSim,
     options: GradientOptions,
     /// |q| of each body's initial quaternion as given (the run starts from q/|q|).
     q_norms: Vec<f64>,
+}
+
+/// A stretch of a rollout: the state it starts from, its steps, and their tape unless it is
+/// re-run in the backward pass (checkpointing).
+struct Segment {
+    start: RSim,
+    steps: usize,
+    tape: Option<Tape>,
+}
+
+impl Segment {
+    /// The adjoint at the segment's start from the adjoint at its end.
+    fn backward(
+        &self,
+        adj: AdjointState,
+        options: &GradientOptions,
+    ) -> diffluid::Result<AdjointState> {
+        let rerun;
+        let tape = match &self.tape {
+            Some(t) => t,
+            None => {
+                let mut s = self.start.clone();
+                let mut t = Tape::default();
+                for _ in 0..self.steps {
+                    s.step_taped(&mut t)?;
+                }
+                rerun = t;
+                &rerun
+            }
+        };
+        Ok(backward_adjoint(&self.start, tape, adj, options)?.0)
+    }
 }
 
 /// Body states as four row arrays (v, w, x, q).
@@ -412,10 +445,14 @@ fn state_rows<'py>(py: Python<'py>, s: &[BodyState]) -> PyResult<Bound<'py, PyTu
 /// quaternion to round-off), and the backward pass differentiates through that
 /// normalisation. `sim` itself is not changed. Raises GradientError at once
 /// if the run cannot be differentiated with these options.
+///
+/// With `checkpoint_every` = k, only the state every k steps is kept, and the backward pass
+/// re-runs one segment at a time: memory for k steps' tape instead of all of them, for one
+/// more forward pass; the gradient is the same bit for bit.
 #[pyfunction]
 #[pyo3(signature = (
     sim, v, w, x, q, u = None, *, steps = None, surface = "live", mode = "full",
-    through_contact = false
+    through_contact = false, checkpoint_every = None
 ))]
 #[allow(clippy::too_many_arguments)]
 pub fn rollout(
@@ -430,8 +467,12 @@ pub fn rollout(
     surface: &str,
     mode: &str,
     through_contact: bool,
+    checkpoint_every: Option<usize>,
 ) -> PyResult<Rollout> {
     let options = options(surface, mode, through_contact)?;
+    if checkpoint_every == Some(0) {
+        return Err(value_error("checkpoint_every: must be at least 1"));
+    }
     let n = sim.inner.bodies().len();
     let (v, w, x, q) = (
         read_rows("v", &v, n, 3)?,
@@ -453,17 +494,27 @@ pub fn rollout(
         let flat = crate::read_flat("u", &u, sim.faces_len())?;
         initial.u = sim.mac_from_flat(&flat);
     }
-    let (tape, last) = run(py, || {
-        let mut s = initial.clone();
-        let mut tape = Tape::default();
-        for _ in 0..steps {
-            s.step_taped(&mut tape)?;
+    let every = checkpoint_every.unwrap_or(steps);
+    let (segments, last) = run(py, || {
+        let mut s = initial;
+        let mut segments = Vec::new();
+        let mut done = 0;
+        while done < steps {
+            let len = every.min(steps - done);
+            let start = s.clone();
+            let mut tape = Tape::default();
+            for _ in 0..len {
+                s.step_taped(&mut tape)?;
+            }
+            check_differentiable(&start, &tape, &options)?;
+            let keep = checkpoint_every.is_none();
+            segments.push(Segment { start, steps: len, tape: keep.then_some(tape) });
+            done += len;
         }
-        check_differentiable(&initial, &tape, &options)?;
-        Ok((tape, s))
+        Ok((segments, s))
     })?;
     let q_norms = q.iter().map(|r| crate::simulation::quat_norm(r)).collect();
-    Ok(Rollout { initial, tape, last, options, q_norms })
+    Ok(Rollout { segments, last, options, q_norms })
 }
 
 #[pymethods]
@@ -476,13 +527,13 @@ impl Rollout {
 
     /// The simulation at the end of the run (a copy).
     fn final_simulation(&self) -> Simulation {
-        Simulation { inner: self.last.clone(), scene_steps: self.tape.steps.len(), loss: None }
+        Simulation { inner: self.last.clone(), scene_steps: self.steps(), loss: None }
     }
 
-    /// Steps taped.
+    /// Steps run.
     #[getter]
     fn steps(&self) -> usize {
-        self.tape.steps.len()
+        self.segments.iter().map(|s| s.steps).sum()
     }
 
     /// The vector–Jacobian product: from the gradient of a loss on the final body state
@@ -502,7 +553,8 @@ impl Rollout {
         gq: PyReadonlyArrayDyn<'py, f64>,
         fluid: bool,
     ) -> PyResult<Bound<'py, PyTuple>> {
-        let n = self.initial.bodies().len();
+        let initial = &self.segments[0].start;
+        let n = initial.bodies().len();
         let (gv, gw, gx, gq) = (
             read_rows("gv", &gv, n, 3)?,
             read_rows("gw", &gw, n, 3)?,
@@ -517,15 +569,18 @@ impl Rollout {
                 q: Rotation::from_xyzw(gq[i][1], gq[i][2], gq[i][3], gq[i][0]),
             })
             .collect();
-        let final_adjoint =
-            AdjointState { u: Mac::zeros(self.initial.grid()), bodies, particles: Vec::new() };
-        let (adj, _) =
-            run(py, || backward_adjoint(&self.initial, &self.tape, final_adjoint, &self.options))?;
+        let mut adj = AdjointState { u: Mac::zeros(initial.grid()), bodies, particles: Vec::new() };
+        adj = run(py, || {
+            for seg in self.segments.iter().rev() {
+                adj = seg.backward(adj, &self.options)?;
+            }
+            Ok(adj)
+        })?;
         // The tangent part at q̂ = q/|q|, over |q|: the gradient through the normalisation.
         let q0: Vec<[f64; 4]> = adj
             .bodies
             .iter()
-            .zip(self.initial.bodies())
+            .zip(initial.bodies())
             .zip(&self.q_norms)
             .map(|((a, b), n)| {
                 let t = so3::from_tangent_gradient(b.q, so3::tangent_gradient(b.q, a.q));
