@@ -90,6 +90,9 @@ struct RunArgs {
     /// Also write ParaView frames (every output.every steps) to DIR/vtk/.
     #[arg(long)]
     vtk: bool,
+    /// Also write the liquid's surface mesh per frame to DIR/surface/ (output.surface = true).
+    #[arg(long)]
+    surface: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -189,7 +192,7 @@ fn run(args: RunArgs) -> Outcome {
         every: scene.output.every,
         particles: scene.output.particles,
         vtk: args.vtk,
-        surface: scene.output.surface.then_some(SurfaceFrames {
+        surface: (scene.output.surface || args.surface).then_some(SurfaceFrames {
             samples: scene.output.surface_samples,
             format: scene.output.surface_format,
         }),

@@ -219,8 +219,9 @@ fn the_cli_writes_surface_frames_and_renders_them() {
         .unwrap();
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     for n in [0, 2, 4] {
-        let mesh = diffluid::io::output::read_mesh(&out.join("surface").join(format!("{n:04}.obj")))
-            .unwrap();
+        let mesh =
+            diffluid::io::output::read_mesh(&out.join("surface").join(format!("{n:04}.obj")))
+                .unwrap();
         assert_closed(mesh.vertices.len(), &mesh.triangles, &format!("frame {n}"));
     }
     let render = |args: &[&str]| {
