@@ -119,7 +119,7 @@ impl DensityProjection {
     /// keeping them out of the static solids.
     pub fn displace(&self, particles: &mut [Vec3], q: &[f64], g: &DensityInputs<'_>) {
         let (d, _) = self.displacement(q, g);
-        let walls = Walls { grid: g.grid, node_sdf: g.node_sdf };
+        let walls = Walls::new(g.grid, g.node_sdf);
         particles
             .par_iter_mut()
             .for_each(|x| *x = walls.keep(*x + capped(d.velocity(g.grid, *x), g.grid)));
@@ -139,7 +139,7 @@ impl DensityProjection {
     ) -> (Vec<f64>, CgStats) {
         let grid = g.grid;
         let (d, valid0) = self.displacement(q, g);
-        let walls = Walls { grid, node_sdf: g.node_sdf };
+        let walls = Walls::new(grid, g.node_sdf);
         let step = jacobian_step(grid);
         // y = x + cap(d(x)), x' = keep(y).
         let mut dbar = Mac::zeros(grid);

@@ -100,9 +100,17 @@ pub struct Walls<'a> {
     pub grid: &'a Grid,
     /// Signed distance of the static solids at grid nodes.
     pub node_sdf: &'a [f64],
+    /// Whether there is any static solid (without one, keeping is clamping into the tank).
+    solids: bool,
 }
 
-impl Walls<'_> {
+impl<'a> Walls<'a> {
+    /// The walls of `grid` with the static solids of distance `node_sdf`.
+    pub fn new(grid: &'a Grid, node_sdf: &'a [f64]) -> Walls<'a> {
+        let far = crate::geometry::fractions::far(grid);
+        Walls { grid, node_sdf, solids: node_sdf.par_iter().any(|&d| d < far) }
+    }
+
     /// A point a thousandth of a cell out of the static solids and inside the tank.
     #[inline]
     pub fn keep(&self, y: Vec3) -> Vec3 {
@@ -110,7 +118,7 @@ impl Walls<'_> {
         let nodes = self.grid.nodes();
         let mut y = y;
         // The distance alone first: far from the solids (most particles) that is all.
-        if nodes.sample(self.node_sdf, y) < margin {
+        if self.solids && nodes.sample(self.node_sdf, y) < margin {
             let (d, g) = nodes.sample_grad(self.node_sdf, y);
             if g.length() > 1e-12 {
                 y += (margin - d) * g.normalize();
@@ -151,7 +159,7 @@ pub fn advect_substepped(
     subs: usize,
     node_sdf: &[f64],
 ) {
-    let walls = Walls { grid, node_sdf };
+    let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
     pos.par_iter_mut().for_each(|x| *x = advect_one(*x, u, &walls, h, subs));
 }
@@ -191,7 +199,7 @@ pub fn advect_adjoint(
     node_sdf: &[f64],
     ubar: &mut Mac,
 ) {
-    let walls = Walls { grid, node_sdf };
+    let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
     let fd = jacobian_step(grid);
     // Per particle, in parallel: its start adjoint, and the points and coefficients at which
@@ -448,10 +456,15 @@ pub fn liquid_sdf_nearest(
                         });
                         (best.0.sqrt(), best.1)
                     };
-                    // A particle outside the 3³ block is at least dx away, so a nearer one
-                    // found inside it is the true nearest; otherwise look one ring further
-                    // (exact up to 2·dx).
-                    let mut d = nearest(1);
+                    // A particle outside the cell is at least dx/2 from its centre, so one
+                    // nearer inside it is the nearest (deep in the liquid, most cells: 8
+                    // distances instead of 216). A particle outside the 3³ block is at least
+                    // dx away, so a nearer one found inside it is the true nearest; otherwise
+                    // look one ring further (exact up to 2·dx).
+                    let mut d = nearest(0);
+                    if d.0 >= 0.5 * dx {
+                        d = nearest(1);
+                    }
                     if d.0 > dx {
                         d = nearest(2);
                         if d.0 > 2.0 * dx {
