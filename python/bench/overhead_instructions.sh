@@ -15,7 +15,7 @@ trap 'rm -rf "$out"' EXIT
 count() {
     RAYON_NUM_THREADS=1 valgrind --tool=callgrind --callgrind-out-file="$out/cg.%p" \
         "$py" epoch.py "$1" "$n" >/dev/null 2>"$out/log"
-    grep -h "Collected" "$out/log" | awk '{s += $4} END {printf "%d\n", s}'
+    grep -h "Collected" "$out/log" | awk '{s += $4} END {printf "%.0f\n", s}'
 }
 setup=$(count none)
 rust=$(count rust)
