@@ -4,11 +4,11 @@
 #![cfg(feature = "surface")]
 
 use diffluid::io::liquid_mesh::{liquid_surface, TriangleMesh};
-use diffluid::io::output::MeshFormat;
+use diffluid::io::output::{read_mesh, MeshFormat};
 use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
 use diffluid::{Scene, Simulation};
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 fn built(name: &str) -> Simulation {
     Scene::builtin(name).unwrap().build().unwrap()
@@ -116,45 +116,6 @@ fn the_surface_loads_back_as_a_valid_obj_body() {
         .unwrap_or_else(|e| panic!("the surface mesh fails the body checks: {e}"));
 }
 
-/// A binary little-endian PLY of `float x y z` vertices and `uchar int` triangle lists.
-fn read_ply(path: &Path) -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
-    let bytes = std::fs::read(path).unwrap();
-    let end = b"end_header\n";
-    let at = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
-    let header = std::str::from_utf8(&bytes[..at]).unwrap();
-    let count = |element: &str| -> usize {
-        header
-            .lines()
-            .find_map(|l| l.strip_prefix(&format!("element {element} ")))
-            .unwrap()
-            .parse()
-            .unwrap()
-    };
-    let (nv, nf) = (count("vertex"), count("face"));
-    let mut rest = &bytes[at..];
-    let mut take = |n: usize| {
-        let (a, b) = rest.split_at(n);
-        rest = b;
-        a.to_vec()
-    };
-    let f32_at = |b: &[u8], i: usize| f32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap());
-    let vertices = (0..nv)
-        .map(|_| {
-            let b = take(12);
-            [0, 1, 2].map(|i| f32_at(&b, i))
-        })
-        .collect();
-    let triangles = (0..nf)
-        .map(|_| {
-            assert_eq!(take(1)[0], 3, "a face that is not a triangle");
-            let b = take(12);
-            [0, 1, 2].map(|i| i32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap()) as u32)
-        })
-        .collect();
-    assert!(rest.is_empty(), "bytes after the last face");
-    (vertices, triangles)
-}
-
 #[test]
 fn a_run_writes_closed_surface_frames_as_ply_and_vtk() {
     let dir = temp_dir("run");
@@ -172,11 +133,12 @@ fn a_run_writes_closed_surface_frames_as_ply_and_vtk() {
     }
     let expected = liquid_surface(&sim, 2);
     for n in [0, 5, 10] {
-        let (vertices, triangles) = read_ply(&dir.join("surface").join(format!("{n:04}.ply")));
-        assert_closed(vertices.len(), &triangles, &format!("frame {n}"));
+        // The PLY's bytes are checked against its header in `io::output`'s tests.
+        let mesh = read_mesh(&dir.join("surface").join(format!("{n:04}.ply"))).unwrap();
+        assert_closed(mesh.vertices.len(), &mesh.triangles, &format!("frame {n}"));
         if n == 10 {
-            assert_eq!(triangles, expected.triangles);
-            assert_eq!(vertices.len(), expected.vertices.len());
+            assert_eq!(mesh.triangles, expected.triangles);
+            assert_eq!(mesh.vertices.len(), expected.vertices.len());
         }
     }
     let pvd = std::fs::read_to_string(dir.join("vtk").join("surface.pvd")).unwrap();
@@ -219,9 +181,7 @@ fn the_cli_writes_surface_frames_and_renders_them() {
         .unwrap();
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     for n in [0, 2, 4] {
-        let mesh =
-            diffluid::io::output::read_mesh(&out.join("surface").join(format!("{n:04}.obj")))
-                .unwrap();
+        let mesh = read_mesh(&out.join("surface").join(format!("{n:04}.obj"))).unwrap();
         assert_closed(mesh.vertices.len(), &mesh.triangles, &format!("frame {n}"));
     }
     let render = |args: &[&str]| {
