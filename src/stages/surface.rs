@@ -719,6 +719,49 @@ mod adjoint_tests {
         a.iter().zip(b).map(|(x, y)| x.dot(*y)).sum()
     }
 
+    /// The liquid distance and its nearest particle per cell against a search over every
+    /// particle, for a dense block (where a cell's own particle is the nearest) beside sparse
+    /// ones (where the search must look one or two rings out, or give up at 2·dx).
+    #[test]
+    fn nearest_particle_is_the_nearest_of_all() {
+        let grid = grid();
+        let mut pos = particles(150);
+        // A dense block: 8 jittered particles in each of 3×3×2 cells.
+        for c in 0..18 {
+            let ijk = [1 + c % 3, 1 + (c / 3) % 3, 1 + c / 9];
+            for q in 0..8 {
+                let r = |k: usize| ((c * 131 + q * 17 + k * 7) % 97) as f64 / 97.0 * 0.02 - 0.01;
+                let sub = [q & 1, (q >> 1) & 1, (q >> 2) & 1];
+                pos.push(Vec3::from_array(
+                    [0, 1, 2]
+                        .map(|a| (ijk[a] as f64 + 0.25 + 0.5 * sub[a] as f64) * grid.dx + r(a)),
+                ));
+            }
+        }
+        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: false };
+        let bins = Bins::new(&pos, &grid);
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model);
+        let cells = grid.cells();
+        let mut own = 0;
+        for c in 0..grid.num_cells() {
+            let [i, j, k] = cells.ijk(c);
+            let x = cells.position(i, j, k);
+            let (d, p) = pos
+                .iter()
+                .enumerate()
+                .map(|(p, y)| ((*y - x).length(), p as u32))
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .unwrap();
+            if d <= 2.0 * grid.dx {
+                assert_eq!((phi[c], who[c]), (d - model.radius, p), "cell {c}");
+                own += usize::from(d < 0.5 * grid.dx);
+            } else {
+                assert_eq!(phi[c], 2.0 * grid.dx - model.radius, "cell {c}");
+            }
+        }
+        assert!(own >= 18, "the dense block's cells find their own particle: {own}");
+    }
+
     /// Advection through a field with a solid obstacle and the tank walls in reach: the
     /// adjoint in the positions and in the field against central differences.
     #[test]
