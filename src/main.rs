@@ -5,6 +5,7 @@ use diffluid::experiments::optimize::{Checkpoint, Optimization};
 use diffluid::experiments::outputs::{render_run, write_bench, write_optimization, RenderRequest};
 use diffluid::gradients::{gradcheck, GradcheckSettings};
 use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
+use diffluid::io::render::View;
 use diffluid::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -39,8 +40,8 @@ enum Command {
     /// cells. Writes CSV tables and PNG charts.
     Bench(BenchArgs),
     /// Draw a run's frames (a folder `run` wrote with output.surface = true): the liquid's
-    /// shaded surface and the bodies, seen from the side, as DIR/render.gif, or one frame as
-    /// a PNG with --frame.
+    /// shaded surface and the bodies, seen from the side or from above, as DIR/render.gif,
+    /// or one frame as a PNG with --frame.
     Render(RenderArgs),
 }
 
@@ -57,10 +58,23 @@ struct RenderArgs {
     /// Width in pixels (the height follows the tank).
     #[arg(long, default_value_t = 800)]
     width: u32,
+    /// Seen from the side (x–y) or from above (x–z).
+    #[arg(long, value_enum, default_value = "side")]
+    view: ViewArg,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ViewArg {
+    Side,
+    Top,
 }
 
 fn render(args: RenderArgs) -> Outcome {
-    let request = RenderRequest { frame: args.frame, out: args.out, width: args.width };
+    let view = match args.view {
+        ViewArg::Side => View::Side,
+        ViewArg::Top => View::Top,
+    };
+    let request = RenderRequest { frame: args.frame, out: args.out, width: args.width, view };
     let (path, frames) = render_run(&args.dir, &request)?;
     println!("drew {frames} frame{}; wrote {}", if frames == 1 { "" } else { "s" }, path.display());
     Ok(())

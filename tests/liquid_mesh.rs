@@ -191,7 +191,7 @@ fn the_cli_writes_surface_frames_and_renders_them() {
     assert!(one.status.success(), "{}", String::from_utf8_lossy(&one.stderr));
     let png = std::fs::read(out.join("render_0002.png")).unwrap();
     assert!(png.starts_with(b"\x89PNG"));
-    let all = render(&[]);
+    let all = render(&["--view", "top"]);
     assert!(String::from_utf8_lossy(&all.stdout).contains("drew 3 frames"));
     assert!(std::fs::read(out.join("render.gif")).unwrap().starts_with(b"GIF8"));
     // A frame the run did not write, and a folder without surface frames: errors, exit 1.

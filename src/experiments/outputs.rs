@@ -9,7 +9,7 @@ use crate::geometry::body::BodyState;
 use crate::io::liquid_mesh::{body_surfaces, liquid_surface};
 use crate::io::output::{write_csv, write_json};
 use crate::io::plot::{self, Frame, Series, Track};
-use crate::io::render::Picture;
+use crate::io::render::{Picture, View};
 use crate::math::Vec3;
 use crate::world::Simulation;
 use serde::Serialize;
@@ -187,7 +187,7 @@ fn pictures(
         target,
         Some((&format!("liquid and body after, step {steps}"), &picture)),
     )?;
-    plot::animation_gif(&out.join("optimized.gif"), domain, &gif, (640, 320), 80)
+    plot::animation_gif(&out.join("optimized.gif"), domain, &gif, View::Side, (640, 320), 80)
 }
 
 /// What [`render_run`] draws.
@@ -197,13 +197,15 @@ pub struct RenderRequest {
     pub frame: Option<usize>,
     /// The file to write [default: DIR/render.gif, or DIR/render_NNNN.png for one frame].
     pub out: Option<std::path::PathBuf>,
-    /// The picture's width in pixels; the height follows the tank's side.
+    /// The picture's width in pixels; the height follows the tank's extent in the view.
     pub width: u32,
+    /// Seen from the side (x–y) or from above (x–z).
+    pub view: View,
 }
 
 /// Draws a run's frames (a folder `diffluid run` wrote with `output.surface = true`): the
 /// liquid's surface from `surface/NNNN.ply` (or `.obj`) and every body from
-/// `bodies/<name>_NNNN.ply`, seen from the side, as an animated GIF or one PNG. Returns the
+/// `bodies/<name>_NNNN.ply`, seen from the side or from above, as an animated GIF or one PNG. Returns the
 /// file written and the number of frames drawn.
 pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::PathBuf, usize)> {
     let fail = |path: &Path, message: String| Error::Read { path: path.to_path_buf(), message };
@@ -266,19 +268,23 @@ pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::Pat
     }
     let width = request.width.max(64);
     // The plot's margins and caption take about 60 pixels around the tank's side.
-    let height = ((width as f64 - 45.0) * domain.y / domain.x + 60.0).round() as u32;
+    let up = match request.view {
+        View::Side => domain.y,
+        View::Top => domain.z,
+    };
+    let height = ((width as f64 - 45.0) * up / domain.x + 60.0).round() as u32;
     let out = match (&request.out, request.frame) {
         (Some(p), _) => p.clone(),
         (None, Some(n)) => dir.join(format!("render_{n:04}.png")),
         (None, None) => dir.join("render.gif"),
     };
     match request.frame {
-        Some(_) => plot::frame_png(&out, domain, &drawn[0], (width, height))?,
+        Some(_) => plot::frame_png(&out, domain, &drawn[0], request.view, (width, height))?,
         None => {
             // Real time when the frames allow it, between 20 ms and 0.2 s a frame.
             let step = frames.get(1).map_or(1, |f| f.0 - frames[0].0).max(1);
             let delay = (1e3 * dt * step as f64).clamp(20.0, 200.0) as u32;
-            plot::animation_gif(&out, domain, &drawn, (width, height), delay)?
+            plot::animation_gif(&out, domain, &drawn, request.view, (width, height), delay)?
         }
     }
     Ok((out, drawn.len()))

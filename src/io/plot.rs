@@ -195,11 +195,17 @@ pub struct Frame {
     pub label: String,
 }
 
-/// The side view (x–y) of one frame, `size` pixels, as a PNG.
-pub fn frame_png(path: &Path, domain: Vec3, frame: &Frame, size: (u32, u32)) -> Result<()> {
+/// One frame seen from `view`, `size` pixels, as a PNG.
+pub fn frame_png(
+    path: &Path,
+    domain: Vec3,
+    frame: &Frame,
+    view: View,
+    size: (u32, u32),
+) -> Result<()> {
     font();
     let root = BitMapBackend::new(path, size).into_drawing_area();
-    draw_frame(&root, domain, frame, path)?;
+    draw_frame(&root, domain, frame, view, path)?;
     root.present().map_err(|e| err(path, e))
 }
 
@@ -207,27 +213,34 @@ fn draw_frame<DB: DrawingBackend>(
     root: &DrawingArea<DB, plotters::coord::Shift>,
     domain: Vec3,
     frame: &Frame,
+    view: View,
     path: &Path,
 ) -> Result<()> {
     root.fill(&WHITE).map_err(|e| err(path, e))?;
+    let up = match view {
+        View::Side => domain.y,
+        View::Top => domain.z,
+    };
     let mut chart = ChartBuilder::on(root)
         .caption(&frame.label, ("sans-serif", 16))
         .margin(8)
         .x_label_area_size(25)
         .y_label_area_size(35)
-        .build_cartesian_2d(0.0..domain.x, 0.0..domain.y)
+        .build_cartesian_2d(0.0..domain.x, 0.0..up)
         .map_err(|e| err(path, e))?;
     let picture = Picture { domain, liquid: &frame.liquid, bodies: &frame.bodies };
-    draw_picture(&mut chart, &picture, View::Side, path)?;
+    draw_picture(&mut chart, &picture, view, path)?;
     chart.configure_mesh().disable_mesh().draw().map_err(|e| err(path, e))?;
     Ok(())
 }
 
-/// An animated GIF of the side view (x–y), `size` pixels.
+/// An animated GIF of the frames seen from `view` (the side: x–y; the top: x–z), `size`
+/// pixels.
 pub fn animation_gif(
     path: &Path,
     domain: Vec3,
     frames: &[Frame],
+    view: View,
     size: (u32, u32),
     delay_ms: u32,
 ) -> Result<()> {
@@ -238,7 +251,7 @@ pub fn animation_gif(
     let root =
         BitMapBackend::gif(path, size, delay_ms).map_err(|e| err(path, e))?.into_drawing_area();
     for f in frames {
-        draw_frame(&root, domain, f, path)?;
+        draw_frame(&root, domain, f, view, path)?;
         root.present().map_err(|e| err(path, e))?;
     }
     Ok(())
@@ -450,10 +463,10 @@ mod tests {
                 label: format!("step {k}"),
             })
             .collect();
-        animation_gif(&p, d, &frames, (320, 240), 100).unwrap();
+        animation_gif(&p, d, &frames, View::Side, (320, 240), 100).unwrap();
         assert!(starts_with(&p, b"GIF8"));
         let p = tmp("frame.png");
-        frame_png(&p, d, &frames[0], (400, 300)).unwrap();
+        frame_png(&p, d, &frames[0], View::Top, (400, 300)).unwrap();
         assert!(starts_with(&p, b"\x89PNG"));
     }
 }
