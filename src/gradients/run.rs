@@ -60,7 +60,7 @@ pub fn value_and_gradient(
         for n in 0..steps {
             if settings.checkpoint_every.is_some() {
                 if n % seg == 0 {
-                    snapshots.push(sim.clone());
+                    snapshots.push(sim.replay_copy());
                 }
                 sim.step()?;
             } else {
@@ -80,7 +80,7 @@ pub fn value_and_gradient(
         } else {
             for (k, snap) in snapshots.iter().enumerate().rev() {
                 let len = seg.min(steps - k * seg);
-                let mut s = snap.clone();
+                let mut s = snap.replay_copy();
                 let mut tape = Tape::default();
                 for _ in 0..len {
                     s.step_taped(&mut tape)?;

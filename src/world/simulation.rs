@@ -41,6 +41,7 @@ use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
 use crate::stages::forces::body_velocity;
 use crate::stages::pressure::PressureParams;
 use crate::stages::surface::{self, Bins, SurfaceModel};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// A body's name in a [`Simulation`], stable while other bodies come and go.
@@ -59,7 +60,8 @@ impl BodyHandle {
 pub struct Simulation {
     grid: Grid,
     settings: WorldSettings,
-    statics: StaticGeometry,
+    /// Shared between clones (checkpoint snapshots, finite differences): it never changes.
+    statics: Arc<StaticGeometry>,
     radius: f64,
     /// Fluid velocity on faces.
     pub u: Mac,
@@ -73,7 +75,7 @@ pub struct Simulation {
     pressure: Vec<f64>,
     phi: Vec<f64>,
     /// φ_L of the initial particles, when the surface is frozen.
-    frozen_phi: Option<Vec<f64>>,
+    frozen_phi: Option<Arc<Vec<f64>>>,
     /// Liquid volume of the frozen particles.
     frozen_volume: f64,
     step: usize,
@@ -282,7 +284,7 @@ impl SimulationBuilder {
             let bins = Bins::new(&particles, &grid);
             let vol = surface::liquid_volume(&particles, &grid, ppc);
             let model = SurfaceModel { radius, sparse_cells: self.settings.solver.sparse_cells };
-            (Some(surface::liquid_sdf(&particles, &bins, &grid, &model)), vol)
+            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &model))), vol)
         } else {
             (None, 0.0)
         };
@@ -300,7 +302,7 @@ impl SimulationBuilder {
             particles,
             pressure: vec![0.0; grid.num_cells()],
             phi: vec![0.0; grid.num_cells()],
-            statics: StaticGeometry { node_sdf, weights, centre_in_solid },
+            statics: Arc::new(StaticGeometry { node_sdf, weights, centre_in_solid }),
             radius,
             grid,
             settings: self.settings,
@@ -667,11 +669,41 @@ impl Simulation {
         on_pool(|| self.step_inner(dt, Some(tape)))
     }
 
+    /// A copy to re-run steps from (a gradient's checkpoint snapshot): with the surface
+    /// frozen, without the marker particles, which its steps never read (on a large tank
+    /// they are half of a copy); otherwise a clone.
+    pub(crate) fn replay_copy(&self) -> Simulation {
+        if self.frozen_phi.is_none() {
+            return self.clone();
+        }
+        // Field by field, so that the particles are never copied (a new field fails to
+        // compile here until it is added).
+        Simulation {
+            grid: self.grid,
+            settings: self.settings.clone(),
+            statics: Arc::clone(&self.statics),
+            radius: self.radius,
+            u: self.u.clone(),
+            particles: Vec::new(),
+            bodies: self.bodies.clone(),
+            handles: self.handles.clone(),
+            next_handle: self.next_handle,
+            fluid_forces: self.fluid_forces.clone(),
+            pressure: self.pressure.clone(),
+            phi: self.phi.clone(),
+            frozen_phi: self.frozen_phi.clone(),
+            frozen_volume: self.frozen_volume,
+            step: self.step,
+            time: self.time,
+            warnings: self.warnings.clone(),
+        }
+    }
+
     /// The liquid signed distance from the particles (before extension into solids): the
     /// frozen one, or the current particles'.
     pub fn particle_phi(&self) -> Vec<f64> {
         match &self.frozen_phi {
-            Some(phi) => phi.clone(),
+            Some(phi) => phi.to_vec(),
             None => surface::liquid_sdf(
                 &self.particles,
                 &Bins::new(&self.particles, &self.grid),
