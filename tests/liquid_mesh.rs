@@ -31,6 +31,27 @@ fn assert_closed(vertices: usize, triangles: &[[u32; 3]], what: &str) {
     let open = directed.keys().filter(|&&(a, b)| directed.get(&(b, a)) != Some(&1)).count();
     let twice = directed.values().filter(|&&n| n > 1).count();
     assert_eq!((open, twice), (0, 0), "{what}: edges without their one opposite, edges twice");
+    // One fan per vertex: the edges opposite a vertex (its link) form one cycle; walking
+    // from each link edge to the one starting where it ends comes back in as many steps.
+    let mut link: Vec<Vec<(u32, u32)>> = vec![Vec::new(); vertices];
+    for t in triangles {
+        for k in 0..3 {
+            link[t[k] as usize].push((t[(k + 1) % 3], t[(k + 2) % 3]));
+        }
+    }
+    let split = link
+        .iter()
+        .filter(|edges| {
+            let Some(&(first, mut at)) = edges.first() else { return false };
+            let mut steps = 1;
+            while at != first && steps <= edges.len() {
+                at = edges.iter().find(|e| e.0 == at).map_or(first, |e| e.1);
+                steps += 1;
+            }
+            steps != edges.len()
+        })
+        .count();
+    assert_eq!(split, 0, "{what}: vertices joining two or more fans");
 }
 
 fn temp_dir(tag: &str) -> PathBuf {

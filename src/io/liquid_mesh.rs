@@ -70,24 +70,42 @@ pub fn liquid_surface(sim: &Simulation, samples: usize) -> TriangleMesh {
     let far = crate::geometry::fractions::far(&grid);
     let node_sdf = &sim.statics().node_sdf;
     let obstacles = node_sdf.iter().any(|&d| d < far);
-    let cells = grid.cells();
     let nodes = grid.nodes();
     let point =
         |ijk: [u32; 3]| Vec3::from_array([0, 1, 2].map(|a| (ijk[a] as f64 + origin[a]) * h));
     // Cells away from the surface (all of their 3³ neighbours of one kind) are liquid or air
     // through and through: their samples need no interpolation.
     let mixed = mixed_cells(&phi, grid.n);
+    // Per axis and lattice index: the sample's cell, and its trilinear cells and weight in
+    // the cell-centred φ (the lattice is axis-aligned, so the interpolation separates).
+    let tables: [Vec<(usize, usize, usize, f64)>; 3] = [0, 1, 2].map(|a| {
+        let top = (grid.n[a] - 1) as f64;
+        (0..n[a] as usize)
+            .map(|i| {
+                let cell = i.saturating_sub(2) / r + lo[a];
+                let g = ((i as f64 + origin[a]) * h / grid.dx - 0.5).clamp(0.0, top);
+                let i0 = (g as usize).min(grid.n[a].saturating_sub(2));
+                let i1 = (i0 + 1).min(grid.n[a] - 1);
+                (cell.min(grid.n[a] - 1), i0, i1, g - i0 as f64)
+            })
+            .collect()
+    });
+    let (n0, n01) = (grid.n[0], grid.n[0] * grid.n[1]);
     let value = |ijk: [u32; 3]| {
-        // The cell of an inside sample, by integer division.
-        let c = ijk.map(|i| (i - 2) as usize / r);
-        let c = grid.cell(c[0] + lo[0], c[1] + lo[1], c[2] + lo[2]);
+        let [tx, ty, tz] = [0, 1, 2].map(|a| tables[a][ijk[a] as usize]);
+        let c = tx.0 + n0 * ty.0 + n01 * tz.0;
         if !(mixed[c] || obstacles) {
             return if phi[c] < 0.0 { -h } else { h };
         }
-        let x = point(ijk);
-        let v = cells.sample(&phi, x);
+        // Trilinear, as `Lattice::sample` computes it.
+        let row = |j: usize, k: usize| {
+            let b = j * n0 + k * n01;
+            phi[b + tx.1] * (1.0 - tx.3) + phi[b + tx.2] * tx.3
+        };
+        let plane = |k: usize| row(ty.1, k) * (1.0 - ty.3) + row(ty.2, k) * ty.3;
+        let v = plane(tz.1) * (1.0 - tz.3) + plane(tz.2) * tz.3;
         if obstacles {
-            v.max(-nodes.sample(node_sdf, x))
+            v.max(-nodes.sample(node_sdf, point(ijk)))
         } else {
             v
         }
@@ -170,7 +188,19 @@ pub fn liquid_surface(sim: &Simulation, samples: usize) -> TriangleMesh {
         vertices,
         triangles: buffer.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
     };
-    split_fans(&mut mesh);
+    let strides = [1usize, n[0] as usize, (n[0] * n[1]) as usize];
+    let sheets: Vec<bool> = buffer
+        .surface_strides
+        .iter()
+        .map(|&p| {
+            let mask = (0..8).fold(0u8, |m, c| {
+                let q = p as usize + (0..3).map(|a| ((c >> a) & 1) * strides[a]).sum::<usize>();
+                m | (u8::from(sdf[q] < 0.0) << c)
+            });
+            MANY_SHEETS[mask as usize]
+        })
+        .collect();
+    split_fans(&mut mesh, &sheets);
     if mesh.volume() < 0.0 {
         for t in &mut mesh.triangles {
             t.swap(1, 2);
@@ -313,12 +343,68 @@ fn resolve_saddles(sdf: &mut [f32], n: [u32; 3], h: f32) {
     }
 }
 
+/// Per cube corner sign pattern (bit c: corner c = x + 2y + 4z is liquid): whether the
+/// surface may cross the cube in more than one sheet, that is whether the liquid corners or
+/// the air corners fall apart into two or more groups joined by cube edges, or a face of it
+/// alternates. Otherwise its vertex has one fan.
+const MANY_SHEETS: [bool; 256] = {
+    let mut table = [false; 256];
+    let mut mask = 0;
+    while mask < 256 {
+        let mut sign = 0;
+        while sign < 2 {
+            // Corners of this sign, joined through edges (corners one bit apart).
+            let set = if sign == 0 { mask } else { !mask & 0xff };
+            let mut seen = 0;
+            let mut groups = 0;
+            let mut c = 0;
+            while c < 8 {
+                if set & (1 << c) != 0 && seen & (1 << c) == 0 {
+                    groups += 1;
+                    let mut front = 1 << c;
+                    seen |= front;
+                    while front != 0 {
+                        let mut next = 0;
+                        let mut d = 0;
+                        while d < 8 {
+                            if front & (1 << d) != 0 {
+                                let mut a = 0;
+                                while a < 3 {
+                                    let e = d ^ (1 << a);
+                                    if set & (1 << e) != 0 && seen & (1 << e) == 0 {
+                                        seen |= 1 << e;
+                                        next |= 1 << e;
+                                    }
+                                    a += 1;
+                                }
+                            }
+                            d += 1;
+                        }
+                        front = next;
+                    }
+                }
+                c += 1;
+            }
+            if groups > 1 {
+                table[mask] = true;
+            }
+            sign += 1;
+        }
+        mask += 1;
+    }
+    table
+};
+
 /// Gives each fan of triangles around a vertex its own vertex: surface nets put one vertex in
 /// each lattice cube, so two sheets of liquid meeting in one cube (at its opposite corners)
 /// share a vertex. The copies move a hundredth of the way towards their fan's centre, so no
-/// two fans touch.
-fn split_fans(mesh: &mut TriangleMesh) {
+/// two fans touch. Only the vertices `candidate` marks are looked at (the others are known
+/// to have one fan).
+fn split_fans(mesh: &mut TriangleMesh, candidate: &[bool]) {
     let nv = mesh.vertices.len();
+    if !candidate.iter().any(|&c| c) {
+        return;
+    }
     // Triangle corners by vertex (compressed rows).
     let mut start = vec![0usize; nv + 1];
     for t in &mesh.triangles {
@@ -337,7 +423,7 @@ fn split_fans(mesh: &mut TriangleMesh) {
             fill[v as usize] += 1;
         }
     }
-    for v in 0..nv {
+    for v in (0..nv).filter(|&v| candidate[v]) {
         let around = &corners[start[v]..start[v + 1]];
         if around.len() < 3 {
             continue;
@@ -430,7 +516,7 @@ mod tests {
         triangles.extend(tet(0, 4, 6, 5));
         let mut mesh = TriangleMesh { vertices, triangles };
         let volume = mesh.volume();
-        split_fans(&mut mesh);
+        split_fans(&mut mesh, &[true; 7]);
         assert_eq!(mesh.vertices.len(), 8);
         let uses = |v: u32| mesh.triangles.iter().filter(|t| t.contains(&v)).count();
         assert_eq!((uses(0), uses(7)), (3, 3));
