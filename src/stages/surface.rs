@@ -357,7 +357,7 @@ impl Bins {
     /// Bins `pos` into the cells of `grid`.
     pub fn new(pos: &[Vec3], grid: &Grid) -> Bins {
         let cells = grid.num_cells();
-        let cell_of: Vec<u32> = pos.iter().map(|x| cell_of(grid, *x) as u32).collect();
+        let cell_of: Vec<u32> = pos.par_iter().map(|x| cell_of(grid, *x) as u32).collect();
         let mut start = vec![0u32; cells + 1];
         for &c in &cell_of {
             start[c as usize + 1] += 1;
