@@ -86,8 +86,10 @@ pub struct Picture<'a> {
 const WATER: [f64; 3] = [45.0, 120.0, 215.0];
 const BODY: [f64; 3] = [235.0, 150.0, 60.0];
 const BACKGROUND: [f64; 3] = [255.0, 255.0, 255.0];
-/// How much of a pixel the liquid covers over what is behind it.
+/// How much of a pixel the liquid covers over the background.
 const WATER_OPACITY: f64 = 0.55;
+/// What the water lets through of a body behind it, per channel.
+const UNDER_WATER: [f64; 3] = [0.85, 0.92, 1.0];
 
 /// One shaded layer: depth (towards the camera is larger) and colour per pixel.
 struct Layer {
@@ -115,12 +117,19 @@ pub fn render(picture: &Picture, view: View, width: u32, height: u32) -> Image {
     }
     let mut rgb = Vec::with_capacity(3 * len);
     for i in 0..len {
-        let under = if bodies.depth[i] > f64::NEG_INFINITY { bodies.colour[i] } else { BACKGROUND };
-        let c = if liquid.depth[i] > bodies.depth[i] {
-            [0, 1, 2]
-                .map(|k| WATER_OPACITY * liquid.colour[i][k] + (1.0 - WATER_OPACITY) * under[k])
-        } else {
-            under
+        let body = bodies.depth[i] > f64::NEG_INFINITY;
+        let c = match (liquid.depth[i] > bodies.depth[i], body) {
+            // A body seen through the water: its own colour, filtered blue, so it stays
+            // recognisable.
+            (true, true) => [0, 1, 2].map(|k| {
+                let filtered = bodies.colour[i][k] * UNDER_WATER[k];
+                0.25 * liquid.colour[i][k] + 0.75 * filtered
+            }),
+            (true, false) => [0, 1, 2].map(|k| {
+                WATER_OPACITY * liquid.colour[i][k] + (1.0 - WATER_OPACITY) * BACKGROUND[k]
+            }),
+            (false, true) => bodies.colour[i],
+            (false, false) => BACKGROUND,
         };
         rgb.extend(c.map(|x| x.round().clamp(0.0, 255.0) as u8));
     }
@@ -137,8 +146,10 @@ struct Frame {
 }
 
 impl Frame {
-    /// Draws `mesh` into `layer`, nearest surface winning, shaded by its interpolated vertex
-    /// normals under a light from the upper left, in front.
+    /// Draws `mesh` into `layer`, nearest surface winning, lit from the upper left in front,
+    /// shaded by interpolated vertex normals where the surface is smooth; a corner whose
+    /// vertex normal is more than 30° from its triangle's takes the triangle's (a box's flat
+    /// faces and sharp edges stay flat and sharp, a ball stays round).
     fn rasterise(&self, mesh: &TriangleMesh, base: [f64; 3], layer: &mut Layer) {
         let light = Vec3::new(-0.45, 0.75, 0.5).normalize();
         let mut normals = vec![Vec3::ZERO; mesh.vertices.len()];
@@ -168,7 +179,18 @@ impl Frame {
             let x1 = (a.0.max(b.0).max(c.0).ceil() as i64).clamp(0, self.width as i64) as u32;
             let y0 = a.1.min(b.1).min(c.1).floor().max(0.0) as u32;
             let y1 = (a.1.max(b.1).max(c.1).ceil() as i64).clamp(0, self.height as i64) as u32;
-            let [na, nb, nc] = t.map(|i| normals[i as usize]);
+            let face = {
+                let [p, q, r] = t.map(|i| mesh.vertices[i as usize]);
+                (q - p).cross(r - p).normalize_or_zero()
+            };
+            let [na, nb, nc] = t.map(|i| {
+                let n = normals[i as usize].normalize_or_zero();
+                if n.dot(face) > 0.866 {
+                    n
+                } else {
+                    face
+                }
+            });
             for y in y0..y1 {
                 for x in x0..x1 {
                     let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
