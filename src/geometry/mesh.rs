@@ -414,6 +414,50 @@ fn plural(n: usize) -> &'static str {
     }
 }
 
+/// A triangle mesh in world coordinates.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TriangleMesh {
+    /// Vertices, m.
+    pub vertices: Vec<Vec3>,
+    /// Triangles, counter-clockwise seen from outside.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+impl TriangleMesh {
+    /// The volume the mesh encloses (divergence theorem), m³.
+    pub fn volume(&self) -> f64 {
+        self.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
+                a.dot(b.cross(c))
+            })
+            .sum::<f64>()
+            / 6.0
+    }
+
+    /// Edges in other than two triangles (0 for a closed mesh).
+    pub fn open_edges(&self) -> usize {
+        let mut count = std::collections::HashMap::new();
+        for t in &self.triangles {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                *count.entry((a.min(b), a.max(b))).or_insert(0u32) += 1;
+            }
+        }
+        count.values().filter(|&&n| n != 2).count()
+    }
+}
+
+/// The surface of `shape` placed at `pose`, in world coordinates (see [`surface_mesh`]).
+pub fn placed_surface(shape: &SharedShape, pose: &Pose) -> TriangleMesh {
+    let (vertices, triangles) = surface_mesh(shape);
+    TriangleMesh {
+        vertices: vertices.iter().map(|v| pose.transform_point(*v)).collect(),
+        triangles,
+    }
+}
+
 /// A triangle mesh of the surface of `shape` in its local frame, for output: cuboids,
 /// balls, capsules, cylinders, cones, convex polyhedra and triangle meshes (and compounds
 /// of these, parts placed at their poses). Round shapes use `ROUND_SUBDIV` subdivisions

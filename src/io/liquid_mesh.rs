@@ -17,29 +17,18 @@
 //! cell deep, φ_L (and the pressure solve's liquid cells) holds more than the particles'
 //! volume, and so does the mesh.
 
-use crate::geometry::mesh::Sets;
+use crate::geometry::mesh::{placed_surface, Sets};
 use crate::math::Vec3;
 use crate::world::Simulation;
 use fast_surface_nets::ndshape::{RuntimeShape, Shape};
 use fast_surface_nets::{surface_nets, SurfaceNetsBuffer};
 use rayon::prelude::*;
 
-pub use crate::io::render::TriangleMesh;
+pub use crate::geometry::mesh::TriangleMesh;
 
-/// Each body's surface where it is now, in world coordinates (see
-/// [`crate::geometry::mesh::surface_mesh`]).
+/// Each body's surface where it is now, in world coordinates.
 pub fn body_surfaces(sim: &Simulation) -> Vec<TriangleMesh> {
-    sim.bodies()
-        .iter()
-        .map(|b| {
-            let (vertices, triangles) = crate::geometry::mesh::surface_mesh(&b.shape);
-            let pose = b.pose();
-            TriangleMesh {
-                vertices: vertices.iter().map(|v| pose.transform_point(*v)).collect(),
-                triangles,
-            }
-        })
-        .collect()
+    sim.bodies().iter().map(|b| placed_surface(&b.shape, &b.pose())).collect()
 }
 
 /// The liquid surface of `sim` now, with `samples` distance samples per cell along each axis

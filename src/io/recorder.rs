@@ -4,7 +4,7 @@
 //! that fails part-way still leaves the summary and body tracks of every step before it.
 
 use crate::error::Result;
-use crate::geometry::mesh::surface_mesh;
+use crate::geometry::mesh::placed_surface;
 use crate::io::output::{write_csv, write_json, write_ply_mesh, write_ply_points, MeshFormat};
 use crate::world::{Simulation, StepReport};
 use serde::Serialize;
@@ -169,13 +169,11 @@ impl RunRecorder {
             )?;
         }
         for b in sim.bodies() {
-            let (verts, tris) = surface_mesh(&b.shape);
-            let pose = b.pose();
-            let world: Vec<_> = verts.iter().map(|v| pose.transform_point(*v)).collect();
+            let mesh = placed_surface(&b.shape, &b.pose());
             write_ply_mesh(
                 &self.out.join("bodies").join(format!("{}_{n:04}.ply", b.name)),
-                &world,
-                &tris,
+                &mesh.vertices,
+                &mesh.triangles,
             )?;
         }
         Ok(())

@@ -5,40 +5,7 @@
 
 use crate::math::Vec3;
 
-/// A triangle mesh in world coordinates.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct TriangleMesh {
-    /// Vertices, m.
-    pub vertices: Vec<Vec3>,
-    /// Triangles, counter-clockwise seen from outside.
-    pub triangles: Vec<[u32; 3]>,
-}
-
-impl TriangleMesh {
-    /// The volume the mesh encloses (divergence theorem), m³.
-    pub fn volume(&self) -> f64 {
-        self.triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
-                a.dot(b.cross(c))
-            })
-            .sum::<f64>()
-            / 6.0
-    }
-
-    /// Edges in other than two triangles (0 for a closed mesh).
-    pub fn open_edges(&self) -> usize {
-        let mut count = std::collections::HashMap::new();
-        for t in &self.triangles {
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                *count.entry((a.min(b), a.max(b))).or_insert(0u32) += 1;
-            }
-        }
-        count.values().filter(|&&n| n != 2).count()
-    }
-}
+pub use crate::geometry::mesh::TriangleMesh;
 
 /// Which way the camera looks at the tank.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -70,11 +70,13 @@ pub fn particles_data(sim: &Simulation) -> DataSet {
 /// vertex.
 pub fn body_data(sim: &Simulation, b: usize) -> DataSet {
     let body = &sim.bodies()[b];
-    let (verts, tris) = crate::geometry::mesh::surface_mesh(&body.shape);
-    let pose = body.pose();
-    let world: Vec<Vec3> = verts.iter().map(|v| pose.transform_point(*v)).collect();
-    let velocity = flat(world.iter().map(|p| body.velocity_at(*p)));
-    triangles_data(&world, &tris, vec![Attribute::vectors("velocity").with_data(velocity)])
+    let mesh = crate::geometry::mesh::placed_surface(&body.shape, &body.pose());
+    let velocity = flat(mesh.vertices.iter().map(|p| body.velocity_at(*p)));
+    triangles_data(
+        &mesh.vertices,
+        &mesh.triangles,
+        vec![Attribute::vectors("velocity").with_data(velocity)],
+    )
 }
 
 /// A triangle mesh as PolyData, with `point` attributes.
