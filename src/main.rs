@@ -61,21 +61,12 @@ struct RenderArgs {
     width: u32,
     /// Seen from the side (x–y) or from above (x–z).
     #[arg(long, value_enum, default_value = "side")]
-    view: ViewArg,
-}
-
-#[derive(Clone, Copy, clap::ValueEnum)]
-enum ViewArg {
-    Side,
-    Top,
+    view: View,
 }
 
 fn render(args: RenderArgs) -> Outcome {
-    let view = match args.view {
-        ViewArg::Side => View::Side,
-        ViewArg::Top => View::Top,
-    };
-    let request = RenderRequest { frame: args.frame, out: args.out, width: args.width, view };
+    let request =
+        RenderRequest { frame: args.frame, out: args.out, width: args.width, view: args.view };
     let (path, frames) = render_run(&args.dir, &request)?;
     println!("drew {frames} frame{}; wrote {}", if frames == 1 { "" } else { "s" }, path.display());
     Ok(())

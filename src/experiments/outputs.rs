@@ -134,9 +134,9 @@ fn vtk_frames(_: &Optimization, _: &BodyState, _: &Path) -> Result<()> {
 /// A run's body path and animation frames (the last one is the final state).
 type Recording = (Vec<Vec3>, Vec<Frame>);
 
-/// The liquid's surface and the bodies' of `sim` now, captioned.
-fn frame(sim: &Simulation, label: String) -> Frame {
-    Frame { liquid: liquid_surface(sim, 2), bodies: body_surfaces(sim), label }
+/// The liquid's surface (at `samples` per cell) and the bodies' of `sim` now, captioned.
+fn frame(sim: &Simulation, samples: usize, label: String) -> Frame {
+    Frame { liquid: liquid_surface(sim, samples), bodies: body_surfaces(sim), label }
 }
 
 /// loss.png, trajectory.png (the body's path before and after, over the liquid's shaded
@@ -166,7 +166,8 @@ fn pictures(
                 path.push(sim.bodies()[body].x);
             }
             if frames && (n % every == 0 || n == steps) {
-                gif.push(frame(&sim, format!("{name} optimised, step {n}")));
+                let samples = problem.scene.output.surface_samples;
+                gif.push(frame(&sim, samples, format!("{name} optimised, step {n}")));
             }
         }
         Ok((path, gif))
@@ -268,10 +269,7 @@ pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::Pat
     }
     let width = request.width.max(64);
     // The plot's margins and caption take about 60 pixels around the tank's side.
-    let up = match request.view {
-        View::Side => domain.y,
-        View::Top => domain.z,
-    };
+    let up = request.view.extent(domain).1;
     let height = ((width as f64 - 45.0) * up / domain.x + 60.0).round() as u32;
     let out = match (&request.out, request.frame) {
         (Some(p), _) => p.clone(),

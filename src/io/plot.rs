@@ -97,10 +97,7 @@ fn draw_picture<DB: DrawingBackend>(
 ) -> Result<()> {
     let (w, h) = chart.plotting_area().dim_in_pixel();
     let image = render(picture, view, w, h);
-    let top = match view {
-        View::Side => picture.domain.y,
-        View::Top => picture.domain.z,
-    };
+    let top = view.extent(picture.domain).1;
     let element = BitMapElement::with_owned_buffer((0.0, top), (w, h), image.rgb)
         .expect("the image fits its size");
     chart.draw_series(std::iter::once(element)).map_err(|e| err(path, e))?;
@@ -217,10 +214,7 @@ fn draw_frame<DB: DrawingBackend>(
     path: &Path,
 ) -> Result<()> {
     root.fill(&WHITE).map_err(|e| err(path, e))?;
-    let up = match view {
-        View::Side => domain.y,
-        View::Top => domain.z,
-    };
+    let up = view.extent(domain).1;
     let mut chart = ChartBuilder::on(root)
         .caption(&frame.label, ("sans-serif", 16))
         .margin(8)

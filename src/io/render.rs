@@ -9,6 +9,7 @@ pub use crate::geometry::mesh::TriangleMesh;
 
 /// Which way the camera looks at the tank.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum View {
     /// From the front (+z) towards −z: x to the right, y up.
     Side,
@@ -18,6 +19,12 @@ pub enum View {
 }
 
 impl View {
+    /// The picture's (width, height) in metres for a tank of extent `domain`.
+    pub fn extent(self, domain: Vec3) -> (f64, f64) {
+        let (w, h, _) = self.project(domain);
+        (w, h)
+    }
+
     /// (right, up, towards the camera) components of a world point.
     fn project(self, p: Vec3) -> (f64, f64, f64) {
         match self {
@@ -76,7 +83,7 @@ pub fn render(picture: &Picture, view: View, width: u32, height: u32) -> Image {
     let len = (width * height) as usize;
     let mut liquid = Layer::new(len);
     let mut bodies = Layer::new(len);
-    let (w, h, _) = view.project(picture.domain);
+    let (w, h) = view.extent(picture.domain);
     let frame = Frame { view, sx: width as f64 / w, sy: height as f64 / h, width, height };
     frame.rasterise(picture.liquid, WATER, &mut liquid);
     for b in picture.bodies {
