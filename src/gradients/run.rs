@@ -80,7 +80,7 @@ pub fn value_and_gradient(
         } else {
             for (k, snap) in snapshots.iter().enumerate().rev() {
                 let len = seg.min(steps - k * seg);
-                let mut s = snap.replay_copy();
+                let mut s = snap.clone();
                 let mut tape = Tape::default();
                 for _ in 0..len {
                     s.step_taped(&mut tape)?;

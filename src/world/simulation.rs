@@ -671,32 +671,16 @@ impl Simulation {
 
     /// A copy to re-run steps from (a gradient's checkpoint snapshot): with the surface
     /// frozen, without the marker particles, which its steps never read (on a large tank
-    /// they are half of a copy); otherwise a clone.
-    pub(crate) fn replay_copy(&self) -> Simulation {
+    /// they are half of a copy; they are set aside for the clone, not copied); otherwise a
+    /// clone.
+    pub(crate) fn replay_copy(&mut self) -> Simulation {
         if self.frozen_phi.is_none() {
             return self.clone();
         }
-        // Field by field, so that the particles are never copied (a new field fails to
-        // compile here until it is added).
-        Simulation {
-            grid: self.grid,
-            settings: self.settings.clone(),
-            statics: Arc::clone(&self.statics),
-            radius: self.radius,
-            u: self.u.clone(),
-            particles: Vec::new(),
-            bodies: self.bodies.clone(),
-            handles: self.handles.clone(),
-            next_handle: self.next_handle,
-            fluid_forces: self.fluid_forces.clone(),
-            pressure: self.pressure.clone(),
-            phi: self.phi.clone(),
-            frozen_phi: self.frozen_phi.clone(),
-            frozen_volume: self.frozen_volume,
-            step: self.step,
-            time: self.time,
-            warnings: self.warnings.clone(),
-        }
+        let particles = std::mem::take(&mut self.particles);
+        let copy = self.clone();
+        self.particles = particles;
+        copy
     }
 
     /// The liquid signed distance from the particles (before extension into solids): the
