@@ -190,6 +190,13 @@ pub fn far(grid: &Grid) -> f64 {
     10.0 * grid.size().length()
 }
 
+/// Whether the node distance `node_sdf` holds any solid (else it is [`far`] everywhere).
+pub fn has_solids(grid: &Grid, node_sdf: &[f64]) -> bool {
+    use rayon::prelude::*;
+    let far = far(grid);
+    node_sdf.par_iter().any(|&d| d < far)
+}
+
 /// Signed distance of the union of `solids` at every grid node (`far` where there are none).
 pub fn node_sdf(grid: &Grid, solids: &[Solid]) -> Vec<f64> {
     let nodes = grid.nodes();

@@ -241,21 +241,49 @@ impl ClosedMesh {
     }
 }
 
+/// The fans of a vertex from its link (each incident triangle's edge opposite it, a pair of
+/// vertices): the fan of each link edge, numbered from 0 in order of first appearance, and
+/// how many fans there are. A manifold vertex has one.
+pub(crate) fn link_fans(link: &[(u32, u32)]) -> (Vec<usize>, usize) {
+    let mut ids: Vec<u32> = link.iter().flat_map(|&(a, b)| [a, b]).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    let index = |x: u32| ids.binary_search(&x).expect("in the link");
+    let mut sets = Sets::new(ids.len());
+    for &(a, b) in link {
+        sets.join(index(a), index(b));
+    }
+    let mut number = vec![usize::MAX; ids.len()];
+    let mut fans = 0;
+    let fan = link
+        .iter()
+        .map(|&(a, _)| {
+            let root = sets.find(index(a));
+            if number[root] == usize::MAX {
+                number[root] = fans;
+                fans += 1;
+            }
+            number[root]
+        })
+        .collect();
+    (fan, fans)
+}
+
 /// A disjoint-set forest over `n` items.
-pub(crate) struct Sets(Vec<usize>);
+struct Sets(Vec<usize>);
 
 impl Sets {
-    pub(crate) fn new(n: usize) -> Sets {
+    fn new(n: usize) -> Sets {
         Sets((0..n).collect())
     }
-    pub(crate) fn find(&mut self, mut i: usize) -> usize {
+    fn find(&mut self, mut i: usize) -> usize {
         while self.0[i] != i {
             self.0[i] = self.0[self.0[i]];
             i = self.0[i];
         }
         i
     }
-    pub(crate) fn join(&mut self, a: usize, b: usize) {
+    fn join(&mut self, a: usize, b: usize) {
         let (a, b) = (self.find(a), self.find(b));
         self.0[a] = b;
     }
@@ -273,16 +301,7 @@ fn check_vertex_fans(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String>
     let mut bad = 0;
     let mut first = None;
     for (v, edges) in link.iter().enumerate() {
-        let mut ids: Vec<u32> = edges.iter().flat_map(|&(a, b)| [a, b]).collect();
-        ids.sort_unstable();
-        ids.dedup();
-        let index = |x: u32| ids.binary_search(&x).expect("in the link");
-        let mut sets = Sets::new(ids.len());
-        for &(a, b) in edges {
-            sets.join(index(a), index(b));
-        }
-        let cycles = (0..ids.len()).filter(|&i| sets.find(i) == i).count();
-        if cycles > 1 {
+        if link_fans(edges).1 > 1 {
             bad += 1;
             first.get_or_insert(v);
         }

@@ -17,7 +17,7 @@
 //! cell deep, φ_L (and the pressure solve's liquid cells) holds more than the particles'
 //! volume, and so does the mesh.
 
-use crate::geometry::mesh::{placed_surface, Sets};
+use crate::geometry::mesh::{link_fans, placed_surface};
 use crate::math::Vec3;
 use crate::world::Simulation;
 use fast_surface_nets::ndshape::{RuntimeShape, Shape};
@@ -56,9 +56,8 @@ pub fn liquid_surface(sim: &Simulation, samples: usize) -> TriangleMesh {
     let origin = lo.map(|l| (r * l) as f64 - 1.5);
     let n = [0, 1, 2].map(|a| (r * (hi[a] + 1 - lo[a]) + 4) as u32);
     let shape = RuntimeShape::<u32, 3>::new(n);
-    let far = crate::geometry::fractions::far(&grid);
     let node_sdf = &sim.statics().node_sdf;
-    let obstacles = node_sdf.iter().any(|&d| d < far);
+    let obstacles = crate::geometry::fractions::has_solids(&grid, node_sdf);
     let nodes = grid.nodes();
     let point =
         |ijk: [u32; 3]| Vec3::from_array([0, 1, 2].map(|a| (ijk[a] as f64 + origin[a]) * h));
@@ -334,8 +333,8 @@ fn resolve_saddles(sdf: &mut [f32], n: [u32; 3], h: f32) {
 
 /// Per cube corner sign pattern (bit c: corner c = x + 2y + 4z is liquid): whether the
 /// surface may cross the cube in more than one sheet, that is whether the liquid corners or
-/// the air corners fall apart into two or more groups joined by cube edges, or a face of it
-/// alternates. Otherwise its vertex has one fan.
+/// the air corners fall apart into two or more groups joined by cube edges (a face with
+/// alternating corners always splits one of the two). Otherwise its vertex has one fan.
 const MANY_SHEETS: [bool; 256] = {
     let mut table = [false; 256];
     let mut mask = 0;
@@ -414,28 +413,7 @@ fn split_fans(mesh: &mut TriangleMesh, candidate: &[bool]) {
     }
     for v in (0..nv).filter(|&v| candidate[v]) {
         let around = &corners[start[v]..start[v + 1]];
-        if around.len() < 3 {
-            continue;
-        }
-        // A vertex in one fan: walking from triangle to triangle around it (each one's
-        // edge opposite v leads to the next) visits them all.
-        let link_edge = |&(t, k): &(u32, u8)| {
-            let t = mesh.triangles[t as usize];
-            (t[(k as usize + 1) % 3], t[(k as usize + 2) % 3])
-        };
-        let (first, mut at) = link_edge(&around[0]);
-        let mut walked = 1;
-        while at != first && walked <= around.len() {
-            match around.iter().map(link_edge).find(|&(a, _)| a == at) {
-                Some((_, b)) => at = b,
-                None => break,
-            }
-            walked += 1;
-        }
-        if at == first && walked == around.len() {
-            continue;
-        }
-        // The link of v: each triangle's edge opposite v joins its two ends.
+        // The link of v: each triangle's edge opposite v.
         let link: Vec<(u32, u32)> = around
             .iter()
             .map(|&(t, k)| {
@@ -443,24 +421,13 @@ fn split_fans(mesh: &mut TriangleMesh, candidate: &[bool]) {
                 (t[(k as usize + 1) % 3], t[(k as usize + 2) % 3])
             })
             .collect();
-        let mut ids: Vec<u32> = link.iter().flat_map(|&(a, b)| [a, b]).collect();
-        ids.sort_unstable();
-        ids.dedup();
-        let index = |x: u32| ids.binary_search(&x).expect("in the link");
-        let mut sets = Sets::new(ids.len());
-        for &(a, b) in &link {
-            sets.join(index(a), index(b));
-        }
-        let fan: Vec<usize> = link.iter().map(|&(a, _)| sets.find(index(a))).collect();
-        let mut roots = fan.clone();
-        roots.sort_unstable();
-        roots.dedup();
-        if roots.len() < 2 {
+        let (fan, fans) = link_fans(&link);
+        if fans < 2 {
             continue;
         }
         let p = mesh.vertices[v];
-        for (f, &root) in roots.iter().enumerate() {
-            let members: Vec<usize> = (0..around.len()).filter(|&c| fan[c] == root).collect();
+        for f in 0..fans {
+            let members: Vec<usize> = (0..around.len()).filter(|&c| fan[c] == f).collect();
             let centre = members
                 .iter()
                 .map(|&c| mesh.vertices[link[c].0 as usize] + mesh.vertices[link[c].1 as usize])

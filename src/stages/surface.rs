@@ -107,8 +107,7 @@ pub struct Walls<'a> {
 impl<'a> Walls<'a> {
     /// The walls of `grid` with the static solids of distance `node_sdf`.
     pub fn new(grid: &'a Grid, node_sdf: &'a [f64]) -> Walls<'a> {
-        let far = crate::geometry::fractions::far(grid);
-        Walls { grid, node_sdf, solids: node_sdf.par_iter().any(|&d| d < far) }
+        Walls { grid, node_sdf, solids: crate::geometry::fractions::has_solids(grid, node_sdf) }
     }
 
     /// A point a thousandth of a cell out of the static solids and inside the tank.
