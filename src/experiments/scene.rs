@@ -753,10 +753,7 @@ impl Scene {
             ));
         }
         if self.output.surface && !cfg!(feature = "surface") {
-            return Err(problem(
-                "output.surface",
-                "needs diffluid built with the `surface` feature (a default feature)",
-            ));
+            return Err(problem("output.surface", crate::io::output::SURFACE_FEATURE_MISSING));
         }
         Ok(())
     }

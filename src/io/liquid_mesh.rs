@@ -237,8 +237,8 @@ fn mixed_cells(phi: &[f64], n: [usize; 3]) -> Vec<bool> {
 /// triangles; here the face's centre value (the mean of its corners, the bilinear
 /// interpolant there) decides whether the liquid joins across it, and the corner of the other
 /// sign nearest zero moves across, to a tenth of its distance on the other side, which moves
-/// the surface by less than that corner's distance. A move can make a neighbouring face alternate, so the scan repeats until none
-/// does.
+/// the surface by less than that corner's distance. A move can make a neighbouring face
+/// alternate, so the faces around each moved corner are looked at again until none does.
 fn resolve_saddles(sdf: &mut [f32], n: [u32; 3], h: f32) {
     let n = n.map(|x| x as usize);
     let stride = [1, n[0], n[0] * n[1]];

@@ -61,6 +61,10 @@ pub fn write_ply_mesh(path: &Path, vertices: &[Vec3], triangles: &[[u32; 3]]) ->
     write_atomic(path, &buf)
 }
 
+/// What a surface mesh asked of a build without the `surface` feature says.
+pub const SURFACE_FEATURE_MISSING: &str =
+    "needs diffluid built with the `surface` feature (a default feature)";
+
 /// How a triangle mesh is written.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]

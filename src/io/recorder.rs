@@ -101,8 +101,7 @@ impl RunRecorder {
         if frames.surface.is_some() && !cfg!(feature = "surface") {
             return Err(crate::error::Error::InvalidSettings {
                 key: "output.surface".into(),
-                message: "needs diffluid built with the `surface` feature (a default feature)"
-                    .into(),
+                message: crate::io::output::SURFACE_FEATURE_MISSING.into(),
             });
         }
         let mut r = RunRecorder {
