@@ -51,7 +51,7 @@ fn gradcheck_live_follows_the_moving_surface() {
     assert_eq!(params.len(), 12);
     for p in params {
         assert!(p["pass"].as_bool().unwrap(), "{}: {p}", p["name"]);
-        // Measured 4.6e-5 at worst.
+        // Measured 1.8e-4 at worst (x[1]; the central differences of x differ at ε and 10ε).
         assert!(p["rel_error"].as_f64().unwrap() <= 4e-4, "{}", p["name"]);
     }
     let worst_paper = v["paper"]
