@@ -493,7 +493,11 @@ impl ParticleAdjoint<'_> {
         };
         // The positions after the step: the density projection's displacement and the second
         // push-out replayed from the advected positions.
-        let inputs = sim.density_inputs(self.geometry);
+        // The density projection read the band of its own step.
+        let inputs = sim.density_inputs(self.geometry).map(|mut g| {
+            g.band = pr.band.as_deref();
+            g
+        });
         let projection = match (&inputs, &pr.density) {
             (Some(g), Some(q)) => DensityProjection::build(&pr.advected, g).map(|p| (p, q)),
             _ => None,
@@ -547,7 +551,11 @@ impl ParticleAdjoint<'_> {
             node_sdf,
             ubar,
         );
-        Ok(pbar)
+        // The band's update before the advection: back to the particles' old indices.
+        Ok(match &pr.change {
+            Some(change) => change.adjoint(&pbar),
+            None => pbar,
+        })
     }
 
     /// The density system's part of the pose derivative: its weights lose what a body covers,

@@ -22,6 +22,7 @@ use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
 use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
+use crate::stages::band::Band;
 use crate::stages::extrapolate::{correct_velocity, correct_velocity_adjoint};
 use crate::stages::pressure::{PressureParams, PressureSystem};
 use crate::stages::surface::{self, jacobian_step, jacobian_t, Bins, Walls};
@@ -57,6 +58,8 @@ pub struct DensityInputs<'a> {
     pub theta_min: f64,
     /// How to solve it.
     pub solve: LinearSolve,
+    /// The narrow band's deep cells (full liquid without particles), if the liquid has one.
+    pub band: Option<&'a Band>,
 }
 
 /// One projection's system for particles P: what the displacement and the adjoint read.
@@ -78,14 +81,23 @@ impl DensityProjection {
     pub fn build(particles: &[Vec3], g: &DensityInputs<'_>) -> Option<DensityProjection> {
         let grid = g.grid;
         let bins = Bins::new(particles, grid);
-        let (mut phi, nearest) = surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface);
+        let deep = g.band.map(Band::deep);
+        let (mut phi, nearest) =
+            surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface, deep);
         surface::extend_into_solids(&mut phi, grid, g.centre_in_solid);
-        let dens = surface::particle_density(particles, grid, g.particles_per_cell);
+        let base = g.band.map(|b| b.density.as_slice());
+        let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
         let sys = PressureSystem::build(grid, &phi, g.weights, params);
         let vol = grid.dx.powi(3);
-        let b: Vec<f64> =
-            sys.cell_of_row.iter().map(|&c| (dens[c as usize] - FULL).max(0.0) * vol).collect();
+        // A narrow band's deep cells are full by construction: what the particles near them
+        // deposit there is not an excess.
+        let deep = |c: usize| g.band.is_some_and(|b| b.deep[c]);
+        let b: Vec<f64> = sys
+            .cell_of_row
+            .iter()
+            .map(|&c| if deep(c as usize) { 0.0 } else { (dens[c as usize] - FULL).max(0.0) * vol })
+            .collect();
         if b.iter().all(|&x| x == 0.0) {
             return None;
         }
@@ -266,6 +278,7 @@ mod tests {
             particles_per_cell: 8,
             theta_min: 0.01,
             solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),
+            band: None,
         };
         let c: Vec<Vec3> = (0..p0.len())
             .map(|i| Vec3::new(((i * 7) % 5) as f64 - 2.0, ((i * 3) % 7) as f64 - 3.0, 1.0))

@@ -1,5 +1,6 @@
 //! The stages of a step, each forward function with its adjoint beside it.
 pub mod advect;
+pub mod band;
 pub mod contact;
 pub mod density;
 pub mod extrapolate;

@@ -16,7 +16,7 @@ use crate::math::{Pose, SharedShape, Vec3};
 use rayon::prelude::*;
 
 /// Sub-lattice offsets (in cells, relative to the cell's lower corner) for m per axis.
-fn sub_offsets(m: usize) -> Vec<f64> {
+pub fn sub_offsets(m: usize) -> Vec<f64> {
     (0..m).map(|a| (a as f64 + 0.5) / m as f64).collect()
 }
 
@@ -402,6 +402,58 @@ fn for_neighbour_cells(grid: &Grid, ijk: [usize; 3], reach: usize, mut f: impl F
     }
 }
 
+/// Per cell, the L∞ distance in cells to the nearest `from` cell, capped at `cap` (cells
+/// beyond the tank do not count). Separable: one windowed
+/// min–max pass per axis.
+pub fn linf_distance(grid: &Grid, from: &[bool], cap: u8) -> Vec<u8> {
+    let mut d: Vec<u8> = from.par_iter().map(|&o| if o { 0 } else { cap }).collect();
+    for axis in 0..3 {
+        d = depth_pass(grid, &d, axis, cap);
+    }
+    d
+}
+
+/// `out(x) = min over |s| ≤ cap of max(|s|, d(x + s·e_axis))`.
+fn depth_pass(grid: &Grid, d: &[u8], axis: usize, cap: u8) -> Vec<u8> {
+    let n = grid.n;
+    let stride = [1, n[0], n[0] * n[1]][axis];
+    let len = n[axis];
+    let slab = n[0] * n[1];
+    let mut out = vec![0u8; d.len()];
+    out.par_chunks_mut(slab).enumerate().for_each(|(k, o)| {
+        for j in 0..n[1] {
+            for i in 0..n[0] {
+                let c = grid.cell(i, j, k);
+                let at = [i, j, k][axis];
+                let mut best = d[c];
+                for s in 1..=cap as usize {
+                    if s >= best as usize {
+                        break;
+                    }
+                    let s8 = s as u8;
+                    if at >= s {
+                        best = best.min(s8.max(d[c - s * stride]));
+                    }
+                    if at + s < len {
+                        best = best.min(s8.max(d[c + s * stride]));
+                    }
+                }
+                o[i + n[0] * j] = best;
+            }
+        }
+    });
+    out
+}
+
+/// A narrow band's deep cells, for φ_L: which cells, and their φ.
+#[derive(Clone, Copy, Debug)]
+pub struct Deep<'a> {
+    /// Per cell, whether it is deep.
+    pub cells: &'a [bool],
+    /// φ_L of a deep cell.
+    pub phi: f64,
+}
+
 /// How φ_L is made from the particles.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SurfaceModel {
@@ -414,8 +466,14 @@ pub struct SurfaceModel {
 
 /// The liquid signed distance at cell centres: `min_p |x − x_p| − r`, exact where the
 /// nearest particle is within two cells, and `2·dx − r` or more beyond.
-pub fn liquid_sdf(pos: &[Vec3], bins: &Bins, grid: &Grid, model: &SurfaceModel) -> Vec<f64> {
-    liquid_sdf_nearest(pos, bins, grid, model).0
+pub fn liquid_sdf(
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
+) -> Vec<f64> {
+    liquid_sdf_nearest(pos, bins, grid, model, deep).0
 }
 
 /// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
@@ -424,17 +482,23 @@ pub fn liquid_sdf(pos: &[Vec3], bins: &Bins, grid: &Grid, model: &SurfaceModel) 
 /// too sparse for the distance to say so (thin sheets, splashes): the projection then keeps
 /// it divergence-free instead of leaving its particles to extrapolated air velocities, which
 /// bunch them up and lose volume. The rule makes φ jump when a particle crosses a cell face.
+/// The `deep` cells of a narrow band are liquid with its φ (see `band.rs`).
 pub fn liquid_sdf_nearest(
     pos: &[Vec3],
     bins: &Bins,
     grid: &Grid,
     model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
 ) -> (Vec<f64>, Vec<u32>) {
     let radius = model.radius;
     use crate::geometry::grid::NONE;
     let cells = grid.cells();
     let dx = grid.dx;
     let slab = grid.n[0] * grid.n[1];
+    // How far (L∞, in cells) the nearest cell holding a particle is: nothing to search in
+    // the air beyond two cells of the liquid (most of a tall tank's cells).
+    let occupied: Vec<bool> = (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty()).collect();
+    let reach = linf_distance(grid, &occupied, 3);
     let rows: Vec<(Vec<f64>, Vec<u32>)> = (0..grid.n[2])
         .into_par_iter()
         .map(|k| {
@@ -442,6 +506,17 @@ pub fn liquid_sdf_nearest(
             let mut who = Vec::with_capacity(slab);
             for j in 0..grid.n[1] {
                 for i in 0..grid.n[0] {
+                    if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
+                        phi.push(d.phi);
+                        who.push(NONE);
+                        continue;
+                    }
+                    let empty = reach[grid.cell(i, j, k)];
+                    if empty > 2 {
+                        phi.push(2.0 * dx - radius);
+                        who.push(NONE);
+                        continue;
+                    }
                     let x = cells.position(i, j, k);
                     let nearest = |reach: usize| {
                         let mut best = (f64::MAX, NONE);
@@ -553,9 +628,10 @@ pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]
 /// seeded): each particle is deposited on its 8 nearest cell centres with trilinear weights,
 /// and a weight that would fall on a cell beyond a tank wall lands on its mirror image inside
 /// (reflection), so every particle deposits exactly one unit. The scatter runs in particle
-/// order on one thread, so the sums do not depend on the thread count.
-pub fn particle_density(pos: &[Vec3], grid: &Grid, ppc: usize) -> Vec<f64> {
-    let mut out = vec![0.0; grid.num_cells()];
+/// order on one thread, so the sums do not depend on the thread count. They add to `base`
+/// (a narrow band's deep cells' deposit) when given.
+pub fn particle_density(pos: &[Vec3], grid: &Grid, ppc: usize, base: Option<&[f64]>) -> Vec<f64> {
+    let mut out = base.map_or_else(|| vec![0.0; grid.num_cells()], <[f64]>::to_vec);
     let unit = 1.0 / ppc as f64;
     for x in pos {
         let (idx, w, _) = deposit_weights(grid, *x);
@@ -633,8 +709,9 @@ pub fn particle_density_adjoint(
 /// Liquid volume in m³: the particle density capped at one full cell per cell, times the
 /// cell volume. A freshly seeded region gives its exact volume; marker particles that bunch
 /// up (the way a marker-particle liquid loses volume) push cells over full and lower it.
-pub fn liquid_volume(pos: &[Vec3], grid: &Grid, ppc: usize) -> f64 {
-    let dens = particle_density(pos, grid, ppc);
+/// A narrow band's deep cells (their deposit `base`) count as the full cells they stand for.
+pub fn liquid_volume(pos: &[Vec3], grid: &Grid, ppc: usize, base: Option<&[f64]>) -> f64 {
+    let dens = particle_density(pos, grid, ppc, base);
     let parts: Vec<f64> = dens
         .chunks(crate::geometry::grid::REDUCE_CHUNK)
         .map(|c| c.iter().map(|d| d.min(1.0)).sum())
@@ -661,10 +738,10 @@ mod tests {
         let pos = seed(&grid, &[region], 8, &sdf);
         assert_eq!(pos.len(), 8 * 8 * 4 * 8);
         let bins = Bins::new(&pos, &grid);
-        let vol = liquid_volume(&pos, &grid, 8);
+        let vol = liquid_volume(&pos, &grid, 8, None);
         assert!((vol - 0.5).abs() < 1e-12, "volume {vol}");
         let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
-        let phi = liquid_sdf(&pos, &bins, &grid, &model);
+        let phi = liquid_sdf(&pos, &bins, &grid, &model, None);
         // Centres at y = 7/16 (below) and 9/16 (above) straddle the surface y = 0.5 evenly.
         let below = phi[grid.cell(3, 3, 3)];
         let above = phi[grid.cell(3, 4, 3)];
@@ -739,7 +816,7 @@ mod adjoint_tests {
         }
         let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: false };
         let bins = Bins::new(&pos, &grid);
-        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model);
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
         let cells = grid.cells();
         let mut own = 0;
         for c in 0..grid.num_cells() {
@@ -868,13 +945,13 @@ mod adjoint_tests {
         let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
         let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
         let sdf = |p: &[Vec3]| {
-            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model);
+            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, None);
             phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
         let dens = |p: &[Vec3]| {
-            particle_density(p, &grid, 8).iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
+            particle_density(p, &grid, 8, None).iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
-        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model);
+        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model, None);
         let mut g_sdf = vec![Vec3::ZERO; p0.len()];
         liquid_sdf_adjoint(&p0, &nearest, &grid, &phi_bar, &mut g_sdf);
         let mut g_dens = vec![Vec3::ZERO; p0.len()];

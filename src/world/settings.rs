@@ -109,6 +109,12 @@ pub struct SolverSettings {
     /// (cheap, but the count changes as the flow speeds up, a jump of the forward map). A
     /// fixed count (at least that many, up to 64) makes the map smooth there.
     pub particle_substeps: usize,
+    /// Marker particles only in a band this many cells wide (L∞) around the air and the
+    /// solids; the liquid beyond is carried by the grid as full cells (see `stages/band.rs`).
+    /// 0, the default, fills the whole liquid; 2 to 32 is a band. The band is cheaper
+    /// wherever the liquid is deeper than a few cells, and it adds to its width the cells a
+    /// step's fastest velocity crosses.
+    pub narrow_band: usize,
     /// The most memory a simulation may take, GB. Default: none given, so the memory the
     /// machine has available (its free memory, or the cgroup limit) is the limit. Before
     /// anything is allocated, a scene's needs are estimated (see
@@ -144,6 +150,7 @@ impl Default for SolverSettings {
             density_correction: true,
             sparse_cells: true,
             particle_substeps: 0,
+            narrow_band: 0,
             memory_limit_gb: None,
             freeze_surface: false,
             coupling: Coupling::Monolithic,
@@ -207,6 +214,16 @@ impl SolverSettings {
             return Err(SettingError::new(
                 "solver.particle_substeps",
                 format!("must be 0 (adaptive) to 64, got {}", self.particle_substeps),
+            ));
+        }
+        if self.narrow_band == 1 || self.narrow_band > 32 {
+            return Err(SettingError::new(
+                "solver.narrow_band",
+                format!(
+                    "must be 0 (particles fill the liquid) or a band of 2 to 32 cells (φ_L \
+                     reads particles up to 2 cells away), got {}",
+                    self.narrow_band
+                ),
             ));
         }
         Ok(())

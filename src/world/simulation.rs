@@ -36,11 +36,13 @@ use crate::geometry::grid::{on_pool, Grid, Mac};
 use crate::geometry::shape::Solid;
 use crate::math::{v3, Vec3};
 use crate::stages::contact::{contact_possible, hold_contact, ContactChange, ContactHold};
+use crate::stages::band::{self, Band, BandChange};
 use crate::stages::density::{self, DensityInputs};
 use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
 use crate::stages::forces::body_velocity;
 use crate::stages::pressure::PressureParams;
 use crate::stages::surface::{self, Bins, SurfaceModel};
+use rayon::prelude::*;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -67,6 +69,9 @@ pub struct Simulation {
     pub u: Mac,
     /// Marker particle positions.
     pub particles: Vec<Vec3>,
+    /// The narrow band's deep cells (`solver.narrow_band`), shared with the tape until the
+    /// next update.
+    band: Option<Arc<Band>>,
     bodies: Vec<RigidBody>,
     handles: Vec<BodyHandle>,
     next_handle: u32,
@@ -282,16 +287,19 @@ impl SimulationBuilder {
         particles.retain(|x| self.bodies.iter().all(|b| b.sdf(*x) > margin));
         let (frozen_phi, frozen_volume) = if self.settings.solver.freeze_surface {
             let bins = Bins::new(&particles, &grid);
-            let vol = surface::liquid_volume(&particles, &grid, ppc);
+            let vol = surface::liquid_volume(&particles, &grid, ppc, None);
             let model = SurfaceModel { radius, sparse_cells: self.settings.solver.sparse_cells };
-            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &model))), vol)
+            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &model, None))), vol)
         } else {
             (None, 0.0)
         };
         let n = self.bodies.len();
         let mut warnings = self.notes.clone();
         warnings.extend(self.bodies.iter().filter_map(|b| thin_body_warning(b, grid.dx)));
-        Ok(Simulation {
+        let band = (self.settings.solver.narrow_band > 0)
+            .then(|| Arc::new(Band::empty(&grid, radius, surface::per_axis(ppc))));
+        let mut sim = Simulation {
+            band,
             frozen_phi,
             frozen_volume,
             handles: (0..n as u32).map(BodyHandle).collect(),
@@ -309,7 +317,11 @@ impl SimulationBuilder {
             step: 0,
             time: 0.0,
             warnings,
-        })
+        };
+        // The particles the band does not need go before the first step.
+        let geometry = sim.geometry();
+        sim.update_band(&geometry, 0.0);
+        Ok(sim)
     }
 }
 
@@ -516,7 +528,45 @@ impl Simulation {
         if self.frozen_phi.is_some() {
             return self.frozen_volume;
         }
-        surface::liquid_volume(&self.particles, &self.grid, self.settings.solver.particles_per_cell)
+        let base = self.band.as_ref().map(|b| b.density.as_slice());
+        surface::liquid_volume(&self.particles, &self.grid, self.settings.solver.particles_per_cell, base)
+    }
+
+    /// The narrow band's deep cells, when the liquid has a band (`solver.narrow_band`).
+    pub fn band(&self) -> Option<&Band> {
+        self.band.as_deref()
+    }
+
+    /// Brings the narrow band up to date for a step of `dt` with the solids of `geometry`
+    /// (see `band.rs`): from the last step's φ_L (the particles' before the first step),
+    /// with the band widened by the cells the fastest velocity crosses in `dt`. None
+    /// without a band or with the surface frozen.
+    fn update_band(&mut self, geometry: &Geometry, dt: f64) -> Option<BandChange> {
+        if self.band.is_none() || (self.frozen_phi.is_some() && self.step > 0) {
+            return None;
+        }
+        let fresh = (self.step == 0).then(|| self.particle_phi());
+        let phi = fresh.as_deref().unwrap_or(&self.phi);
+        let outside: Vec<bool> = phi
+            .par_iter()
+            .zip(geometry.centre_in_solid.par_iter())
+            .map(|(p, s)| *p >= 0.0 || *s)
+            .collect();
+        let grid = self.grid;
+        // A trilinear sample is at most √3 times the largest face velocity.
+        let reach = (3f64.sqrt() * self.u.max_abs() * dt / grid.dx).ceil() as usize;
+        let width = self.settings.solver.narrow_band + reach;
+        let m = surface::per_axis(self.settings.solver.particles_per_cell);
+        let node_sdf = &self.statics.node_sdf;
+        let bodies = &self.bodies;
+        let margin = self.push_margin();
+        let nodes = grid.nodes();
+        let admit = |x: Vec3| {
+            nodes.sample(node_sdf, x) > 0.0 && bodies.iter().all(|b| b.sdf(x) > margin)
+        };
+        let band = Arc::make_mut(self.band.as_mut()?);
+        let u = &self.u;
+        Some(band::update(&mut self.particles, band, &outside, width, u, dt, &grid, m, admit))
     }
 
     /// The bodies, in the order they were added.
@@ -693,6 +743,7 @@ impl Simulation {
                 &Bins::new(&self.particles, &self.grid),
                 &self.grid,
                 &self.surface_model(),
+                self.band.as_deref().map(Band::deep),
             ),
         }
     }
@@ -788,6 +839,7 @@ impl Simulation {
                     &bins,
                     &grid,
                     &self.surface_model(),
+                    self.band.as_deref().map(Band::deep),
                 );
                 r.nearest = nearest;
                 phi
@@ -927,6 +979,7 @@ impl Simulation {
         if self.frozen_phi.is_some() {
             return Ok(None);
         }
+        let change = self.update_band(geometry, dt);
         let start = taped.then(|| self.particles.clone());
         let margin = self.push_margin();
         let substeps = match self.settings.solver.particle_substeps {
@@ -964,6 +1017,8 @@ impl Simulation {
             advected,
             density,
             nearest: Vec::new(),
+            change,
+            band: self.band.clone(),
         }))
     }
 
@@ -989,6 +1044,7 @@ impl Simulation {
             particles_per_cell: solver.particles_per_cell,
             theta_min: solver.theta_min,
             solve: solver.linear(),
+            band: self.band.as_deref(),
         })
     }
 

@@ -7,6 +7,8 @@ use crate::geometry::body::BodyState;
 use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::Mac;
 use crate::math::Vec3;
+use crate::stages::band::{Band, BandChange};
+use std::sync::Arc;
 
 /// One forward step's record.
 #[derive(Clone, Debug)]
@@ -53,6 +55,11 @@ pub struct ParticleRecord {
     /// Per cell, the particle (at the end of the step) whose distance the step's φ_L is
     /// (`NONE` where φ does not move with a particle).
     pub nearest: Vec<u32>,
+    /// What the narrow band's update before the advection did to the particle list
+    /// (`start` is the list after it); None without a band.
+    pub change: Option<BandChange>,
+    /// The band the step's density projection and φ_L read.
+    pub band: Option<Arc<Band>>,
 }
 
 /// The recorded forward pass.
@@ -83,6 +90,7 @@ impl Tape {
                         24 * (r.start.len() + r.advected.len())
                             + 8 * r.density.as_ref().map_or(0, Vec::len)
                             + 4 * r.nearest.len()
+                            + r.change.as_ref().map_or(0, |c| 4 * c.kept.len())
                     })
             })
             .sum();
