@@ -171,11 +171,11 @@ impl DensityProjection {
         correct_velocity_adjoint(&mut dbar, &valid0, g.weights, grid, 1);
         let qbar = self.sys.update_velocity_adjoint(&dbar);
         let (s, stats) = self.sys.solve(&qbar, &g.solve);
-        // b = max(dens − FULL, 0)·dx³ on the rows.
+        // b = max(dens − FULL, 0)·dx³ on the rows (0 on a band's deep cells).
         let vol = grid.dx.powi(3);
         let mut dens_bar = vec![0.0; grid.num_cells()];
         for (r, &c) in self.sys.cell_of_row.iter().enumerate() {
-            if self.dens[c as usize] > FULL {
+            if self.dens[c as usize] > FULL && !g.band.is_some_and(|b| b.deep[c as usize]) {
                 dens_bar[c as usize] = vol * s[r];
             }
         }
