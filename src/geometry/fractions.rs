@@ -140,8 +140,8 @@ pub fn cv_corners(axis: usize, f: [usize; 3]) -> [[usize; 3]; 8] {
 pub const SUBSAMPLE: usize = 2;
 
 /// The finest sampling [`samples_per_cell`] chooses: every dx/16, for bodies down to a
-/// sixteenth of a cell (a 0.1-cell plate's fractions then cost 512 times a thick body's per
-/// face it covers).
+/// sixteenth of a cell (a 0.1-cell plate's fractions then cost 512 distance samples per
+/// dx/2 box within a box's diagonal of its surface, against one for a thick body).
 pub const MAX_SAMPLES_PER_CELL: usize = 16;
 
 /// Sub-boxes per cell side for a body `thickness` thick (m) on cells of side `dx`:
@@ -172,15 +172,10 @@ pub fn cv_fine_lattice(grid: &Grid, axis: usize) -> Lattice {
 }
 
 /// Solid fraction of the control volume of interior face `f` of `axis`, from the signed
-/// distance on a lattice refined `r` times (`at` takes refined lattice coordinates: the
-/// control volume's first corner is at `r` times its `cv_lattice` coordinates).
+/// distance on the refined lattice (`at` takes refined lattice coordinates).
 #[inline]
-pub fn cv_fraction<T: Scalar>(
-    axis: usize,
-    f: [usize; 3],
-    r: usize,
-    at: impl Fn([usize; 3]) -> T,
-) -> T {
+pub fn cv_fraction<T: Scalar>(axis: usize, f: [usize; 3], at: impl Fn([usize; 3]) -> T) -> T {
+    let r = SUBSAMPLE;
     let base = cv_corners(axis, f)[0].map(|x| x * r);
     let mut sum = T::cst(0.0);
     for sk in 0..r {
@@ -348,7 +343,7 @@ fn volume_weights(grid: &Grid, solids: &[Solid]) -> [Vec<f64>; 3] {
             if sdf.is_empty() {
                 return 1.0;
             }
-            let c = cv_fraction(axis, f, SUBSAMPLE, |p| sdf[cv.index(p[0], p[1], p[2])]);
+            let c = cv_fraction(axis, f, |p| sdf[cv.index(p[0], p[1], p[2])]);
             (1.0 - c).clamp(0.0, 1.0)
         });
         w
@@ -436,6 +431,49 @@ impl BodyFaces {
     }
 }
 
+/// Solid fraction of a box of side `side` at `origin` with corner distances `c` (indexed
+/// `x + 2y + 4z`), from `m`³ sub-boxes sampled through `sdf` (`m` = 1: the corners alone,
+/// [`box_fraction_inside`]). A box a corner of which lies farther from the surface than the
+/// box's diagonal is wholly on that corner's side (a distance changes by at most the distance
+/// moved), and is 0 or 1 without sampling: sub-boxes would give the same constant. So only
+/// the boxes near the surface cost m³.
+fn refined_box_fraction<T: Scalar>(
+    c: [T; 8],
+    origin: crate::math::Vec3,
+    side: f64,
+    m: usize,
+    sdf: impl Fn(crate::math::Vec3) -> T,
+) -> T {
+    let diag = 3f64.sqrt() * side;
+    if m == 1 || c.iter().any(|x| x.val() >= diag) {
+        return box_fraction_inside(c);
+    }
+    if c.iter().any(|x| x.val() < -diag) {
+        return T::cst(1.0);
+    }
+    let h = side / m as f64;
+    let n = m + 1;
+    let samples: Vec<T> = (0..n * n * n)
+        .map(|l| {
+            let p = [l % n, (l / n) % n, l / (n * n)].map(|x| x as f64 * h);
+            sdf(origin + crate::math::Vec3::new(p[0], p[1], p[2]))
+        })
+        .collect();
+    let mut sum = T::cst(0.0);
+    for k in 0..m {
+        for j in 0..m {
+            for i in 0..m {
+                let corners: [T; 8] = std::array::from_fn(|b| {
+                    let q = [i + (b & 1), j + ((b >> 1) & 1), k + ((b >> 2) & 1)];
+                    samples[q[0] + n * (q[1] + n * q[2])]
+                });
+                sum = sum + box_fraction_inside(corners);
+            }
+        }
+    }
+    sum / T::cst((m * m * m) as f64)
+}
+
 /// Solid fractions of one body on the interior faces near it (control-volume fractions, as
 /// for static solids), from its signed distance `sdf` over its bounding box grown by a cell,
 /// sampled `per_cell` times per cell side (even: [`SUBSAMPLE`], or [`samples_per_cell`] for
@@ -485,21 +523,22 @@ pub fn body_faces_generic<T: Scalar + Send + Sync>(
         }
         (0..3).all(|d| fhi[d] > flo[d]).then_some((flo, fhi))
     });
-    // The refined control-volume corners of every axis lie on one lattice, every dx/r from
-    // the origin (`fine`): along `axis` a corner of face i sits at (i − 1/2 + s/r)·dx, across
-    // it at (j + s/r)·dx. The distance is sampled once there, over the corners all three axes
-    // need, rather than once per axis.
+    // The control volumes of every axis are made of boxes dx/2 on a side on one lattice
+    // (`half`): along `axis` the boxes of face i start at (i − 1/2 + s/2)·dx, across it at
+    // (j + s/2)·dx, s = 0, 1. Each box's solid fraction is computed once, for all three axes
+    // (each box is in one control volume per axis), from the distance at its corners, or,
+    // for a thin body, from `per_cell / 2` sub-boxes a side wherever its corners leave its
+    // inside unknown.
     let r = per_cell;
-    assert!(r >= 2 && r % 2 == 0, "per_cell must be even, got {r}");
-    let shift = r / 2;
-    let fine = Lattice { n: grid.n.map(|n| r * n + 1), off: [0.0; 3], dx: grid.dx / r as f64 };
+    assert!(r >= SUBSAMPLE && r % SUBSAMPLE == 0, "per_cell must be even, got {r}");
+    let half = Lattice { n: grid.n.map(|n| 2 * n + 1), off: [0.0; 3], dx: grid.dx / 2.0 };
     let mut hlo = [usize::MAX; 3];
     let mut hhi = [0usize; 3];
     for (axis, range) in ranges.iter().enumerate() {
         let Some((flo, fhi)) = range else { continue };
         for d in 0..3 {
-            let lo = if d == axis { r * (flo[d] - 1) + shift } else { r * flo[d] };
-            let hi = if d == axis { r * (fhi[d] - 1) + shift } else { r * fhi[d] };
+            let lo = if d == axis { 2 * (flo[d] - 1) + 1 } else { 2 * flo[d] };
+            let hi = if d == axis { 2 * (fhi[d] - 1) + 1 } else { 2 * fhi[d] };
             hlo[d] = hlo[d].min(lo);
             hhi[d] = hhi[d].max(hi + 1);
         }
@@ -508,27 +547,43 @@ pub fn body_faces_generic<T: Scalar + Send + Sync>(
     if ranges.iter().all(Option::is_none) {
         return out;
     }
+    // Corner samples, then box fractions, over the boxes between them.
     let ext: [usize; 3] = [0, 1, 2].map(|d| hhi[d] - hlo[d]);
     let mut block = vec![T::cst(0.0); ext[0] * ext[1] * ext[2]];
     block.par_iter_mut().enumerate().for_each(|(l, v)| {
         let i = l % ext[0] + hlo[0];
         let j = (l / ext[0]) % ext[1] + hlo[1];
         let k = l / (ext[0] * ext[1]) + hlo[2];
-        *v = sdf(fine.position(i, j, k));
+        *v = sdf(half.position(i, j, k));
+    });
+    let bext = ext.map(|e| e - 1);
+    let mut boxes = vec![T::cst(0.0); bext[0] * bext[1] * bext[2]];
+    boxes.par_iter_mut().enumerate().for_each(|(l, v)| {
+        let b = [l % bext[0], (l / bext[0]) % bext[1], l / (bext[0] * bext[1])];
+        let c: [T; 8] = std::array::from_fn(|n| {
+            let q = [0, 1, 2].map(|d| b[d] + ((n >> d) & 1));
+            block[q[0] + ext[0] * (q[1] + ext[1] * q[2])]
+        });
+        let origin = half.position(b[0] + hlo[0], b[1] + hlo[1], b[2] + hlo[2]);
+        *v = refined_box_fraction(c, origin, half.dx, r / SUBSAMPLE, &sdf);
     });
     for (axis, range) in ranges.iter().enumerate() {
         let Some((flo, fhi)) = *range else { continue };
-        // Refined cv coordinates of `axis` are `fine` coordinates shifted by r/2 along it.
-        let at = |p: [usize; 3]| {
-            let q: [usize; 3] =
-                [0, 1, 2].map(|d| p[d] + if d == axis { shift } else { 0 } - hlo[d]);
-            block[q[0] + ext[0] * (q[1] + ext[1] * q[2])]
-        };
         let lat = grid.faces(axis);
         for k in flo[2]..fhi[2] {
             for j in flo[1]..fhi[1] {
                 for i in flo[0]..fhi[0] {
-                    let beta = cv_fraction(axis, [i, j, k], r, at);
+                    // The control volume's first box, in `boxes` coordinates.
+                    let first = [0, 1, 2].map(|d| {
+                        let f = [i, j, k][d];
+                        (if d == axis { 2 * f - 1 } else { 2 * f }) - hlo[d]
+                    });
+                    let mut sum = T::cst(0.0);
+                    for n in 0..8 {
+                        let q = [0, 1, 2].map(|d| first[d] + ((n >> d) & 1));
+                        sum = sum + boxes[q[0] + bext[0] * (q[1] + bext[1] * q[2])];
+                    }
+                    let beta = snap(sum / T::cst(8.0));
                     if beta.val() > 0.0 {
                         out[axis].push((lat.index(i, j, k), beta));
                     }
