@@ -328,7 +328,7 @@ fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> 
     out
 }
 
-/// One study of `diffluid bench` (see [`bench`]).
+/// One study of `diffluid bench` (see [`mod@bench`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Study {
