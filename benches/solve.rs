@@ -9,7 +9,7 @@
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode};
 use diffluid::experiments::shapes::{Placed, ShapeSpec};
 use diffluid::geometry::body::RigidBody;
-use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
+use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::{Grid, Mac};
 use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
@@ -35,7 +35,7 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
     let mut body = RigidBody::new("ball".into(), ball.shape.clone(), ball.pose, 600.0);
     body.v = diffluid::math::v3([0.1, -0.5, 0.05]);
     body.w = diffluid::math::v3([0.0, 0.3, 2.0]);
-    let faces = body_faces(&grid, body.bounds(), |p| body.sdf(p), Some(body.volume()));
+    let faces = body.face_fractions(&grid);
     let mut weights = face_weights(&grid, &[]);
     for (w, covered) in weights.iter_mut().zip(&faces.faces) {
         for &(f, b) in covered {

@@ -2,7 +2,9 @@
 
 use clap::{Parser, Subcommand};
 use diffluid::experiments::optimize::{Checkpoint, Optimization};
-use diffluid::experiments::outputs::{render_run, write_bench, write_optimization, RenderRequest};
+use diffluid::experiments::outputs::{
+    render_run, write_bench, write_optimization, RenderRequest, Study,
+};
 use diffluid::gradients::{gradcheck, GradcheckSettings};
 use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
 use diffluid::io::render::View;
@@ -156,6 +158,9 @@ struct BenchArgs {
     /// Small sweeps (a few seconds) instead of the full ones.
     #[arg(long)]
     quick: bool,
+    /// Run only this study.
+    #[arg(long, value_enum)]
+    only: Option<Study>,
 }
 
 /// A scene from a path, a built-in name, or the embedded default.
@@ -357,8 +362,12 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
 }
 
 fn bench(args: BenchArgs) -> Outcome {
-    let bar = bar(5, false, "{bar:30} {pos}/{len} {msg} [{elapsed}]");
-    let lines = write_bench(&args.out, args.quick, |study| {
+    let bar = bar(
+        if args.only.is_some() { 1 } else { 5 },
+        false,
+        "{bar:30} {pos}/{len} {msg} [{elapsed}]",
+    );
+    let lines = write_bench(&args.out, args.quick, args.only, |study| {
         if bar.position() > 0 || !bar.message().is_empty() {
             bar.inc(1);
         }

@@ -208,11 +208,13 @@ position = [0.41, 0.1001, 0.38]"#;
     assert!(body_speed < 0.01, "the resting cube moved at {body_speed} m/s");
 }
 
-/// A body the grid cannot represent says so instead of silently losing its coupling: a
-/// plate a fifth of a cell thick, between the dx/2 distance samples, is warned about when the world is built (its thickness and
-/// the dx that would resolve it), and its first step reports that its face fractions miss
-/// its whole volume (the volume correction's λ clamped), so its buoyancy is gone. A plate two
-/// cells thick gets neither.
+/// A body the grid cannot represent says so instead of silently losing its coupling. A plate
+/// a fifth of a cell thick is sampled finely enough to keep its volume (its first step's
+/// face fractions hold it, with no warning), but is warned about when the world is built (its
+/// thickness, and that liquid passes through it). A plate a fiftieth of a cell thick is
+/// thinner than the finest sampling: the warning says so, and its first step reports that
+/// its face fractions miss most of its volume (the volume correction's λ clamped). A plate
+/// two cells thick gets neither.
 #[test]
 fn bodies_too_thin_for_the_grid_are_reported() {
     let plate = |half: f64| {
@@ -225,7 +227,16 @@ fn bodies_too_thin_for_the_grid_are_reported() {
         (built, r.warnings, r.bodies[0].volume_error)
     };
     let (built, step, err) = plate(0.005);
-    assert!(built.iter().any(|w| w.contains("plate") && w.contains("cells thick")), "{built:?}");
+    assert!(
+        built.iter().any(|w| w.contains("plate")
+            && w.contains("0.19 cells thick")
+            && w.contains("passes through")),
+        "{built:?}"
+    );
+    assert!(step.is_empty(), "{step:?}");
+    assert!(err < 1e-12, "volume error {err}");
+    let (built, step, err) = plate(0.0005);
+    assert!(built.iter().any(|w| w.contains("plate") && w.contains("1/16 cell")), "{built:?}");
     assert!(step.iter().any(|w| w.contains("miss")), "{step:?}");
     assert!(err > 0.5, "volume error {err}");
     let (built, step, err) = plate(0.05);

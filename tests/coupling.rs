@@ -11,7 +11,7 @@
 
 #![allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 
-use diffluid::geometry::fractions::{body_faces, body_jacobian, face_weights};
+use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::Grid;
 use diffluid::math::Vec3;
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
@@ -59,7 +59,7 @@ fn coupled_operator_is_symmetric() {
     let grid: Grid = *sim.grid();
     let weights0 = face_weights(&grid, &[]);
     let body = sim.bodies()[0].clone();
-    let faces = body_faces(&grid, body.bounds(), |p| body.sdf(p), Some(body.volume()));
+    let faces = body.face_fractions(&grid);
     let mut weights = weights0.clone();
     for a in 0..3 {
         for &(f, b) in &faces.faces[a] {

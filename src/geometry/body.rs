@@ -5,6 +5,9 @@
 //! shape's local origin sits at `x − q·c` where `c` is the centre of mass in the shape frame.
 //! Mass and inertia come from parry's mass properties; the world inertia is `R·I·Rᵀ`.
 
+use crate::geometry::fractions;
+use crate::geometry::grid::Grid;
+use crate::math::dual::Dual;
 use crate::math::{Pose, Rotation, SharedShape, Vec3};
 use parry3d_f64::math::Matrix as Mat3;
 
@@ -36,6 +39,9 @@ pub struct RigidBody {
     pub force: Vec3,
     /// External torque about the centre of mass (world frame, N·m).
     pub torque: Vec3,
+    /// Thickness of the shape, 2·V/S (see [`crate::geometry::shape::thickness`]): how finely
+    /// its face fractions sample its distance ([`RigidBody::face_fractions`]).
+    pub thickness: f64,
 }
 
 /// Who moves a body.
@@ -213,6 +219,7 @@ impl RigidBody {
     ) -> RigidBody {
         let r = Mat3::from_quat(mp.principal_inertia_local_frame);
         let local_inertia = r * Mat3::from_diagonal(mp.principal_inertia()) * r.transpose();
+        let thickness = crate::geometry::shape::thickness(&shape);
         RigidBody {
             name,
             x: pose.transform_point(mp.local_com),
@@ -226,6 +233,7 @@ impl RigidBody {
             w: Vec3::ZERO,
             force: Vec3::ZERO,
             torque: Vec3::ZERO,
+            thickness,
         }
     }
 
@@ -288,7 +296,7 @@ impl RigidBody {
     /// [δx (3); δθ (3)], the body translated by δx and turned by δθ (world frame) about its
     /// centre of mass: ∂φ/∂x = −n, ∂φ/∂θ = −(p − x) × n, with n the unit gradient of the
     /// distance (from the closest surface point).
-    pub fn sdf_pose_dual(&self, p: Vec3) -> crate::math::dual::Dual<6> {
+    pub fn sdf_pose_dual(&self, p: Vec3) -> Dual<6> {
         let proj = self.shape.project_point(&self.pose(), p, false);
         let diff = p - proj.point;
         let len = diff.length();
@@ -311,7 +319,28 @@ impl RigidBody {
             g.normalize_or_zero()
         };
         let t = (p - self.x).cross(n);
-        crate::math::dual::Dual::new(phi, [-n.x, -n.y, -n.z, -t.x, -t.y, -t.z])
+        Dual::new(phi, [-n.x, -n.y, -n.z, -t.x, -t.y, -t.z])
+    }
+
+    /// Sub-boxes per cell side of the body's face fractions on cells of side `dx`
+    /// ([`fractions::samples_per_cell`] of its thickness).
+    pub fn samples_per_cell(&self, dx: f64) -> usize {
+        fractions::samples_per_cell(self.thickness, dx)
+    }
+
+    /// The body's face fractions where it is now, volume-consistent (see
+    /// [`fractions::body_faces`]), sampled as finely as its thickness needs.
+    pub fn face_fractions(&self, grid: &Grid) -> fractions::BodyFaces {
+        let r = self.samples_per_cell(grid.dx);
+        fractions::body_faces(grid, self.bounds(), |p| self.sdf(p), Some(self.volume()), r)
+    }
+
+    /// [`RigidBody::face_fractions`] with their derivatives along the six pose directions
+    /// (those of [`RigidBody::sdf_pose_dual`]).
+    pub fn face_fractions_dual(&self, grid: &Grid) -> [Vec<(usize, Dual<6>)>; 3] {
+        let r = self.samples_per_cell(grid.dx);
+        let sdf = |p| self.sdf_pose_dual(p);
+        fractions::body_faces_generic(grid, self.bounds(), sdf, Some(self.volume()), r)
     }
 
     /// World inertia tensor R·I·Rᵀ about the centre of mass.

@@ -32,6 +32,25 @@ impl Solid {
     }
 }
 
+/// Thickness of a shape, m: 2·V/S, its volume over half its surface area (from its surface
+/// mesh). Exact for a plate, two thirds of a ball's radius; infinite for a shape without a
+/// closed surface (a half-space).
+pub fn thickness(shape: &SharedShape) -> f64 {
+    let (verts, tris) = crate::geometry::mesh::surface_mesh(shape);
+    let area: f64 = tris
+        .iter()
+        .map(|t| {
+            let [a, c, d] = t.map(|i| verts[i as usize]);
+            0.5 * (c - a).cross(d - a).length()
+        })
+        .sum();
+    if area > 0.0 {
+        2.0 * shape.mass_properties(1.0).mass() / area
+    } else {
+        f64::INFINITY
+    }
+}
+
 impl Solid {
     /// A shape at a pose.
     pub fn new(shape: SharedShape, pose: Pose) -> Solid {

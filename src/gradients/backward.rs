@@ -24,7 +24,6 @@ use crate::error::{Error, Result};
 use crate::geometry::body::{
     carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, Motion, RigidBody,
 };
-use crate::geometry::fractions;
 use crate::geometry::grid::on_pool;
 use crate::geometry::grid::Mac;
 use crate::math::dual::Dual;
@@ -237,17 +236,7 @@ fn step_adjoint(
     let sys = StepSystem::assemble(&grid, &bodies, geometry, phi, initial.step_params(dt));
     // The fractions' derivatives along each body's pose (full gradient only).
     let dual_faces: Vec<[Vec<(usize, Dual<6>)>; 3]> = if mode == GradientMode::Full {
-        bodies
-            .iter()
-            .map(|b| {
-                fractions::body_faces_generic(
-                    &grid,
-                    b.bounds(),
-                    |p| b.sdf_pose_dual(p),
-                    Some(b.volume()),
-                )
-            })
-            .collect()
+        bodies.iter().map(|b| b.face_fractions_dual(&grid)).collect()
     } else {
         Vec::new()
     };

@@ -407,26 +407,35 @@ fn check_body(b: &RigidBody, size: Vec3, reach: f64) -> std::result::Result<(), 
 }
 
 /// A warning when a body is thinner than half a cell (its thickness taken as 2·V/S, exact
-/// for a plate): its face fractions then come out near zero, and it couples to the liquid
-/// only weakly (the bench's thin plates: a quarter-cell plate loses 75% of its buoyancy and
-/// lets 98% of the flow through).
+/// for a plate). Its face fractions are then sampled more finely
+/// ([`RigidBody::samples_per_cell`]) and keep its whole volume, so its buoyancy, down to the
+/// finest sampling; but a body's faces stay open by 1 − β, so the liquid passes through it
+/// (a body seals by its fractions alone from 2 cells up). Below the finest sampling it also
+/// loses part of its buoyancy, as every thin body did before the finer sampling (a quarter-cell
+/// plate sampled every dx/2 lost 75%).
 fn thin_body_warning(b: &RigidBody, dx: f64) -> Option<String> {
-    let (verts, tris) = crate::geometry::mesh::surface_mesh(&b.shape);
-    let area: f64 = tris
-        .iter()
-        .map(|t| {
-            let [a, c, d] = t.map(|i| verts[i as usize]);
-            0.5 * (c - a).cross(d - a).length()
-        })
-        .sum();
-    let thickness = 2.0 * b.volume() / area;
-    (thickness < 0.5 * dx).then(|| {
+    let t = b.thickness;
+    if t >= 0.5 * dx {
+        return None;
+    }
+    let r = b.samples_per_cell(dx);
+    Some(if dx / r as f64 > t {
         format!(
-            "body {} is about {:.2} cells thick, less than the half cell the grid resolves: \
-             it will feel only part of its buoyancy and let liquid through (refine dx below {:.3} m)",
+            "body {} is about {:.3} cells thick, thinner than the 1/{r} cell its face fractions \
+             are sampled at: it will feel only part of its buoyancy and let liquid through \
+             (refine dx below {:.4} m)",
             b.name,
-            thickness / dx,
-            2.0 * thickness
+            t / dx,
+            r as f64 * t
+        )
+    } else {
+        format!(
+            "body {} is about {:.2} cells thick, less than half a cell: its face fractions are \
+             sampled every dx/{r} and keep its buoyancy, but liquid passes through it (a body's \
+             faces stay open by 1 - β; refine dx below {:.4} m to seal it)",
+            b.name,
+            t / dx,
+            0.5 * t
         )
     })
 }

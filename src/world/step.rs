@@ -37,12 +37,9 @@ pub struct Geometry {
 }
 
 /// Each body's face fractions where it is now (volume-consistent, see
-/// [`fractions::body_faces`]).
+/// [`RigidBody::face_fractions`]).
 pub fn body_faces(grid: &Grid, bodies: &[RigidBody]) -> Vec<BodyFaces> {
-    bodies
-        .iter()
-        .map(|b| fractions::body_faces(grid, b.bounds(), |p| b.sdf(p), Some(b.volume())))
-        .collect()
+    bodies.iter().map(|b| b.face_fractions(grid)).collect()
 }
 
 impl Geometry {
