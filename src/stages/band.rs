@@ -68,6 +68,14 @@ impl Band {
         }
     }
 
+    /// The band whose deep cells are `deep`.
+    pub fn with_deep(grid: &Grid, deep: Vec<bool>, radius: f64, m: usize) -> Band {
+        let mut band = Band::empty(grid, radius, m);
+        band.density = full_density(grid, &deep, m);
+        band.deep = deep;
+        band
+    }
+
     /// The deep cells as φ_L reads them.
     pub fn deep(&self) -> surface::Deep<'_> {
         surface::Deep { cells: &self.deep, phi: self.phi }
@@ -190,9 +198,12 @@ pub fn update(
     let off = surface::sub_offsets(m);
     let dx = grid.dx;
     let unit = dx.powi(3) / (m * m * m) as f64;
-    let work: Vec<Trade> = (0..d.len())
-        .into_par_iter()
-        .map(|c| trade(c, band, &deep, &bins, particles, u, dt, grid, &off, unit, &admit))
+    // Only deep cells and those that just left the deep set trade.
+    let trading: Vec<usize> =
+        (0..d.len()).into_par_iter().filter(|&c| deep[c] || band.deep[c]).collect();
+    let work: Vec<Trade> = trading
+        .par_iter()
+        .map(|&c| trade(c, band, &deep, &bins, particles, u, dt, grid, &off, unit, &admit))
         .collect();
     // Deletions: everything in a deep cell, and what the deep cells take in, in cell order
     // (a particle two cells would take goes to the first; the other keeps its debt).
@@ -205,7 +216,7 @@ pub fn update(
     let before = particles.len();
     let mut added = 0;
     let mut seeded = Vec::new();
-    for (c, t) in work.into_iter().enumerate() {
+    for (&c, t) in trading.iter().zip(work) {
         let mut owed = t.owed;
         for p in t.take {
             if owed > -0.5 * unit {
@@ -418,7 +429,7 @@ mod tests {
         for m in 1..=3 {
             let region = Solid::aabb(Vec3::new(0.0, 0.0, 0.0), Vec3::new(0.5, 0.3, 0.8));
             let sdf = vec![1e3; g.nodes().len()];
-            let pos = surface::seed(&g, &[region], m * m * m, &sdf);
+            let pos = surface::seed(&g, &[region], m * m * m, &sdf, None);
             let real = surface::particle_density(&pos, &g, m * m * m, None);
             let deep: Vec<bool> = (0..g.num_cells())
                 .map(|c| {
@@ -428,7 +439,12 @@ mod tests {
                 .collect();
             let full = full_density(&g, &deep, m);
             for c in 0..g.num_cells() {
-                assert!((real[c] - full[c]).abs() < 1e-12, "m {m} cell {c}: {} {}", real[c], full[c]);
+                assert!(
+                    (real[c] - full[c]).abs() < 1e-12,
+                    "m {m} cell {c}: {} {}",
+                    real[c],
+                    full[c]
+                );
             }
         }
     }
@@ -441,7 +457,7 @@ mod tests {
         let g = grid();
         let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.2, 0.7, 0.8));
         let sdf = vec![1e3; g.nodes().len()];
-        let mut pos = surface::seed(&g, &[region], 8, &sdf);
+        let mut pos = surface::seed(&g, &[region], 8, &sdf, None);
         let all = pos.clone();
         let outside: Vec<bool> = (0..g.num_cells()).map(|c| g.cells().ijk(c)[1] >= 7).collect();
         let mut band = Band::empty(&g, 0.0631, 2);
@@ -476,7 +492,7 @@ mod tests {
         let g = grid();
         let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.2, 0.7, 0.8));
         let sdf = vec![1e3; g.nodes().len()];
-        let mut pos = surface::seed(&g, &[region], 8, &sdf);
+        let mut pos = surface::seed(&g, &[region], 8, &sdf, None);
         let outside: Vec<bool> = (0..g.num_cells()).map(|c| g.cells().ijk(c)[1] >= 7).collect();
         let mut band = Band::empty(&g, 0.0631, 2);
         let dt = 0.01;

@@ -243,7 +243,7 @@ mod tests {
         let grid = Grid { n: [8, 8, 6], dx: 0.1 };
         let node_sdf = vec![1e3; grid.nodes().len()];
         let pool = Solid::aabb(Vec3::ZERO, Vec3::new(0.8, 0.4, 0.6));
-        let mut p0 = surface::seed(&grid, &[pool], 8, &node_sdf);
+        let mut p0 = surface::seed(&grid, &[pool], 8, &node_sdf, None);
         // Squeeze the particles toward the floor (the lower cells are over full), and jitter
         // them off the seeding lattice, whose symmetry makes the nearest particle of a cell
         // centre a tie (a kink of φ_L).

@@ -49,8 +49,15 @@ pub fn particle_radius(dx: f64, m: usize) -> f64 {
 }
 
 /// Seeds m³ particles per cell on a regular sub-lattice, inside any of `regions` and outside
-/// the static solids (`node_sdf`).
-pub fn seed(grid: &Grid, regions: &[Solid], ppc: usize, node_sdf: &[f64]) -> Vec<Vec3> {
+/// the static solids (`node_sdf`), in every cell but those `skip` marks (a narrow band's deep
+/// cells).
+pub fn seed(
+    grid: &Grid,
+    regions: &[Solid],
+    ppc: usize,
+    node_sdf: &[f64],
+    skip: Option<&[bool]>,
+) -> Vec<Vec3> {
     let off = sub_offsets(per_axis(ppc));
     let nodes = grid.nodes();
     let dx = grid.dx;
@@ -61,6 +68,9 @@ pub fn seed(grid: &Grid, regions: &[Solid], ppc: usize, node_sdf: &[f64]) -> Vec
             let mut out = Vec::new();
             for j in 0..grid.n[1] {
                 for i in 0..grid.n[0] {
+                    if skip.is_some_and(|s| s[grid.cell(i, j, k)]) {
+                        continue;
+                    }
                     for &oz in &off {
                         for &oy in &off {
                             for &ox in &off {
@@ -497,7 +507,8 @@ pub fn liquid_sdf_nearest(
     let slab = grid.n[0] * grid.n[1];
     // How far (L∞, in cells) the nearest cell holding a particle is: nothing to search in
     // the air beyond two cells of the liquid (most of a tall tank's cells).
-    let occupied: Vec<bool> = (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty()).collect();
+    let occupied: Vec<bool> =
+        (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty()).collect();
     let reach = linf_distance(grid, &occupied, 3);
     let rows: Vec<(Vec<f64>, Vec<u32>)> = (0..grid.n[2])
         .into_par_iter()
@@ -735,7 +746,7 @@ mod tests {
         let grid = Grid { n: [8, 8, 8], dx: 0.125 };
         let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0));
         let sdf = vec![1e3; grid.nodes().len()];
-        let pos = seed(&grid, &[region], 8, &sdf);
+        let pos = seed(&grid, &[region], 8, &sdf, None);
         assert_eq!(pos.len(), 8 * 8 * 4 * 8);
         let bins = Bins::new(&pos, &grid);
         let vol = liquid_volume(&pos, &grid, 8, None);
@@ -949,7 +960,11 @@ mod adjoint_tests {
             phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
         let dens = |p: &[Vec3]| {
-            particle_density(p, &grid, 8, None).iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
+            particle_density(p, &grid, 8, None)
+                .iter()
+                .zip(&phi_bar)
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
         };
         let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model, None);
         let mut g_sdf = vec![Vec3::ZERO; p0.len()];

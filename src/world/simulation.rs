@@ -35,8 +35,8 @@ use crate::geometry::fractions;
 use crate::geometry::grid::{on_pool, Grid, Mac};
 use crate::geometry::shape::Solid;
 use crate::math::{v3, Vec3};
-use crate::stages::contact::{contact_possible, hold_contact, ContactChange, ContactHold};
 use crate::stages::band::{self, Band, BandChange};
+use crate::stages::contact::{contact_possible, hold_contact, ContactChange, ContactHold};
 use crate::stages::density::{self, DensityInputs};
 use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
 use crate::stages::forces::body_velocity;
@@ -270,6 +270,42 @@ impl SimulationBuilder {
         (400.0 * grid.num_cells() as f64 + 56.0 * particles, particles)
     }
 
+    /// With `solver.narrow_band`, the band before any particle is seeded: deep cells where
+    /// the liquid regions (their signed distance at the cell centres) are more than the band
+    /// and two cells from their surface, the static solids and the bodies, so a large tank
+    /// never holds its full-volume particles. The first step's update starts from them.
+    fn initial_band(&self, grid: &Grid, centre_in_solid: &[bool], radius: f64) -> Option<Band> {
+        let width = self.settings.solver.narrow_band;
+        if width == 0 {
+            return None;
+        }
+        let cells = grid.cells();
+        let liquid: Vec<(Vec3, Vec3)> = self.liquid.iter().map(Solid::bounds).collect();
+        let bodies: Vec<(Vec3, Vec3)> = self.bodies.iter().map(RigidBody::bounds).collect();
+        let inside = |x: Vec3, (lo, hi): (Vec3, Vec3)| x.cmpge(lo).all() && x.cmple(hi).all();
+        let outside: Vec<bool> = (0..grid.num_cells())
+            .into_par_iter()
+            .map(|c| {
+                let [i, j, k] = cells.ijk(c);
+                let x = cells.position(i, j, k);
+                let wet =
+                    self.liquid.iter().zip(&liquid).any(|(r, b)| inside(x, *b) && r.sdf(x) < 0.0);
+                let solid = centre_in_solid[c]
+                    || self
+                        .bodies
+                        .iter()
+                        .zip(&bodies)
+                        .any(|(b, bb)| inside(x, *bb) && b.sdf(x) <= 0.0);
+                !wet || solid
+            })
+            .collect();
+        let cap = (width + 2).min(u8::MAX as usize) as u8;
+        let d = surface::linf_distance(grid, &outside, cap);
+        let deep = d.iter().map(|&v| v as usize > width + 1).collect();
+        let m = surface::per_axis(self.settings.solver.particles_per_cell);
+        Some(Band::with_deep(grid, deep, radius, m))
+    }
+
     /// Checks everything and sets up the simulation: static geometry, particles seeded in
     /// the liquid regions (outside obstacles and bodies), fluid at rest. A failed check is
     /// [`Error::InvalidSettings`] naming the key as a scene file would (`domain.dx`,
@@ -281,23 +317,26 @@ impl SimulationBuilder {
         let weights = fractions::face_weights(&grid, &self.obstacles);
         let centre_in_solid = fractions::cell_centre_in_solid(&grid, &node_sdf);
         let ppc = self.settings.solver.particles_per_cell;
-        let mut particles = surface::seed(&grid, &self.liquid, ppc, &node_sdf);
         let radius = surface::particle_radius(grid.dx, surface::per_axis(ppc));
+        let band = self.initial_band(&grid, &centre_in_solid, radius);
+        let deep = band.as_ref().map(|b| b.deep.as_slice());
+        let mut particles = surface::seed(&grid, &self.liquid, ppc, &node_sdf, deep);
         let margin = 1e-3 * grid.dx;
         particles.retain(|x| self.bodies.iter().all(|b| b.sdf(*x) > margin));
         let (frozen_phi, frozen_volume) = if self.settings.solver.freeze_surface {
             let bins = Bins::new(&particles, &grid);
-            let vol = surface::liquid_volume(&particles, &grid, ppc, None);
+            let base = band.as_ref().map(|b| b.density.as_slice());
+            let vol = surface::liquid_volume(&particles, &grid, ppc, base);
             let model = SurfaceModel { radius, sparse_cells: self.settings.solver.sparse_cells };
-            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &model, None))), vol)
+            let deep = band.as_ref().map(Band::deep);
+            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &model, deep))), vol)
         } else {
             (None, 0.0)
         };
         let n = self.bodies.len();
         let mut warnings = self.notes.clone();
         warnings.extend(self.bodies.iter().filter_map(|b| thin_body_warning(b, grid.dx)));
-        let band = (self.settings.solver.narrow_band > 0)
-            .then(|| Arc::new(Band::empty(&grid, radius, surface::per_axis(ppc))));
+        let band = band.map(Arc::new);
         let mut sim = Simulation {
             band,
             frozen_phi,
@@ -538,7 +577,12 @@ impl Simulation {
             return self.frozen_volume;
         }
         let base = self.band.as_ref().map(|b| b.density.as_slice());
-        surface::liquid_volume(&self.particles, &self.grid, self.settings.solver.particles_per_cell, base)
+        surface::liquid_volume(
+            &self.particles,
+            &self.grid,
+            self.settings.solver.particles_per_cell,
+            base,
+        )
     }
 
     /// The narrow band's deep cells, when the liquid has a band (`solver.narrow_band`).
@@ -570,9 +614,8 @@ impl Simulation {
         let bodies = &self.bodies;
         let margin = self.push_margin();
         let nodes = grid.nodes();
-        let admit = |x: Vec3| {
-            nodes.sample(node_sdf, x) > 0.0 && bodies.iter().all(|b| b.sdf(x) > margin)
-        };
+        let admit =
+            |x: Vec3| nodes.sample(node_sdf, x) > 0.0 && bodies.iter().all(|b| b.sdf(x) > margin);
         let band = Arc::make_mut(self.band.as_mut()?);
         let u = &self.u;
         Some(band::update(&mut self.particles, band, &outside, width, u, dt, &grid, m, admit))
