@@ -75,6 +75,106 @@ pub struct CostRow {
     pub seconds_per_step: f64,
 }
 
+/// One grid size of the scale study.
+#[derive(Clone, Debug, Serialize)]
+pub struct ScaleRow {
+    /// Cells along x, y, z.
+    pub n: String,
+    /// Grid cells.
+    pub cells: usize,
+    /// Liquid cells at the last forward step.
+    pub liquid_cells: usize,
+    /// Marker particles at the last forward step.
+    pub particles: usize,
+    /// Median wall time of a forward step (after the first), s.
+    pub forward_seconds_per_step: f64,
+    /// Peak resident memory of the forward run, MB (NaN where it cannot be read).
+    pub forward_peak_mb: f64,
+    /// Wall time of the gradient (surface held fixed: the taped forward and the backward
+    /// pass) per step, s.
+    pub gradient_seconds_per_step: f64,
+    /// The backward pass's time over the taped forward pass's.
+    pub backward_over_forward: f64,
+    /// Peak resident memory of the gradient, MB.
+    pub gradient_peak_mb: f64,
+}
+
+/// Resets this process's peak resident memory to what it holds now (Linux; elsewhere
+/// nothing), so [`peak_mb`] measures what follows.
+fn reset_peak() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+/// This process's peak resident memory since the last [`reset_peak`], MB (NaN where it
+/// cannot be read).
+fn peak_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            let line = s.lines().find(|l| l.starts_with("VmHWM:"))?.to_string();
+            line.split_whitespace().nth(1)?.parse::<f64>().ok()
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// Time per step and peak memory against grid size: `large_tank` (a dam-break column into a
+/// pool with a floating box and a floating mesh, particles in a band of 3 cells) at cells of
+/// 10, 5, 2.5 and 1.25 cm (32×16×32 to 256×128×256 cells; `quick`: the first two).
+/// Forward: `steps` steps, the median after the first. Gradient: the same steps with the
+/// surface held fixed (a loss on the box's position). Each peak is the process's resident
+/// memory during that run alone (Linux's peak counter reset before it).
+pub fn scale(quick: bool) -> Result<Vec<ScaleRow>> {
+    let dxs: &[f64] = if quick { &[0.1, 0.05] } else { &[0.1, 0.05, 0.025, 0.0125] };
+    let steps = if quick { 2 } else { 4 };
+    let mut rows = Vec::new();
+    for &dx in dxs {
+        let mut scene = Scene::builtin("large_tank")?;
+        scene.domain.dx = dx;
+        reset_peak();
+        let (n, cells, liquid_cells, particles, forward) = {
+            let mut sim = scene.build()?;
+            let grid = *sim.grid();
+            let mut times = Vec::new();
+            let mut last = None;
+            for _ in 0..steps {
+                let t = Instant::now();
+                let r = sim.step()?;
+                times.push(t.elapsed().as_secs_f64());
+                last = Some(r);
+            }
+            let r = last.expect("at least one step");
+            let n = format!("{}x{}x{}", grid.n[0], grid.n[1], grid.n[2]);
+            (n, grid.num_cells(), r.liquid_cells, sim.particles.len(), median(times[1..].to_vec()))
+        };
+        let forward_peak = peak_mb();
+        reset_peak();
+        let frozen = scene.clone().with_frozen_surface();
+        let sim = frozen.build()?;
+        let loss = crate::gradients::BodyTargetLoss {
+            body: 0,
+            position: Some((sim.bodies()[0].x + Vec3::new(0.05, 0.0, 0.0), 1.0)),
+            orientation: None,
+            velocity: None,
+        };
+        let run = value_and_gradient(&sim, steps, &loss, &GradientSettings::default())?;
+        drop(sim);
+        let gradient_peak = peak_mb();
+        rows.push(ScaleRow {
+            n,
+            cells,
+            liquid_cells,
+            particles,
+            forward_seconds_per_step: forward,
+            forward_peak_mb: forward_peak,
+            gradient_seconds_per_step: (run.forward_seconds + run.backward_seconds)
+                / steps as f64,
+            backward_over_forward: run.backward_seconds / run.forward_seconds,
+            gradient_peak_mb: gradient_peak,
+        });
+    }
+    Ok(rows)
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]

@@ -342,6 +342,9 @@ pub enum Study {
     Cost,
     /// Smoothness over long horizons ([`bench::smoothness`]).
     Smoothness,
+    /// Time per step and peak memory against grid size up to 8.4M cells ([`bench::scale`]):
+    /// run only when asked for (`--only scale`; it takes minutes and about 4 GB).
+    Scale,
 }
 
 /// The studies of `diffluid bench` (all five, or `only` one), run and written into `out` as
@@ -367,6 +370,9 @@ pub fn write_bench(
     }
     if runs(Study::Cost) {
         lines.extend(write_cost(out, quick, &mut progress)?);
+    }
+    if only == Some(Study::Scale) {
+        lines.extend(write_scale(out, quick, &mut progress)?);
     }
     if runs(Study::Smoothness) {
         progress("smoothness over long horizons");
@@ -464,6 +470,53 @@ fn write_thin(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Resul
 }
 
 /// The cost study, and a line saying what doubling the air costs.
+/// The scale study: its table, a chart of time per step and one of peak memory against
+/// cells, and a line per size.
+fn write_scale(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Result<Vec<String>> {
+    let at = |name: &str| out.join(name);
+    progress("time and memory against grid size");
+    let rows = bench::scale(quick)?;
+    write_csv(&at("scale.csv"), &rows)?;
+    let pick = |f: fn(&bench::ScaleRow) -> f64, label: &str| {
+        (label.to_string(), rows.iter().map(|r| (r.cells as f64, f(r))).collect::<Vec<_>>())
+    };
+    let time = vec![
+        pick(|r| r.forward_seconds_per_step, "forward"),
+        pick(|r| r.gradient_seconds_per_step, "gradient (surface held fixed)"),
+    ];
+    plot::line_chart(
+        &at("scale_time.png"),
+        "time per step against grid cells (large_tank)",
+        ("grid cells", "s per step (median)"),
+        (true, true),
+        &time,
+    )?;
+    let memory = vec![
+        pick(|r| r.forward_peak_mb, "forward"),
+        pick(|r| r.gradient_peak_mb, "gradient (surface held fixed)"),
+    ];
+    plot::line_chart(
+        &at("scale_memory.png"),
+        "peak memory against grid cells (large_tank)",
+        ("grid cells", "peak resident memory, MB"),
+        (true, true),
+        &memory,
+    )?;
+    Ok(rows
+        .iter()
+        .map(|r| {
+            format!(
+                "{}: {:.3} s a step, {:.0} MB; gradient {:.3} s a step, {:.0} MB",
+                r.n,
+                r.forward_seconds_per_step,
+                r.forward_peak_mb,
+                r.gradient_seconds_per_step,
+                r.gradient_peak_mb
+            )
+        })
+        .collect())
+}
+
 fn write_cost(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Result<Vec<String>> {
     let at = |name: &str| out.join(name);
     progress("cost against liquid cells");
