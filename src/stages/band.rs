@@ -403,6 +403,16 @@ mod tests {
         Grid { n: [12, 10, 8], dx: 0.1 }
     }
 
+    /// A pool filling rows 0..=6 of [`grid`], freshly seeded, and the air above it.
+    fn pool() -> (Grid, Vec<Vec3>, Vec<bool>) {
+        let g = grid();
+        let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.2, 0.7, 0.8));
+        let sdf = vec![1e3; g.nodes().len()];
+        let pos = surface::seed(&g, &[region], 8, &sdf, None);
+        let outside = (0..g.num_cells()).map(|c| g.cells().ijk(c)[1] >= 7).collect();
+        (g, pos, outside)
+    }
+
     /// The separable depth is the brute-force L∞ distance to the outside cells.
     #[test]
     fn depth_is_the_linf_distance() {
@@ -454,12 +464,8 @@ mod tests {
     /// each kept particle's gradient at its old index.
     #[test]
     fn update_takes_out_the_deep_particles_and_then_rests() {
-        let g = grid();
-        let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.2, 0.7, 0.8));
-        let sdf = vec![1e3; g.nodes().len()];
-        let mut pos = surface::seed(&g, &[region], 8, &sdf, None);
+        let (g, mut pos, outside) = pool();
         let all = pos.clone();
-        let outside: Vec<bool> = (0..g.num_cells()).map(|c| g.cells().ijk(c)[1] >= 7).collect();
         let mut band = Band::empty(&g, 0.0631, 2);
         let still = Mac::zeros(&g);
         let change = update(&mut pos, &mut band, &outside, 2, &still, 0.01, &g, 2, |_| true);
@@ -489,11 +495,7 @@ mod tests {
     /// air comes near gets its sub-lattice back.
     #[test]
     fn update_trades_with_the_band_as_the_flux_says() {
-        let g = grid();
-        let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.2, 0.7, 0.8));
-        let sdf = vec![1e3; g.nodes().len()];
-        let mut pos = surface::seed(&g, &[region], 8, &sdf, None);
-        let outside: Vec<bool> = (0..g.num_cells()).map(|c| g.cells().ijk(c)[1] >= 7).collect();
+        let (g, mut pos, outside) = pool();
         let mut band = Band::empty(&g, 0.0631, 2);
         let dt = 0.01;
         let mut flow = Mac::zeros(&g);
