@@ -30,6 +30,7 @@ use crate::math::dual::Dual;
 use crate::math::so3;
 use crate::math::{Rotation, Vec3};
 use crate::stages::advect::{advect_adjoint, needed_faces};
+use crate::stages::band::Band;
 use crate::stages::density::{DensityInputs, DensityProjection};
 use crate::stages::extrapolate::{apply_body_velocities_adjoint, correct_velocity_adjoint};
 use crate::stages::forces::body_velocity_pose_adjoint;
@@ -483,8 +484,12 @@ impl ParticleAdjoint<'_> {
         // The positions after the step: the density projection's displacement and the second
         // push-out replayed from the advected positions.
         // The density projection read the band of its own step.
+        let band = pr.deep.as_ref().map(|deep| {
+            let m = surface::per_axis(sim.settings().solver.particles_per_cell);
+            Band::with_deep(&grid, deep.clone(), sim.surface_model().radius, m)
+        });
         let inputs = sim.density_inputs(self.geometry).map(|mut g| {
-            g.band = pr.band.as_deref();
+            g.band = band.as_ref();
             g
         });
         let projection = match (&inputs, &pr.density) {

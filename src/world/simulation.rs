@@ -69,7 +69,7 @@ pub struct Simulation {
     pub u: Mac,
     /// Marker particle positions.
     pub particles: Vec<Vec3>,
-    /// The narrow band's deep cells (`solver.narrow_band`), shared with the tape until the
+    /// The narrow band's deep cells (`solver.narrow_band`), shared between clones until the
     /// next update.
     band: Option<Arc<Band>>,
     bodies: Vec<RigidBody>,
@@ -1070,7 +1070,7 @@ impl Simulation {
             density,
             nearest: Vec::new(),
             change,
-            band: self.band.clone(),
+            deep: self.band.as_ref().map(|b| b.deep.clone()),
         }))
     }
 

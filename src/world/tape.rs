@@ -7,8 +7,7 @@ use crate::geometry::body::BodyState;
 use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::Mac;
 use crate::math::Vec3;
-use crate::stages::band::{Band, BandChange};
-use std::sync::Arc;
+use crate::stages::band::BandChange;
 
 /// One forward step's record.
 #[derive(Clone, Debug)]
@@ -58,8 +57,9 @@ pub struct ParticleRecord {
     /// What the narrow band's update before the advection did to the particle list
     /// (`start` is the list after it); None without a band.
     pub change: Option<BandChange>,
-    /// The band the step's density projection and φ_L read.
-    pub band: Option<Arc<Band>>,
+    /// The narrow band's deep cells that the step's density projection and φ_L read (the
+    /// rest of the band, its deposit, is a function of them).
+    pub deep: Option<Vec<bool>>,
 }
 
 /// The recorded forward pass.
@@ -91,6 +91,7 @@ impl Tape {
                             + 8 * r.density.as_ref().map_or(0, Vec::len)
                             + 4 * r.nearest.len()
                             + r.change.as_ref().map_or(0, |c| 4 * c.kept.len())
+                            + r.deep.as_ref().map_or(0, Vec::len)
                     })
             })
             .sum();
