@@ -232,8 +232,9 @@ pub fn update(
         added += t.add.len();
         seeded.extend(t.add);
     }
-    let kept: Vec<u32> = (0..before as u32).filter(|&p| !gone[p as usize]).collect();
-    let mut next: Vec<Vec3> = kept.iter().map(|&p| particles[p as usize]).collect();
+    let kept: Vec<u32> =
+        (0..before as u32).into_par_iter().filter(|&p| !gone[p as usize]).collect();
+    let mut next: Vec<Vec3> = kept.par_iter().map(|&p| particles[p as usize]).collect();
     next.extend(seeded);
     *particles = next;
     band.density = full_density(grid, &deep, m);
