@@ -124,6 +124,7 @@ fn scene() -> impl Strategy<Value = String> {
         2 => any::<bool>().prop_map(|v| format!("density_correction = {v}")),
         2 => any::<bool>().prop_map(|v| format!("sparse_cells = {v}")),
         2 => (0u64..80).prop_map(|v| format!("particle_substeps = {v}")),
+        2 => (0u64..40).prop_map(|v| format!("narrow_band = {v}")),
         2 => any::<bool>().prop_map(|v| format!("freeze_surface = {v}")),
         2 => prop_oneof![Just("monolithic"), Just("weak")].prop_map(|v| format!("coupling = \"{v}\"")),
         2 => num(0.0, 4.0).prop_map(|v| format!("cfl = {v}")),
