@@ -114,3 +114,56 @@ fn live_gradient_with_a_band_matches_central_differences() {
         assert!(r.pass, "{}: adjoint {:e}, fd {:e}", r.name, r.adjoint, r.fd);
     }
 }
+
+/// A heavy ball sinking through a deep pool carries the band with it (the cells it leaves
+/// are seeded, the ones it nears leave the deep set) and ends where it does without a band:
+/// measured 0.012 cells lower, 0.3% faster, and the volume within 0.30% every step (the
+/// full-volume liquid 0.09%).
+#[test]
+fn a_ball_sinking_through_the_deep_cells_sinks_as_without_a_band() {
+    let text = |band: usize| {
+        format!(
+            r#"
+name = "sink"
+[domain]
+size = [0.8, 0.8, 0.8]
+dx = 0.04
+[time]
+dt = 0.01
+steps = 40
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.7, 0.8] }}
+[[body]]
+name = "ball"
+shape = {{ kind = "ball", radius = 0.08 }}
+density = 3000.0
+position = [0.41, 0.5, 0.39]
+[solver]
+narrow_band = {band}
+"#
+        )
+    };
+    let mut band = Scene::from_toml(&text(2), "<test>").unwrap().build().unwrap();
+    let mut full = Scene::from_toml(&text(0), "<test>").unwrap().build().unwrap();
+    assert!(band.band().unwrap().deep_cells() > 1000);
+    let v0 = band.liquid_volume();
+    let mut worst = 0.0f64;
+    for _ in 0..40 {
+        let r = band.step().unwrap();
+        full.step().unwrap();
+        worst = worst.max((r.liquid_volume - v0).abs() / v0);
+    }
+    let (a, b) = (&band.bodies()[0], &full.bodies()[0]);
+    let dx = band.grid().dx;
+    eprintln!(
+        "height {} against {}, v_y {} against {}, volume {worst:.2e}",
+        a.x.y, b.x.y, a.v.y, b.v.y
+    );
+    assert!(b.x.y < 0.15, "the ball reached the floor's neighbourhood: {}", b.x.y);
+    assert!((a.x.y - b.x.y).abs() < 0.05 * dx);
+    assert!((a.v.y - b.v.y).abs() < 0.01 * b.v.y.abs());
+    assert!(worst < 1e-2, "volume {:.2}% off", 100.0 * worst);
+}
