@@ -362,8 +362,10 @@ fn trade(
             (false, Some(f)) => (f.1, f.2),
             (false, None) => any_face,
         };
-        while owed >= 0.5 * unit && side != 0 {
-            owed -= unit;
+        // A site `admit` refuses (in a solid) is skipped and the volume stays owed; after
+        // m² refusals in a row the rest waits for a later update.
+        let mut refused = 0;
+        while owed >= 0.5 * unit && side != 0 && refused < m * m {
             // In the first layer of the neighbour's sub-lattice, cycling through the face's
             // m² sites.
             let s = sent as usize % (m * m);
@@ -377,6 +379,10 @@ fn trade(
             };
             if admit(x) {
                 add.push(x);
+                owed -= unit;
+                refused = 0;
+            } else {
+                refused += 1;
             }
         }
     }
