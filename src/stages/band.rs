@@ -168,6 +168,17 @@ pub fn full_density(grid: &Grid, deep: &[bool], m: usize) -> Vec<f64> {
     f
 }
 
+/// The deep cells for a band `width` cells wide around the `outside` cells: more than
+/// `width + 1` cells (L∞) from them, or more than `width` for the cells deep before (`was`).
+pub fn deep_cells(grid: &Grid, outside: &[bool], width: usize, was: Option<&[bool]>) -> Vec<bool> {
+    let cap = (width + 2).min(u8::MAX as usize) as u8;
+    let d = surface::linf_distance(grid, outside, cap);
+    (0..d.len())
+        .into_par_iter()
+        .map(|c| d[c] as usize > width + usize::from(!was.is_some_and(|w| w[c])))
+        .collect()
+}
+
 /// Brings the band up to date before a step of `dt` through the field `u`: `outside` marks
 /// the cells that are not liquid (air in the last φ_L, or a solid's centre), `width` the
 /// band's width in cells for this step. The cells that left the deep set get their `m³`
@@ -187,20 +198,14 @@ pub fn update(
     m: usize,
     admit: impl Fn(Vec3) -> bool + Sync,
 ) -> BandChange {
-    let cap = (width + 2).min(u8::MAX as usize) as u8;
-    let d = surface::linf_distance(grid, outside, cap);
-    let w = width as u8;
-    let deep: Vec<bool> = (0..d.len())
-        .into_par_iter()
-        .map(|c| if band.deep[c] { d[c] > w } else { d[c] > w + 1 })
-        .collect();
+    let deep = deep_cells(grid, outside, width, Some(&band.deep));
     let bins = surface::Bins::new(particles, grid);
     let off = surface::sub_offsets(m);
     let dx = grid.dx;
     let unit = dx.powi(3) / (m * m * m) as f64;
     // Only deep cells and those that just left the deep set trade.
     let trading: Vec<usize> =
-        (0..d.len()).into_par_iter().filter(|&c| deep[c] || band.deep[c]).collect();
+        (0..deep.len()).into_par_iter().filter(|&c| deep[c] || band.deep[c]).collect();
     let work: Vec<Trade> = trading
         .par_iter()
         .map(|&c| trade(c, band, &deep, &bins, particles, u, dt, grid, &off, unit, &admit))
@@ -208,7 +213,7 @@ pub fn update(
     // Deletions: everything in a deep cell, and what the deep cells take in, in cell order
     // (a particle two cells would take goes to the first; the other keeps its debt).
     let mut gone = vec![false; particles.len()];
-    for c in (0..d.len()).filter(|&c| deep[c]) {
+    for c in (0..deep.len()).filter(|&c| deep[c]) {
         for &p in bins.cell(c) {
             gone[p as usize] = true;
         }
@@ -288,17 +293,7 @@ fn trade(
         let ppc = m * m * m;
         let owed = (band.owed[c] / unit).round();
         let count = (ppc as f64 + owed).clamp(0.0, 2.0 * ppc as f64) as usize;
-        let mut add = Vec::with_capacity(ppc);
-        for &oz in off {
-            for &oy in off {
-                for &ox in off {
-                    let x = corner(ox, oy, oz);
-                    if admit(x) {
-                        add.push(x);
-                    }
-                }
-            }
-        }
+        let add: Vec<Vec3> = surface::sites(grid, ijk, off).filter(|x| admit(*x)).collect();
         // Fewer: spread over the sites; more: the extra a quarter of a site's spacing off.
         let shift = Vec3::splat(0.25 * dx / m as f64);
         let add: Vec<Vec3> = if count <= add.len() {

@@ -62,6 +62,14 @@ pub struct DensityInputs<'a> {
     pub band: Option<&'a Band>,
 }
 
+impl DensityInputs<'_> {
+    /// Whether the projection pushes out cell `c`'s excess: not in a band's deep cells, full
+    /// by construction (what the particles near them deposit there is not an excess).
+    fn counts_excess(&self, c: usize) -> bool {
+        !self.band.is_some_and(|b| b.deep[c])
+    }
+}
+
 /// One projection's system for particles P: what the displacement and the adjoint read.
 pub struct DensityProjection {
     /// φ_L of P, extended into solids.
@@ -90,13 +98,17 @@ impl DensityProjection {
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
         let sys = PressureSystem::build(grid, &phi, g.weights, params);
         let vol = grid.dx.powi(3);
-        // A narrow band's deep cells are full by construction: what the particles near them
-        // deposit there is not an excess.
-        let deep = |c: usize| g.band.is_some_and(|b| b.deep[c]);
         let b: Vec<f64> = sys
             .cell_of_row
             .iter()
-            .map(|&c| if deep(c as usize) { 0.0 } else { (dens[c as usize] - FULL).max(0.0) * vol })
+            .map(|&c| {
+                let c = c as usize;
+                if g.counts_excess(c) {
+                    (dens[c] - FULL).max(0.0) * vol
+                } else {
+                    0.0
+                }
+            })
             .collect();
         if b.iter().all(|&x| x == 0.0) {
             return None;
@@ -175,7 +187,7 @@ impl DensityProjection {
         let vol = grid.dx.powi(3);
         let mut dens_bar = vec![0.0; grid.num_cells()];
         for (r, &c) in self.sys.cell_of_row.iter().enumerate() {
-            if self.dens[c as usize] > FULL && !g.band.is_some_and(|b| b.deep[c as usize]) {
+            if self.dens[c as usize] > FULL && g.counts_excess(c as usize) {
                 dens_bar[c as usize] = vol * s[r];
             }
         }

@@ -60,8 +60,7 @@ pub fn seed(
 ) -> Vec<Vec3> {
     let off = sub_offsets(per_axis(ppc));
     let nodes = grid.nodes();
-    let dx = grid.dx;
-    let bounds: Vec<(Vec3, Vec3)> = regions.iter().map(|r| r.bounds()).collect();
+    let liquid = Regions::new(regions);
     let slabs: Vec<Vec<Vec3>> = (0..grid.n[2])
         .into_par_iter()
         .map(|k| {
@@ -71,29 +70,48 @@ pub fn seed(
                     if skip.is_some_and(|s| s[grid.cell(i, j, k)]) {
                         continue;
                     }
-                    for &oz in &off {
-                        for &oy in &off {
-                            for &ox in &off {
-                                let x = Vec3::new(
-                                    (i as f64 + ox) * dx,
-                                    (j as f64 + oy) * dx,
-                                    (k as f64 + oz) * dx,
-                                );
-                                let in_liquid = regions.iter().zip(&bounds).any(|(r, (lo, hi))| {
-                                    x.cmpge(*lo).all() && x.cmple(*hi).all() && r.sdf(x) < 0.0
-                                });
-                                if in_liquid && nodes.sample(node_sdf, x) > 0.0 {
-                                    out.push(x);
-                                }
-                            }
-                        }
-                    }
+                    out.extend(
+                        sites(grid, [i, j, k], &off)
+                            .filter(|x| liquid.contain(*x) && nodes.sample(node_sdf, *x) > 0.0),
+                    );
                 }
             }
             out
         })
         .collect();
     slabs.concat()
+}
+
+/// The sub-lattice sites of cell `ijk` at offsets `off` (see [`sub_offsets`]), x fastest.
+pub fn sites<'a>(grid: &Grid, ijk: [usize; 3], off: &'a [f64]) -> impl Iterator<Item = Vec3> + 'a {
+    let dx = grid.dx;
+    let at = move |a: usize, o: f64| (ijk[a] as f64 + o) * dx;
+    off.iter().flat_map(move |&oz| {
+        off.iter().flat_map(move |&oy| {
+            off.iter().map(move |&ox| Vec3::new(at(0, ox), at(1, oy), at(2, oz)))
+        })
+    })
+}
+
+/// Liquid regions with their bounds, to ask whether a point is in any of them.
+pub struct Regions<'a> {
+    regions: &'a [Solid],
+    bounds: Vec<(Vec3, Vec3)>,
+}
+
+impl<'a> Regions<'a> {
+    /// `regions` and their bounds.
+    pub fn new(regions: &'a [Solid]) -> Regions<'a> {
+        Regions { regions, bounds: regions.iter().map(Solid::bounds).collect() }
+    }
+
+    /// Whether `x` is inside any region (its bounds first, then its signed distance).
+    pub fn contain(&self, x: Vec3) -> bool {
+        self.regions
+            .iter()
+            .zip(&self.bounds)
+            .any(|(r, (lo, hi))| x.cmpge(*lo).all() && x.cmple(*hi).all() && r.sdf(x) < 0.0)
+    }
 }
 
 /// Sub-steps of [`advect`] for the field `u`: so many that no particle moves more than half

@@ -280,7 +280,7 @@ impl SimulationBuilder {
             return None;
         }
         let cells = grid.cells();
-        let liquid: Vec<(Vec3, Vec3)> = self.liquid.iter().map(Solid::bounds).collect();
+        let liquid = surface::Regions::new(&self.liquid);
         let bodies: Vec<(Vec3, Vec3)> = self.bodies.iter().map(RigidBody::bounds).collect();
         let inside = |x: Vec3, (lo, hi): (Vec3, Vec3)| x.cmpge(lo).all() && x.cmple(hi).all();
         let outside: Vec<bool> = (0..grid.num_cells())
@@ -288,8 +288,7 @@ impl SimulationBuilder {
             .map(|c| {
                 let [i, j, k] = cells.ijk(c);
                 let x = cells.position(i, j, k);
-                let wet =
-                    self.liquid.iter().zip(&liquid).any(|(r, b)| inside(x, *b) && r.sdf(x) < 0.0);
+                let wet = liquid.contain(x);
                 let solid = centre_in_solid[c]
                     || self
                         .bodies
@@ -299,9 +298,7 @@ impl SimulationBuilder {
                 !wet || solid
             })
             .collect();
-        let cap = (width + 2).min(u8::MAX as usize) as u8;
-        let d = surface::linf_distance(grid, &outside, cap);
-        let deep = d.iter().map(|&v| v as usize > width + 1).collect();
+        let deep = band::deep_cells(grid, &outside, width, None);
         let m = surface::per_axis(self.settings.solver.particles_per_cell);
         Some(Band::with_deep(grid, deep, radius, m))
     }
