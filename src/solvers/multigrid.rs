@@ -98,46 +98,66 @@ impl LatticeStencil {
             .with_min_len(MIN_PAR)
             .map(|cc| {
                 let big = coarse.ijk(cc);
-                let (mut diag, mut gross, mut plus) = (0.0, 0.0, [0.0; 3]);
+                let mut block = Block::default();
                 for k in 2 * big[2]..(2 * big[2] + 2).min(self.n[2]) {
                     for j in 2 * big[1]..(2 * big[1] + 2).min(self.n[1]) {
                         for i in 2 * big[0]..(2 * big[0] + 2).min(self.n[0]) {
                             let c = self.index(i, j, k);
-                            let d = self.diag[c];
-                            if d <= 0.0 {
-                                continue;
-                            }
-                            diag += d;
-                            gross += d;
-                            let ijk = [i, j, k];
-                            for a in 0..3 {
-                                // A child at an even index couples to its +a sibling inside
-                                // the block; one at an odd index to the next block.
-                                if ijk[a] % 2 == 0 {
-                                    diag -= 2.0 * self.plus[c][a];
-                                } else {
-                                    plus[a] += self.plus[c][a];
-                                }
-                            }
+                            block.add([i, j, k], self.diag[c], self.plus[c]);
                         }
                     }
                 }
-                // A block whose rows cancel (a sealed pocket of a few cells) is left out
-                // rather than divided by its round-off: dropping a row and column keeps the
-                // operator positive semi-definite.
-                if diag <= 1e-12 * gross {
-                    return (0.0, [0.0; 3]);
-                }
-                (COARSE_SCALE * diag, plus.map(|p| COARSE_SCALE * p))
+                block.coefficients()
             })
             .collect();
         for (c, (d, p)) in rows.into_iter().enumerate() {
             coarse.diag[c] = d;
             coarse.plus[c] = p;
         }
-        // No coupling into an absent block.
-        let (nn, diag) = (coarse.n, &coarse.diag);
-        coarse.plus.par_iter_mut().enumerate().with_min_len(MIN_PAR).for_each(|(c, p)| {
+        coarse.cut_absent();
+        coarse
+    }
+
+    /// The first coarse lattice straight from the stencil over the unknowns (row `r` at
+    /// lattice cell `cell_of_row[r]`, in increasing cell order): the same sums as
+    /// [`LatticeStencil::coarsen`] of the fine lattice, in the same order, without building
+    /// the fine lattice (32 bytes a cell of the whole grid).
+    fn coarsen_rows(n: [usize; 3], cell_of_row: &[u32], a: &Stencil) -> LatticeStencil {
+        let fine = LatticeStencil { n, diag: Vec::new(), plus: Vec::new() };
+        let cn = n.map(|m| m.div_ceil(2));
+        let len = cn[0] * cn[1] * cn[2];
+        let mut coarse = LatticeStencil { n: cn, diag: vec![0.0; len], plus: vec![[0.0; 3]; len] };
+        let slab = cn[0] * cn[1];
+        let fine_slab = n[0] * n[1];
+        // The rows of coarse slab kc are those of fine slabs 2kc and 2kc + 1, a contiguous run
+        // (the rows are in cell order), visited in cell order: each block's children in the
+        // order of the lattice loop.
+        let first_row = |k: usize| cell_of_row.partition_point(|&c| (c as usize) < k * fine_slab);
+        coarse
+            .diag
+            .par_chunks_mut(slab)
+            .zip(coarse.plus.par_chunks_mut(slab))
+            .enumerate()
+            .for_each(|(kc, (diag, plus))| {
+                let rows = first_row(2 * kc)..first_row((2 * kc + 2).min(n[2]));
+                let mut blocks = vec![Block::default(); slab];
+                for r in rows {
+                    let ijk = fine.ijk(cell_of_row[r] as usize);
+                    let b = ijk[0] / 2 + cn[0] * (ijk[1] / 2);
+                    blocks[b].add(ijk, a.diag[r].max(0.0), a.plus[r]);
+                }
+                for ((d, p), block) in diag.iter_mut().zip(plus.iter_mut()).zip(&blocks) {
+                    (*d, *p) = block.coefficients();
+                }
+            });
+        coarse.cut_absent();
+        coarse
+    }
+
+    /// No coupling into an absent block.
+    fn cut_absent(&mut self) {
+        let (nn, diag) = (self.n, &self.diag);
+        self.plus.par_iter_mut().enumerate().with_min_len(MIN_PAR).for_each(|(c, p)| {
             let i = c % nn[0];
             let j = (c / nn[0]) % nn[1];
             let k = c / (nn[0] * nn[1]);
@@ -149,7 +169,47 @@ impl LatticeStencil {
                 }
             }
         });
-        coarse
+    }
+}
+
+/// The sums of one 2×2×2 block's children in `P^T A P`.
+#[derive(Clone, Copy, Default)]
+struct Block {
+    diag: f64,
+    gross: f64,
+    plus: [f64; 3],
+}
+
+impl Block {
+    /// Adds the child at lattice index `ijk` with diagonal `d` and + couplings `plus` (absent
+    /// when `d` is not positive).
+    #[inline]
+    fn add(&mut self, ijk: [usize; 3], d: f64, plus: [f64; 3]) {
+        if d <= 0.0 {
+            return;
+        }
+        self.diag += d;
+        self.gross += d;
+        for a in 0..3 {
+            // A child at an even index couples to its +a sibling inside the block; one at an
+            // odd index to the next block.
+            if ijk[a] % 2 == 0 {
+                self.diag -= 2.0 * plus[a];
+            } else {
+                self.plus[a] += plus[a];
+            }
+        }
+    }
+
+    /// The coarse diagonal and + couplings.
+    fn coefficients(&self) -> (f64, [f64; 3]) {
+        // A block whose rows cancel (a sealed pocket of a few cells) is left out rather than
+        // divided by its round-off: dropping a row and column keeps the operator positive
+        // semi-definite.
+        if self.diag <= 1e-12 * self.gross {
+            return (0.0, [0.0; 3]);
+        }
+        (COARSE_SCALE * self.diag, self.plus.map(|p| COARSE_SCALE * p))
     }
 }
 
@@ -179,29 +239,32 @@ impl Half {
 }
 
 /// One level: red (index 0) and black (index 1) cells.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 struct Level {
     half: [Half; 2],
 }
 
-/// Splits a lattice stencil by colour; returns the level and the packed slot of each cell.
-fn split(lat: &LatticeStencil) -> (Level, Vec<u32>) {
+/// Splits a coarse lattice stencil by colour into `level` (its vectors reused); returns the
+/// packed slot of each cell.
+fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
     let len = lat.diag.len();
     let mut slot = vec![NONE; len];
     let mut count = [0usize; 2];
-    let mut cells: [Vec<u32>; 2] = [Vec::new(), Vec::new()];
+    for h in level.half.iter_mut() {
+        h.cell.clear();
+    }
     for c in 0..len {
         if lat.diag[c] > 0.0 {
             let [i, j, k] = lat.ijk(c);
             let colour = (i + j + k) % 2;
             slot[c] = pack(colour, count[colour]);
             count[colour] += 1;
-            cells[colour].push(c as u32);
+            level.half[colour].cell.push(c as u32);
         }
     }
     let stride = [1, lat.n[0], lat.n[0] * lat.n[1]];
-    let half = cells.map(|cell| {
-        let rows: Vec<([u32; 6], [f64; 6])> = cell
+    for h in level.half.iter_mut() {
+        h.cell
             .par_iter()
             .with_min_len(MIN_PAR)
             .map(|&c| {
@@ -228,23 +291,80 @@ fn split(lat: &LatticeStencil) -> (Level, Vec<u32>) {
                 }
                 (nbr, coef)
             })
-            .collect();
-        let diag: Vec<f64> = cell.iter().map(|&c| lat.diag[c as usize]).collect();
-        Half {
-            inv_diag: diag.iter().map(|d| 1.0 / d).collect(),
-            diag,
-            nbr: rows.iter().map(|r| r.0).collect(),
-            coef: rows.iter().map(|r| r.1).collect(),
-            cell,
-            parent: Vec::new(),
-            red_children: Vec::new(),
+            .unzip_into_vecs(&mut h.nbr, &mut h.coef);
+        h.cell.par_iter().map(|&c| lat.diag[c as usize]).collect_into_vec(&mut h.diag);
+        h.diag.par_iter().map(|d| 1.0 / d).collect_into_vec(&mut h.inv_diag);
+    }
+    slot
+}
+
+/// The finest level, from the stencil over the unknowns straight into `level` (its vectors
+/// reused): the rows with a positive diagonal, split by colour. Fills the packed slot of each
+/// row and the row of each entry.
+fn split_rows(
+    n: [usize; 3],
+    cell_of_row: &[u32],
+    a: &Stencil,
+    level: &mut Level,
+    slot_of_row: &mut Vec<u32>,
+    row: &mut [Vec<u32>; 2],
+) {
+    let lat = LatticeStencil { n, diag: Vec::new(), plus: Vec::new() };
+    slot_of_row.clear();
+    for (h, row) in level.half.iter_mut().zip(row.iter_mut()) {
+        h.cell.clear();
+        row.clear();
+    }
+    let mut count = [0usize; 2];
+    for (r, &c) in cell_of_row.iter().enumerate() {
+        if a.diag[r] > 0.0 {
+            let [i, j, k] = lat.ijk(c as usize);
+            let colour = (i + j + k) % 2;
+            slot_of_row.push(pack(colour, count[colour]));
+            count[colour] += 1;
+            level.half[colour].cell.push(c);
+            row[colour].push(r as u32);
+        } else {
+            slot_of_row.push(NONE);
         }
-    });
-    (Level { half }, slot)
+    }
+    let slot_of_row = &*slot_of_row;
+    // A neighbour row is an entry when present; its coupling is the − row's + coefficient
+    // (the stencil lists neighbours only across open faces between two unknowns).
+    let entry = |r: u32, w: f64| -> Option<u32> {
+        (r != NONE && w != 0.0 && slot_of_row[r as usize] != NONE)
+            .then(|| unpack(slot_of_row[r as usize]).1 as u32)
+    };
+    for (h, rows) in level.half.iter_mut().zip(row.iter()) {
+        rows.par_iter()
+            .with_min_len(MIN_PAR)
+            .map(|&r| {
+                let r = r as usize;
+                let (mut nbr, mut coef) = ([NONE; 6], [0.0; 6]);
+                for d in 0..3 {
+                    let m = a.nbr[r][2 * d];
+                    let w = if m == NONE { 0.0 } else { a.plus[m as usize][d] };
+                    if let Some(e) = entry(m, w) {
+                        nbr[2 * d] = e;
+                        coef[2 * d] = w;
+                    }
+                    let p = a.nbr[r][2 * d + 1];
+                    let w = a.plus[r][d];
+                    if let Some(e) = entry(p, w) {
+                        nbr[2 * d + 1] = e;
+                        coef[2 * d + 1] = w;
+                    }
+                }
+                (nbr, coef)
+            })
+            .unzip_into_vecs(&mut h.nbr, &mut h.coef);
+        rows.par_iter().map(|&r| a.diag[r as usize]).collect_into_vec(&mut h.diag);
+        h.diag.par_iter().map(|d| 1.0 / d).collect_into_vec(&mut h.inv_diag);
+    }
 }
 
 /// Vectors of one level.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 struct Work {
     x: [Vec<f64>; 2],
     b: [Vec<f64>; 2],
@@ -253,7 +373,7 @@ struct Work {
 }
 
 /// The multigrid hierarchy of one pressure stencil, applied as `z ≈ A⁻¹ r`.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 pub struct Multigrid {
     levels: Vec<Level>,
     /// Packed fine slot of each row ([`NONE`] for a row left out: zero diagonal).
@@ -265,74 +385,86 @@ pub struct Multigrid {
 
 impl Multigrid {
     /// Builds the levels from the stencil over the unknowns, on a lattice of `n` cells whose
-    /// cell `cell_of_row[r]` holds row `r`.
+    /// cell `cell_of_row[r]` holds row `r` (in increasing cell order).
     pub fn new(n: [usize; 3], cell_of_row: &[u32], a: &Stencil) -> Multigrid {
-        let len = n[0] * n[1] * n[2];
-        let mut lat = LatticeStencil { n, diag: vec![0.0; len], plus: vec![[0.0; 3]; len] };
-        for (r, &c) in cell_of_row.iter().enumerate() {
-            lat.diag[c as usize] = a.diag[r].max(0.0);
-            lat.plus[c as usize] = a.plus[r];
+        Multigrid::new_in(Multigrid::default(), n, cell_of_row, a)
+    }
+
+    /// [`Multigrid::new`] into the memory of a hierarchy no longer needed (a step builds two
+    /// systems of about the same size, and the next step two more): its vectors are cleared
+    /// and refilled, so a step allocates nothing of the grid's size for its multigrid.
+    pub fn new_in(old: Multigrid, n: [usize; 3], cell_of_row: &[u32], a: &Stencil) -> Multigrid {
+        let Multigrid { mut levels, mut slot_of_row, mut row, work } = old;
+        let mut work = work.into_inner().unwrap_or_else(|e| e.into_inner());
+        if levels.is_empty() {
+            levels.push(Level::default());
         }
-        let (fine, slot) = split(&lat);
-        let slot_of_row: Vec<u32> = cell_of_row.iter().map(|&c| slot[c as usize]).collect();
-        let row = [0, 1].map(|colour| {
-            let h = &fine.half[colour];
-            let mut row = vec![NONE; h.len()];
-            for (r, &s) in slot_of_row.iter().enumerate() {
-                if s != NONE && unpack(s).0 == colour {
-                    row[unpack(s).1] = r as u32;
+        split_rows(n, cell_of_row, a, &mut levels[0], &mut slot_of_row, &mut row);
+        let present = slot_of_row.iter().filter(|&&s| s != NONE).count();
+        let mut built = 1;
+        if present > COARSEST_CELLS && n.iter().any(|&m| m > 1) {
+            let mut fine_n = n;
+            let mut lat = LatticeStencil::coarsen_rows(n, cell_of_row, a);
+            loop {
+                if levels.len() == built {
+                    levels.push(Level::default());
                 }
-            }
-            row
-        });
-        let mut levels = vec![fine];
-        let mut present = lat.present();
-        while present > COARSEST_CELLS && lat.n.iter().any(|&m| m > 1) {
-            let coarse_lat = lat.coarsen();
-            let (mut coarse, coarse_slot) = split(&coarse_lat);
-            if coarse.half[0].len() + coarse.half[1].len() == 0 {
-                break;
-            }
-            let finer = levels.last_mut().expect("the fine level");
-            let cn = coarse_lat.n;
-            let block = |c: u32| {
-                let [i, j, k] = lat.ijk(c as usize);
-                (i / 2) + cn[0] * ((j / 2) + cn[1] * (k / 2))
-            };
-            for h in finer.half.iter_mut() {
-                h.parent = h.cell.par_iter().map(|&c| coarse_slot[block(c)]).collect();
-            }
-            // Red children of each block, in lattice order.
-            for colour in 0..2 {
-                let mut children = vec![[NONE; 4]; coarse.half[colour].len()];
-                let mut filled = vec![0u8; children.len()];
-                for (i, &p) in finer.half[0].parent.iter().enumerate() {
-                    if p != NONE && unpack(p).0 == colour {
-                        let b = unpack(p).1;
-                        children[b][filled[b] as usize] = i as u32;
-                        filled[b] += 1;
+                let (finer, coarse) = levels.split_at_mut(built);
+                let (finer, coarse) = (&mut finer[built - 1], &mut coarse[0]);
+                let coarse_slot = split(&lat, coarse);
+                if coarse.half[0].len() + coarse.half[1].len() == 0 {
+                    break;
+                }
+                let cn = lat.n;
+                let dims = LatticeStencil { n: fine_n, diag: Vec::new(), plus: Vec::new() };
+                let block = |c: u32| {
+                    let [i, j, k] = dims.ijk(c as usize);
+                    (i / 2) + cn[0] * ((j / 2) + cn[1] * (k / 2))
+                };
+                for h in finer.half.iter_mut() {
+                    h.cell
+                        .par_iter()
+                        .map(|&c| coarse_slot[block(c)])
+                        .collect_into_vec(&mut h.parent);
+                }
+                // Red children of each block, in lattice order.
+                for colour in 0..2 {
+                    let len = coarse.half[colour].len();
+                    let children = &mut coarse.half[colour].red_children;
+                    children.clear();
+                    children.resize(len, [NONE; 4]);
+                    let mut filled = vec![0u8; children.len()];
+                    for (i, &p) in finer.half[0].parent.iter().enumerate() {
+                        if p != NONE && unpack(p).0 == colour {
+                            let b = unpack(p).1;
+                            children[b][filled[b] as usize] = i as u32;
+                            filled[b] += 1;
+                        }
                     }
                 }
-                coarse.half[colour].red_children = children;
-            }
-            levels.push(coarse);
-            present = coarse_lat.present();
-            lat = coarse_lat;
-        }
-        for h in levels.last_mut().expect("the fine level").half.iter_mut() {
-            h.parent = vec![NONE; h.len()];
-        }
-        let work = levels
-            .iter()
-            .map(|l| {
-                let (nr, nb) = (l.half[0].len(), l.half[1].len());
-                Work {
-                    x: [vec![0.0; nr], vec![0.0; nb]],
-                    b: [vec![0.0; nr], vec![0.0; nb]],
-                    r: vec![0.0; nr],
+                built += 1;
+                if lat.present() <= COARSEST_CELLS || lat.n.iter().all(|&m| m <= 1) {
+                    break;
                 }
-            })
-            .collect();
+                fine_n = lat.n;
+                lat = lat.coarsen();
+            }
+        }
+        levels.truncate(built);
+        for h in levels.last_mut().expect("the fine level").half.iter_mut() {
+            h.parent.clear();
+            h.parent.resize(h.len(), NONE);
+        }
+        work.resize_with(built, Work::default);
+        for (w, l) in work.iter_mut().zip(&levels) {
+            let (nr, nb) = (l.half[0].len(), l.half[1].len());
+            let [x0, x1] = &mut w.x;
+            let [b0, b1] = &mut w.b;
+            for (v, len) in [(x0, nr), (x1, nb), (b0, nr), (b1, nb), (&mut w.r, nr)] {
+                v.clear();
+                v.resize(len, 0.0);
+            }
+        }
         Multigrid { levels, slot_of_row, row, work: Mutex::new(work) }
     }
 
@@ -591,5 +723,78 @@ mod tests {
         };
         let (a, b) = (run(1), run(2));
         assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
+
+    /// The finest level and the first coarse lattice built from the rows equal, bit for bit,
+    /// what the whole fine lattice gives (the way they were built before).
+    #[test]
+    fn rows_build_what_the_fine_lattice_builds() {
+        for (name, sys) in cases() {
+            let (n, a) = (sys.grid.n, &sys.stencil);
+            let len = n[0] * n[1] * n[2];
+            let mut lat = LatticeStencil { n, diag: vec![0.0; len], plus: vec![[0.0; 3]; len] };
+            for (r, &c) in sys.cell_of_row.iter().enumerate() {
+                lat.diag[c as usize] = a.diag[r].max(0.0);
+                lat.plus[c as usize] = a.plus[r];
+            }
+            let (coarse, from_rows) =
+                (lat.coarsen(), LatticeStencil::coarsen_rows(n, &sys.cell_of_row, a));
+            assert!(
+                coarse.diag.iter().zip(&from_rows.diag).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{name}"
+            );
+            assert!(
+                coarse
+                    .plus
+                    .iter()
+                    .zip(&from_rows.plus)
+                    .all(|(x, y)| x.map(f64::to_bits) == y.map(f64::to_bits)),
+                "{name}"
+            );
+            let mut level = Level::default();
+            split(&lat, &mut level);
+            let (mut rows_level, mut slot, mut row) =
+                (Level::default(), Vec::new(), Default::default());
+            split_rows(n, &sys.cell_of_row, a, &mut rows_level, &mut slot, &mut row);
+            for (h, g) in level.half.iter().zip(&rows_level.half) {
+                assert_eq!(h.cell, g.cell, "{name}");
+                assert_eq!(h.nbr, g.nbr, "{name}");
+                assert!(
+                    h.coef
+                        .iter()
+                        .zip(&g.coef)
+                        .all(|(x, y)| x.map(f64::to_bits) == y.map(f64::to_bits)),
+                    "{name}"
+                );
+                assert!(
+                    h.diag.iter().zip(&g.diag).all(|(x, y)| x.to_bits() == y.to_bits()),
+                    "{name}"
+                );
+            }
+        }
+    }
+
+    /// A hierarchy built into the memory of another system's (larger, smaller, with more or
+    /// fewer levels) applies bit for bit as one built afresh.
+    #[test]
+    fn built_into_old_memory_is_built_afresh() {
+        let systems = cases();
+        for (name, sys) in &systems {
+            let r = field(sys.len(), 7);
+            let fresh = Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil);
+            let mut z0 = vec![0.0; sys.len()];
+            fresh.apply(&r, &mut z0);
+            for (other, o) in &systems {
+                let old = Multigrid::new(o.grid.n, &o.cell_of_row, &o.stencil);
+                let reused = Multigrid::new_in(old, sys.grid.n, &sys.cell_of_row, &sys.stencil);
+                assert_eq!(reused.levels(), fresh.levels(), "{name} in {other}");
+                let mut z = vec![0.0; sys.len()];
+                reused.apply(&r, &mut z);
+                assert!(
+                    z.iter().zip(&z0).all(|(x, y)| x.to_bits() == y.to_bits()),
+                    "{name} in {other}"
+                );
+            }
+        }
     }
 }

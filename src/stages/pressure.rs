@@ -104,9 +104,13 @@ enum Prepared {
     None,
 }
 
-/// The preconditioners a system has factored, by kind (a clone starts empty).
+/// The preconditioners a system has factored, by kind (a clone starts empty), and the memory
+/// of an earlier system's multigrid for the first to be built into.
 #[derive(Default)]
-struct PreconditionerCache(std::sync::Mutex<Vec<(Preconditioner, std::sync::Arc<Prepared>)>>);
+struct PreconditionerCache {
+    factored: std::sync::Mutex<Vec<(Preconditioner, std::sync::Arc<Prepared>)>>,
+    spare: std::sync::Mutex<Option<Multigrid>>,
+}
 
 impl Clone for PreconditionerCache {
     fn clone(&self) -> Self {
@@ -123,7 +127,7 @@ impl std::fmt::Debug for PreconditionerCache {
 impl PreconditionerCache {
     /// The `kind` preconditioner of `sys`, factored now if it was not yet.
     fn get(&self, kind: Preconditioner, sys: &PressureSystem) -> std::sync::Arc<Prepared> {
-        let mut cache = self.0.lock().expect("no solve panicked while holding the cache");
+        let mut cache = self.factored.lock().expect("no solve panicked while holding the cache");
         if let Some((_, p)) = cache.iter().find(|(k, _)| *k == kind) {
             return p.clone();
         }
@@ -132,12 +136,74 @@ impl PreconditionerCache {
                 Prepared::Mic0(Mic0::new(&sys.stencil, sys.grid.n, &sys.cell_of_row))
             }
             Preconditioner::Multigrid => {
-                Prepared::Multigrid(Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil))
+                let spare = self.spare.lock().map(|mut s| s.take()).unwrap_or_default();
+                Prepared::Multigrid(Multigrid::new_in(
+                    spare.unwrap_or_default(),
+                    sys.grid.n,
+                    &sys.cell_of_row,
+                    &sys.stencil,
+                ))
             }
             Preconditioner::None | Preconditioner::Auto => Prepared::None,
         });
         cache.push((kind, p.clone()));
         p
+    }
+
+    /// The factored multigrid's memory, or the spare one (None when neither is held).
+    fn into_multigrid(self) -> Option<Multigrid> {
+        let factored = self.factored.into_inner().unwrap_or_else(|e| e.into_inner());
+        for (_, p) in factored {
+            if let Ok(Prepared::Multigrid(m)) = std::sync::Arc::try_unwrap(p) {
+                return Some(m);
+            }
+        }
+        self.spare.into_inner().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// The memory of a system no longer needed, for the next one to be built into
+/// ([`PressureSystem::build_in`]): a step builds two systems of about the same size (the
+/// density projection's, then the pressure's) and the next step two more, so handing the
+/// vectors on saves allocating and faulting in some 150 bytes a liquid cell each time.
+#[derive(Default)]
+pub struct SystemMemory {
+    cell_of_row: Vec<u32>,
+    row_of_cell: Vec<u32>,
+    stencil: Stencil,
+    faces: [Vec<ProjectedFace>; 3],
+    multigrid: Option<Multigrid>,
+}
+
+/// One [`SystemMemory`] shared by the systems a simulation builds one after another: each
+/// takes it, and gives its own back when done. A system built while the memory is taken
+/// allocates afresh; a clone of the pool starts empty.
+#[derive(Default)]
+pub struct SystemPool(std::sync::Mutex<SystemMemory>);
+
+impl SystemPool {
+    /// The memory held (empty when none is).
+    pub fn take(&self) -> SystemMemory {
+        self.0.lock().map(|mut m| std::mem::take(&mut *m)).unwrap_or_default()
+    }
+
+    /// Keeps `sys`'s memory for the next system.
+    pub fn give(&self, sys: PressureSystem) {
+        if let Ok(mut m) = self.0.lock() {
+            *m = sys.into_memory();
+        }
+    }
+}
+
+impl Clone for SystemPool {
+    fn clone(&self) -> Self {
+        SystemPool::default()
+    }
+}
+
+impl std::fmt::Debug for SystemPool {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SystemPool")
     }
 }
 
@@ -251,9 +317,24 @@ impl PressureSystem {
         weights: &[Vec<f64>; 3],
         params: PressureParams,
     ) -> Self {
+        PressureSystem::build_in(SystemMemory::default(), grid, phi, weights, params)
+    }
+
+    /// [`PressureSystem::build`] into the memory of a system no longer needed: the same system,
+    /// its vectors refilled instead of allocated.
+    pub fn build_in(
+        memory: SystemMemory,
+        grid: &Grid,
+        phi: &[f64],
+        weights: &[Vec<f64>; 3],
+        params: PressureParams,
+    ) -> Self {
+        let SystemMemory { mut cell_of_row, mut row_of_cell, mut stencil, faces, multigrid } =
+            memory;
         let cells = grid.cells();
-        let mut row_of_cell = vec![NONE; cells.len()];
-        let mut cell_of_row = Vec::new();
+        row_of_cell.clear();
+        row_of_cell.resize(cells.len(), NONE);
+        cell_of_row.clear();
         for c in 0..cells.len() {
             if phi[c] >= 0.0 {
                 continue;
@@ -266,9 +347,17 @@ impl PressureSystem {
             }
         }
         let s = params.dt * grid.dx / params.density;
-        let rows: Vec<(f64, [f64; 3], [u32; 6], bool)> = cell_of_row
-            .par_iter()
-            .map(|&c| {
+        let len = cell_of_row.len();
+        stencil.diag.resize(len, 0.0);
+        stencil.plus.resize(len, [0.0; 3]);
+        stencil.nbr.resize(len, [NONE; 6]);
+        let has_air = stencil
+            .diag
+            .par_iter_mut()
+            .zip(stencil.plus.par_iter_mut())
+            .zip(stencil.nbr.par_iter_mut())
+            .zip(cell_of_row.par_iter())
+            .map(|(((diag_r, plus_r), nbr_r), &c)| {
                 let c = c as usize;
                 let ijk = cells.ijk(c);
                 let mut diag = 0.0;
@@ -297,15 +386,14 @@ impl PressureSystem {
                         }
                     }
                 }
-                (diag, plus, nbr, air)
+                (*diag_r, *plus_r, *nbr_r) = (diag, plus, nbr);
+                air
             })
-            .collect();
-        let has_air = rows.iter().any(|r| r.3);
-        let stencil = Stencil {
-            diag: rows.iter().map(|r| r.0).collect(),
-            plus: rows.iter().map(|r| r.1).collect(),
-            nbr: rows.iter().map(|r| r.2).collect(),
-        };
+            .reduce(|| false, |a, b| a || b);
+        let preconditioner = PreconditionerCache::default();
+        if let Ok(mut spare) = preconditioner.spare.lock() {
+            *spare = multigrid;
+        }
         let mut sys = PressureSystem {
             grid: *grid,
             params,
@@ -315,66 +403,95 @@ impl PressureSystem {
             has_air,
             bodies: Vec::new(),
             faces: Default::default(),
-            preconditioner: PreconditionerCache::default(),
+            preconditioner,
         };
-        sys.faces = [0, 1, 2].map(|a| sys.projected_faces(a, weights, phi));
+        let [mut fx, mut fy, mut fz] = faces;
+        sys.projected_faces(0, weights, phi, &mut fx);
+        sys.projected_faces(1, weights, phi, &mut fy);
+        sys.projected_faces(2, weights, phi, &mut fz);
+        sys.faces = [fx, fy, fz];
         sys
     }
 
-    /// The faces of `axis` next to a liquid cell that the velocity update acts on, each once
-    /// (a row takes its − face, and its + face when no row lies beyond it), sorted.
+    /// The system's vectors and factored multigrid, for the next system to be built into.
+    pub fn into_memory(self) -> SystemMemory {
+        let PressureSystem { cell_of_row, row_of_cell, stencil, faces, preconditioner, .. } = self;
+        SystemMemory {
+            cell_of_row,
+            row_of_cell,
+            stencil,
+            faces,
+            multigrid: preconditioner.into_multigrid(),
+        }
+    }
+
+    /// The faces of `axis` next to a liquid cell that the velocity update acts on, each once,
+    /// sorted, into `out`: the open faces inside the tank with an unknown on either side. In
+    /// two parallel passes over the slabs of the face lattice (count, then fill each slab's
+    /// share of `out`), so nothing but `out` is allocated.
     fn projected_faces(
         &self,
         axis: usize,
         weights: &[Vec<f64>; 3],
         phi: &[f64],
-    ) -> Vec<ProjectedFace> {
+        out: &mut Vec<ProjectedFace>,
+    ) {
         let grid = &self.grid;
-        let cells = grid.cells();
+        let lat = grid.faces(axis);
         let w = &weights[axis];
         let tmin = self.params.theta_min;
         let stride = [1, grid.n[0], grid.n[0] * grid.n[1]][axis];
-        // Walking the rows in cell order, the − faces come in increasing face order, and so
-        // do the + faces: two sorted lists, merged at the end.
-        let mut minus = Vec::with_capacity(self.len());
-        let mut plus = Vec::new();
-        for (r, &c) in self.cell_of_row.iter().enumerate() {
-            let (r, c) = (r as u32, c as usize);
-            let ijk = cells.ijk(c);
-            let f = cell_face(grid, axis, ijk, 0);
-            if ijk[axis] > 0 && w[f] > 0.0 {
-                let m = c - stride;
-                let rm = self.row_of_cell[m];
-                let gradient = if rm != NONE {
-                    FaceGradient { rm, cm: 1.0, rp: r, cp: 1.0 }
-                } else {
-                    FaceGradient { rm, cm: 0.0, rp: r, cp: 1.0 / ghost_theta(phi[c], phi[m], tmin) }
-                };
-                minus.push(ProjectedFace { face: f as u32, weight: w[f], gradient });
+        // Face (i, j, k) of `axis` lies between cell (i, j, k) − e_axis and cell (i, j, k).
+        let face = |i: usize, j: usize, k: usize| -> Option<ProjectedFace> {
+            let ijk = [i, j, k];
+            if ijk[axis] == 0 || ijk[axis] == grid.n[axis] {
+                return None;
             }
-            let f = cell_face(grid, axis, ijk, 1);
-            if ijk[axis] + 1 < grid.n[axis] && w[f] > 0.0 {
-                let pl = c + stride;
-                let rp = self.row_of_cell[pl];
-                if rp == NONE {
-                    let cm = 1.0 / ghost_theta(phi[c], phi[pl], tmin);
-                    let gradient = FaceGradient { rm: r, cm, rp, cp: 0.0 };
-                    plus.push(ProjectedFace { face: f as u32, weight: w[f], gradient });
+            let f = lat.index(i, j, k);
+            if w[f] <= 0.0 {
+                return None;
+            }
+            let p = grid.cell(i, j, k);
+            let m = p - stride;
+            let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[p]);
+            let gradient = match (rm != NONE, rp != NONE) {
+                (true, true) => FaceGradient { rm, cm: 1.0, rp, cp: 1.0 },
+                (false, true) => {
+                    FaceGradient { rm, cm: 0.0, rp, cp: 1.0 / ghost_theta(phi[p], phi[m], tmin) }
+                }
+                (true, false) => {
+                    FaceGradient { rm, cm: 1.0 / ghost_theta(phi[m], phi[p], tmin), rp, cp: 0.0 }
+                }
+                (false, false) => return None,
+            };
+            Some(ProjectedFace { face: f as u32, weight: w[f], gradient })
+        };
+        let [nx, ny, nz] = lat.n;
+        let counts: Vec<usize> = (0..nz)
+            .into_par_iter()
+            .map(|k| (0..ny).map(|j| (0..nx).filter(|&i| face(i, j, k).is_some()).count()).sum())
+            .collect();
+        let empty = FaceGradient { rm: NONE, cm: 0.0, rp: NONE, cp: 0.0 };
+        out.clear();
+        out.resize(counts.iter().sum(), ProjectedFace { face: 0, weight: 0.0, gradient: empty });
+        let mut slabs = Vec::with_capacity(nz);
+        let mut rest = out.as_mut_slice();
+        for &n in &counts {
+            let (slab, tail) = rest.split_at_mut(n);
+            slabs.push(slab);
+            rest = tail;
+        }
+        slabs.into_par_iter().enumerate().for_each(|(k, slab)| {
+            let mut at = 0;
+            for j in 0..ny {
+                for i in 0..nx {
+                    if let Some(pf) = face(i, j, k) {
+                        slab[at] = pf;
+                        at += 1;
+                    }
                 }
             }
-        }
-        let mut out = Vec::with_capacity(minus.len() + plus.len());
-        let (mut i, mut j) = (0, 0);
-        while i < minus.len() || j < plus.len() {
-            if j == plus.len() || (i < minus.len() && minus[i].face < plus[j].face) {
-                out.push(minus[i]);
-                i += 1;
-            } else {
-                out.push(plus[j]);
-                j += 1;
-            }
-        }
-        out
+        });
     }
 
     /// Number of unknowns.
@@ -856,6 +973,47 @@ mod tests {
                 assert_eq!(pf.weight, weights[a][pf.face as usize]);
             }
         }
+    }
+
+    /// A system built into another's memory (a larger grid's, its multigrid factored) is the
+    /// system built afresh, and solves the same to the bit.
+    #[test]
+    fn built_into_old_memory_is_built_afresh() {
+        let (sys, phi, weights) = system_with_inputs();
+        let grid = Grid { n: [9, 7, 8], dx: 0.1 };
+        let other_phi = vec![-1.0; grid.num_cells()];
+        let other_w = [0, 1, 2].map(|a| vec![0.5; grid.faces(a).len()]);
+        let other = PressureSystem::build(&grid, &other_phi, &other_w, sys.params);
+        let how = LinearSolve {
+            tolerance: 1e-10,
+            max_iterations: 200,
+            preconditioner: Preconditioner::Multigrid,
+        };
+        let _ = other.solve(&vec![1.0; other.len()], &how);
+        let pool = SystemPool::default();
+        pool.give(other);
+        let memory = pool.take();
+        assert!(memory.multigrid.is_some(), "the factored multigrid is handed on");
+        let reused = PressureSystem::build_in(memory, &sys.grid, &phi, &weights, sys.params);
+        assert_eq!(reused.cell_of_row, sys.cell_of_row);
+        assert_eq!(reused.row_of_cell, sys.row_of_cell);
+        assert_eq!(reused.stencil.diag, sys.stencil.diag);
+        assert_eq!(reused.stencil.plus, sys.stencil.plus);
+        assert_eq!(reused.stencil.nbr, sys.stencil.nbr);
+        assert_eq!(reused.has_air, sys.has_air);
+        for a in 0..3 {
+            let key = |f: &ProjectedFace| {
+                let g = f.gradient;
+                (f.face, f.weight.to_bits(), g.rm, g.cm.to_bits(), g.rp, g.cp.to_bits())
+            };
+            let (x, y): (Vec<_>, Vec<_>) =
+                (reused.faces[a].iter().map(key).collect(), sys.faces[a].iter().map(key).collect());
+            assert_eq!(x, y, "axis {a}");
+        }
+        let b: Vec<f64> = (0..sys.len()).map(|r| ((r * 7) % 5) as f64 - 2.0).collect();
+        let (p0, _) = sys.solve(&b, &how);
+        let (p1, _) = reused.solve(&b, &how);
+        assert!(p0.iter().zip(&p1).all(|(x, y)| x.to_bits() == y.to_bits()));
     }
 
     #[test]
