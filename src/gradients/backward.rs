@@ -234,7 +234,8 @@ fn step_adjoint(
     let geometry = initial.geometry_with(&bodies, rec.body_faces.clone());
     let phi = if rec.phi.is_empty() { initial.particle_phi() } else { rec.phi.clone() };
     let particle_phi = (live && rec.particles.is_some()).then(|| phi.clone());
-    let sys = StepSystem::assemble(&grid, &bodies, geometry, phi, initial.step_params(dt));
+    let memory = initial.spare().systems().take();
+    let sys = StepSystem::assemble(&grid, &bodies, geometry, phi, initial.step_params(dt), memory);
     // The fractions' derivatives along each body's pose (full gradient only).
     let dual_faces: Vec<[Vec<(usize, Dual<6>)>; 3]> = if mode == GradientMode::Full {
         bodies.iter().map(|b| b.face_fractions_dual(&grid)).collect()
@@ -286,7 +287,9 @@ fn step_adjoint(
             }
         }
     }
-    let u_hat = predicted_velocity(&rec.u, &grid, dt, settings.fluid.gravity, &at_bodies);
+    let out_field = initial.spare().velocity(&grid);
+    let gravity = settings.fluid.gravity;
+    let u_hat = predicted_velocity(&rec.u, &grid, dt, gravity, &at_bodies, out_field);
     let mut u_corr = u_hat.clone();
     sys.pressure.update_velocity(&rec.p, &mut u_corr);
 
@@ -441,6 +444,8 @@ fn step_adjoint(
         }
     }
     lap(&mut times.advect_particles);
+    initial.spare().keep_velocity(u_hat);
+    initial.spare().keep_system(sys.geometry, sys.pressure);
     Ok(AdjointState { u: u0, bodies: out, particles })
 }
 
@@ -525,6 +530,10 @@ impl ParticleAdjoint<'_> {
                 }
                 self.density_weight_pose(proj, q, &s, g, pose);
             }
+        }
+        if let (Some((proj, _)), Some(pool)) = (projection, inputs.as_ref().and_then(|g| g.systems))
+        {
+            pool.give(proj.sys);
         }
         // The first push-out, from the advected positions before it (replayed), and the
         // advection through the start velocity.

@@ -78,7 +78,9 @@ pub fn value_and_gradient(
             adj = a;
             adjoint_seconds += t;
         } else {
-            for (k, snap) in snapshots.iter().enumerate().rev() {
+            // Each snapshot goes once its segment is done.
+            while let Some(snap) = snapshots.pop() {
+                let k = snapshots.len();
                 let len = seg.min(steps - k * seg);
                 let mut s = snap.clone();
                 let mut tape = Tape::default();
@@ -86,7 +88,7 @@ pub fn value_and_gradient(
                     s.step_taped(&mut tape)?;
                 }
                 bytes = bytes.max(tape.bytes_per_step());
-                let (a, t) = backward_adjoint(snap, &tape, adj, &settings.options)?;
+                let (a, t) = backward_adjoint(&snap, &tape, adj, &settings.options)?;
                 adj = a;
                 adjoint_seconds += t;
             }

@@ -4,6 +4,7 @@
 //! dense blocks (6×6 rigid mass matrices, direct solves in tests). A version bump of either
 //! touches this file only.
 
+pub mod buffer;
 pub mod dual;
 pub mod so3;
 

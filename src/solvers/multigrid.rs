@@ -33,6 +33,7 @@
 //! with any number of rayon threads.
 
 use crate::geometry::grid::NONE;
+use crate::math::buffer::{clear_for, refill};
 use crate::solvers::stencil::Stencil;
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -250,13 +251,20 @@ fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
     let len = lat.diag.len();
     let mut slot = vec![NONE; len];
     let mut count = [0usize; 2];
-    for h in level.half.iter_mut() {
-        h.cell.clear();
+    let colour_of = |c: usize| {
+        let [i, j, k] = lat.ijk(c);
+        (i + j + k) % 2
+    };
+    let mut present = [0usize; 2];
+    for c in (0..len).filter(|&c| lat.diag[c] > 0.0) {
+        present[colour_of(c)] += 1;
+    }
+    for (h, &n) in level.half.iter_mut().zip(&present) {
+        clear_for(&mut h.cell, n);
     }
     for c in 0..len {
         if lat.diag[c] > 0.0 {
-            let [i, j, k] = lat.ijk(c);
-            let colour = (i + j + k) % 2;
+            let colour = colour_of(c);
             slot[c] = pack(colour, count[colour]);
             count[colour] += 1;
             level.half[colour].cell.push(c as u32);
@@ -264,6 +272,12 @@ fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
     }
     let stride = [1, lat.n[0], lat.n[0] * lat.n[1]];
     for h in level.half.iter_mut() {
+        let n = h.cell.len();
+        for v in [&mut h.diag, &mut h.inv_diag] {
+            clear_for(v, n);
+        }
+        clear_for(&mut h.nbr, n);
+        clear_for(&mut h.coef, n);
         h.cell
             .par_iter()
             .with_min_len(MIN_PAR)
@@ -310,16 +324,30 @@ fn split_rows(
     row: &mut [Vec<u32>; 2],
 ) {
     let lat = LatticeStencil { n, diag: Vec::new(), plus: Vec::new() };
-    slot_of_row.clear();
-    for (h, row) in level.half.iter_mut().zip(row.iter_mut()) {
-        h.cell.clear();
-        row.clear();
+    let colour_of = |c: u32| {
+        let [i, j, k] = lat.ijk(c as usize);
+        (i + j + k) % 2
+    };
+    let mut present = [0usize; 2];
+    for (r, &c) in cell_of_row.iter().enumerate() {
+        if a.diag[r] > 0.0 {
+            present[colour_of(c)] += 1;
+        }
+    }
+    clear_for(slot_of_row, cell_of_row.len());
+    for ((h, row), &n) in level.half.iter_mut().zip(row.iter_mut()).zip(&present) {
+        clear_for(&mut h.cell, n);
+        clear_for(row, n);
+        for v in [&mut h.diag, &mut h.inv_diag] {
+            clear_for(v, n);
+        }
+        clear_for(&mut h.nbr, n);
+        clear_for(&mut h.coef, n);
     }
     let mut count = [0usize; 2];
     for (r, &c) in cell_of_row.iter().enumerate() {
         if a.diag[r] > 0.0 {
-            let [i, j, k] = lat.ijk(c as usize);
-            let colour = (i + j + k) % 2;
+            let colour = colour_of(c);
             slot_of_row.push(pack(colour, count[colour]));
             count[colour] += 1;
             level.half[colour].cell.push(c);
@@ -431,8 +459,7 @@ impl Multigrid {
                 for colour in 0..2 {
                     let len = coarse.half[colour].len();
                     let children = &mut coarse.half[colour].red_children;
-                    children.clear();
-                    children.resize(len, [NONE; 4]);
+                    refill(children, len, [NONE; 4]);
                     let mut filled = vec![0u8; children.len()];
                     for (i, &p) in finer.half[0].parent.iter().enumerate() {
                         if p != NONE && unpack(p).0 == colour {
@@ -452,8 +479,8 @@ impl Multigrid {
         }
         levels.truncate(built);
         for h in levels.last_mut().expect("the fine level").half.iter_mut() {
-            h.parent.clear();
-            h.parent.resize(h.len(), NONE);
+            let n = h.len();
+            refill(&mut h.parent, n, NONE);
         }
         work.resize_with(built, Work::default);
         for (w, l) in work.iter_mut().zip(&levels) {
@@ -461,8 +488,7 @@ impl Multigrid {
             let [x0, x1] = &mut w.x;
             let [b0, b1] = &mut w.b;
             for (v, len) in [(x0, nr), (x1, nb), (b0, nr), (b1, nb), (&mut w.r, nr)] {
-                v.clear();
-                v.resize(len, 0.0);
+                refill(v, len, 0.0);
             }
         }
         Multigrid { levels, slot_of_row, row, work: Mutex::new(work) }

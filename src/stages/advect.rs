@@ -105,6 +105,12 @@ fn face_velocity_adjoint(
 /// Advects `u` through itself for `dt`. With a mask, faces outside it are left at zero.
 pub fn advect(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>) -> Mac {
     let mut out = Mac::zeros(grid);
+    advect_into(u, grid, dt, mask, &mut out);
+    out
+}
+
+/// [`advect`] written over `out` (a field of the grid's size): every face is set.
+pub fn advect_into(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>, out: &mut Mac) {
     for (axis, dst) in out.c.iter_mut().enumerate() {
         let lat = grid.faces(axis);
         let src = &u.c[axis];
@@ -118,7 +124,6 @@ pub fn advect(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>) -> Mac {
             lat.sample(src, xb)
         });
     }
-    out
 }
 
 #[cfg(test)]

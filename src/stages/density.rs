@@ -24,7 +24,7 @@ use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
 use crate::stages::band::Band;
 use crate::stages::extrapolate::{correct_velocity, correct_velocity_adjoint};
-use crate::stages::pressure::{PressureParams, PressureSystem};
+use crate::stages::pressure::{PressureParams, PressureSystem, SystemPool};
 use crate::stages::surface::{self, jacobian_step, jacobian_t, Bins, Walls};
 use rayon::prelude::*;
 
@@ -60,6 +60,8 @@ pub struct DensityInputs<'a> {
     pub solve: LinearSolve,
     /// The narrow band's deep cells (full liquid without particles), if the liquid has one.
     pub band: Option<&'a Band>,
+    /// Memory to build the projection's system into, and to give it back to when done.
+    pub systems: Option<&'a SystemPool>,
 }
 
 impl DensityInputs<'_> {
@@ -96,7 +98,8 @@ impl DensityProjection {
         let base = g.band.map(|b| b.density.as_slice());
         let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
-        let sys = PressureSystem::build(grid, &phi, g.weights, params);
+        let memory = g.systems.map(SystemPool::take).unwrap_or_default();
+        let sys = PressureSystem::build_in(memory, grid, &phi, g.weights, params);
         let vol = grid.dx.powi(3);
         let b: Vec<f64> = sys
             .cell_of_row
@@ -111,6 +114,9 @@ impl DensityProjection {
             })
             .collect();
         if b.iter().all(|&x| x == 0.0) {
+            if let Some(pool) = g.systems {
+                pool.give(sys);
+            }
             return None;
         }
         Some(DensityProjection { phi, nearest, dens, sys, b })
@@ -132,7 +138,14 @@ impl DensityProjection {
 
     /// The displacement field of potential `q` and the faces it was projected on.
     fn displacement(&self, q: &[f64], g: &DensityInputs<'_>) -> (Mac, [Vec<u8>; 3]) {
-        let mut d = Mac::zeros(g.grid);
+        let mut d = match g.systems {
+            Some(pool) => {
+                let mut d = pool.field(g.grid);
+                d.c.iter_mut().for_each(|c| c.fill(0.0));
+                d
+            }
+            None => Mac::zeros(g.grid),
+        };
         let valid0 = self.sys.update_velocity(q, &mut d);
         let mut valid = valid0.clone();
         correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
@@ -147,6 +160,9 @@ impl DensityProjection {
         particles
             .par_iter_mut()
             .for_each(|x| *x = walls.keep(*x + capped(d.velocity(g.grid, *x), g.grid)));
+        if let Some(pool) = g.systems {
+            pool.keep_field(d);
+        }
     }
 
     /// Adjoint of [`DensityProjection::displace`] composed with the system's dependence on
@@ -195,6 +211,9 @@ impl DensityProjection {
         // The operator and the update read φ through the ghost-fluid θ.
         let phi_bar = self.sys.phi_adjoint(&self.phi, &s, q, &dbar);
         surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &phi_bar, pbar);
+        if let Some(pool) = g.systems {
+            pool.keep_field(d);
+        }
         (s, stats)
     }
 }
@@ -238,6 +257,9 @@ pub fn correct(
     proj.displace(particles, &q, g);
     let stats =
         DensityStats { excess_volume: proj.b.iter().sum(), cg_iterations: stats.iterations };
+    if let Some(pool) = g.systems {
+        pool.give(proj.sys);
+    }
     Ok((stats, Some(q)))
 }
 
@@ -291,6 +313,7 @@ mod tests {
             theta_min: 0.01,
             solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),
             band: None,
+            systems: None,
         };
         let c: Vec<Vec3> = (0..p0.len())
             .map(|i| Vec3::new(((i * 7) % 5) as f64 - 2.0, ((i * 3) % 7) as f64 - 3.0, 1.0))

@@ -15,6 +15,7 @@
 //! matrix-free from a stored 7-point stencil; rigid bodies add a rank-6 term per body.
 
 use crate::geometry::grid::{Grid, Mac, NONE};
+use crate::math::buffer::{clear_for, refill};
 use crate::math::Vec3;
 use crate::solvers::cg::{pcg_from, CgSettings, CgStats};
 use crate::solvers::mic0::Mic0;
@@ -175,29 +176,52 @@ pub struct SystemMemory {
     multigrid: Option<Multigrid>,
 }
 
-/// One [`SystemMemory`] shared by the systems a simulation builds one after another: each
-/// takes it, and gives its own back when done. A system built while the memory is taken
-/// allocates afresh; a clone of the pool starts empty.
+/// The [`SystemMemory`]s of the systems a simulation built last, for the next ones: each
+/// system takes one, and gives its own back when done. It keeps two (a step's adjoint holds
+/// the pressure system while it builds the density projection's; a forward step never holds
+/// both); a system built while none is kept allocates afresh. It also keeps one face field
+/// for whichever stage needs one next (the density projection's displacement, then the
+/// step's advected velocity), so that no field lies idle through a stage.
 #[derive(Default)]
-pub struct SystemPool(std::sync::Mutex<SystemMemory>);
-
-impl SystemPool {
-    /// The memory held (empty when none is).
-    pub fn take(&self) -> SystemMemory {
-        self.0.lock().map(|mut m| std::mem::take(&mut *m)).unwrap_or_default()
-    }
-
-    /// Keeps `sys`'s memory for the next system.
-    pub fn give(&self, sys: PressureSystem) {
-        if let Ok(mut m) = self.0.lock() {
-            *m = sys.into_memory();
-        }
-    }
+pub struct SystemPool {
+    systems: std::sync::Mutex<Vec<SystemMemory>>,
+    field: std::sync::Mutex<Option<Mac>>,
 }
 
-impl Clone for SystemPool {
-    fn clone(&self) -> Self {
-        SystemPool::default()
+/// Memories a [`SystemPool`] keeps.
+const POOL_SIZE: usize = 2;
+
+impl SystemPool {
+    /// The memory given back last (empty when none is kept).
+    pub fn take(&self) -> SystemMemory {
+        self.systems.lock().ok().and_then(|mut m| m.pop()).unwrap_or_default()
+    }
+
+    /// A face field of `grid`'s size to overwrite (the one kept, or zeros).
+    pub fn field(&self, grid: &Grid) -> Mac {
+        let kept = self.field.lock().ok().and_then(|mut u| u.take());
+        match kept {
+            Some(u) if (0..3).all(|a| u.c[a].len() == grid.faces(a).len()) => u,
+            _ => Mac::zeros(grid),
+        }
+    }
+
+    /// Keeps a face field no longer needed.
+    pub fn keep_field(&self, u: Mac) {
+        if let Ok(mut slot) = self.field.lock() {
+            *slot = Some(u);
+        }
+    }
+
+    /// Keeps `sys`'s memory for the next system (the oldest kept one goes when the pool is
+    /// full).
+    pub fn give(&self, sys: PressureSystem) {
+        if let Ok(mut m) = self.systems.lock() {
+            if m.len() == POOL_SIZE {
+                m.remove(0);
+            }
+            m.push(sys.into_memory());
+        }
     }
 }
 
@@ -332,25 +356,36 @@ impl PressureSystem {
         let SystemMemory { mut cell_of_row, mut row_of_cell, mut stencil, faces, multigrid } =
             memory;
         let cells = grid.cells();
-        row_of_cell.clear();
-        row_of_cell.resize(cells.len(), NONE);
-        cell_of_row.clear();
-        for c in 0..cells.len() {
-            if phi[c] >= 0.0 {
-                continue;
-            }
-            let ijk = cells.ijk(c);
-            let open = (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0));
-            if open {
-                row_of_cell[c] = cell_of_row.len() as u32;
+        // The unknowns: liquid cells with an open face, marked, counted, then numbered.
+        refill(&mut row_of_cell, cells.len(), NONE);
+        let rows: usize = row_of_cell
+            .par_iter_mut()
+            .enumerate()
+            .map(|(c, r)| {
+                if phi[c] >= 0.0 {
+                    return 0;
+                }
+                let ijk = cells.ijk(c);
+                let open =
+                    (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0));
+                if open {
+                    *r = 0;
+                }
+                usize::from(open)
+            })
+            .sum();
+        clear_for(&mut cell_of_row, rows);
+        for (c, r) in row_of_cell.iter_mut().enumerate() {
+            if *r != NONE {
+                *r = cell_of_row.len() as u32;
                 cell_of_row.push(c as u32);
             }
         }
         let s = params.dt * grid.dx / params.density;
         let len = cell_of_row.len();
-        stencil.diag.resize(len, 0.0);
-        stencil.plus.resize(len, [0.0; 3]);
-        stencil.nbr.resize(len, [NONE; 6]);
+        refill(&mut stencil.diag, len, 0.0);
+        refill(&mut stencil.plus, len, [0.0; 3]);
+        refill(&mut stencil.nbr, len, [NONE; 6]);
         let has_air = stencil
             .diag
             .par_iter_mut()
@@ -472,8 +507,7 @@ impl PressureSystem {
             .map(|k| (0..ny).map(|j| (0..nx).filter(|&i| face(i, j, k).is_some()).count()).sum())
             .collect();
         let empty = FaceGradient { rm: NONE, cm: 0.0, rp: NONE, cp: 0.0 };
-        out.clear();
-        out.resize(counts.iter().sum(), ProjectedFace { face: 0, weight: 0.0, gradient: empty });
+        refill(out, counts.iter().sum(), ProjectedFace { face: 0, weight: 0.0, gradient: empty });
         let mut slabs = Vec::with_capacity(nz);
         let mut rest = out.as_mut_slice();
         for &n in &counts {
@@ -782,11 +816,17 @@ impl PressureSystem {
 
     /// Pressure on the whole cell grid (zero outside the liquid).
     pub fn scatter(&self, p: &[f64]) -> Vec<f64> {
-        let mut out = vec![0.0; self.grid.num_cells()];
+        let mut out = Vec::new();
+        self.scatter_into(p, &mut out);
+        out
+    }
+
+    /// [`PressureSystem::scatter`] written over `out`.
+    pub fn scatter_into(&self, p: &[f64], out: &mut Vec<f64>) {
+        refill(out, self.grid.num_cells(), 0.0);
         for (r, &c) in self.cell_of_row.iter().enumerate() {
             out[c as usize] = p[r];
         }
-        out
     }
 }
 

@@ -26,7 +26,7 @@
 use super::settings::{check_finite, check_positive, SettingError, SolverSettings, WorldSettings};
 use super::step::{
     body_faces, generalized_velocity, kinetic_energy, predicted_velocity, BodyForce, Geometry,
-    StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
+    Spare, StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
 };
 use super::tape::{ParticleRecord, StepRecord, Tape};
 use crate::error::{Error, Result};
@@ -87,6 +87,9 @@ pub struct Simulation {
     time: f64,
     /// Every warning so far (each once).
     warnings: Vec<String>,
+    /// The last step's whole-grid arrays, for the next step (or step adjoint) to build into;
+    /// shared between clones.
+    spare: Arc<Spare>,
 }
 
 /// A body's face fractions may miss its volume by this much (relative) before a step warns.
@@ -353,6 +356,7 @@ impl SimulationBuilder {
             step: 0,
             time: 0.0,
             warnings,
+            spare: Arc::default(),
         };
         // The particles the band does not need go before the first step.
         let geometry = sim.geometry();
@@ -809,7 +813,12 @@ impl Simulation {
         bodies: &[RigidBody],
         faces: Vec<fractions::BodyFaces>,
     ) -> Geometry {
-        Geometry::new(&self.grid, &self.statics, bodies, faces)
+        Geometry::new_in(self.spare.geometry(), &self.grid, &self.statics, bodies, faces)
+    }
+
+    /// The arrays the last step (or step adjoint) left to build into.
+    pub(crate) fn spare(&self) -> &Spare {
+        &self.spare
     }
 
     /// What the step's system is assembled with for a step of `dt`.
@@ -900,14 +909,16 @@ impl Simulation {
             (Some(_), None) => particle_phi.clone(),
             _ => Vec::new(),
         };
-        let sys =
-            StepSystem::assemble(&grid, &self.bodies, geometry, particle_phi, self.step_params(dt));
+        let memory = self.spare.systems().take();
+        let params = self.step_params(dt);
+        let sys = StepSystem::assemble(&grid, &self.bodies, geometry, particle_phi, params, memory);
         lap(&mut times.assemble);
 
         // 1–2. Self-advection of the velocity on the faces the rest of the step reads, and
         // gravity; gravity and the external forces on the bodies.
         let gravity = self.settings.fluid.gravity;
-        let u_hat = predicted_velocity(&self.u, &grid, dt, gravity, &sys.needed);
+        let out = self.spare.velocity(&grid);
+        let u_hat = predicted_velocity(&self.u, &grid, dt, gravity, &sys.needed, out);
         lap(&mut times.advect_velocity);
         let v_hat: Vec<[f64; 6]> =
             sys.coupled.iter().map(|&i| body_velocity(&self.bodies[i], v3(gravity), dt)).collect();
@@ -923,7 +934,7 @@ impl Simulation {
             }
             contact_possible(&moving, grid.size(), dt)
         };
-        let proj = self.project(&sys, &u_hat, &v_hat, dt, contact)?;
+        let proj = self.project(&sys, u_hat, &v_hat, dt, contact)?;
         for ((&i, v), f) in sys.coupled.iter().zip(&proj.v_after).zip(&proj.forces) {
             let b = &mut self.bodies[i];
             b.v = Vec3::new(v[0], v[1], v[2]);
@@ -985,8 +996,8 @@ impl Simulation {
                 return Err(Error::NonFinite { step: self.step, what: format!("body {}", b.name) });
             }
         }
-        self.u = u;
-        self.pressure = sys.pressure.scatter(&proj.p);
+        self.spare.keep_velocity(std::mem::replace(&mut self.u, u));
+        sys.pressure.scatter_into(&proj.p, &mut self.pressure);
         self.phi = sys.phi;
         let bodies = sys
             .coupled
@@ -999,15 +1010,18 @@ impl Simulation {
                 volume_error: volume_errors[i],
             })
             .collect();
+        let (liquid_cells, max_speed) =
+            (sys.pressure.len(), self.max_liquid_speed(&sys.pressure.cell_of_row));
+        self.spare.keep_system(sys.geometry, sys.pressure);
         Ok(StepReport {
             step: self.step,
             time: self.time,
-            liquid_cells: sys.pressure.len(),
+            liquid_cells,
             cg_iterations: proj.stats.iterations,
             cg_relative_residual: proj.stats.relative_residual,
             max_divergence,
             liquid_volume: self.liquid_volume(),
-            max_speed: self.max_liquid_speed(&sys.pressure.cell_of_row),
+            max_speed,
             kinetic_energy,
             bodies,
             contact_iterations: proj.hold.iterations,
@@ -1094,6 +1108,7 @@ impl Simulation {
             theta_min: solver.theta_min,
             solve: solver.linear(),
             band: self.band.as_deref(),
+            systems: Some(self.spare.systems()),
         })
     }
 
@@ -1103,7 +1118,7 @@ impl Simulation {
     fn project(
         &self,
         sys: &StepSystem,
-        u_hat: &Mac,
+        u_hat: Mac,
         v_hat: &[[f64; 6]],
         dt: f64,
         contact: bool,
@@ -1113,7 +1128,7 @@ impl Simulation {
         let solve = |kick: &[[f64; 6]]| {
             let vel: Vec<[f64; 6]> =
                 v_hat.iter().zip(kick).map(|(v, k)| std::array::from_fn(|d| v[d] + k[d])).collect();
-            let b = sys.rhs(u_hat, &vel);
+            let b = sys.rhs(&u_hat, &vel);
             // Warm start: the last solve's pressure (this step's previous contact iteration,
             // or the last step's).
             let guess = match last_p.take() {
@@ -1131,8 +1146,6 @@ impl Simulation {
                     tolerance: how.tolerance,
                 });
             }
-            let mut u = u_hat.clone();
-            sys.pressure.update_velocity(&p, &mut u);
             let forces: Vec<[f64; 6]> = sys.couplings().iter().map(|c| c.force(&p)).collect();
             let after: Vec<[f64; 6]> = sys
                 .couplings()
@@ -1148,7 +1161,7 @@ impl Simulation {
             let proj = Projection {
                 p,
                 stats,
-                u,
+                u: Mac { c: Default::default() },
                 v_hat: vel,
                 v_after: after.clone(),
                 forces,
@@ -1161,6 +1174,11 @@ impl Simulation {
         let tolerance = contact_tolerance(self.settings.fluid.gravity, dt);
         let (mut proj, hold) = hold_contact(sys.coupled.len(), solve, change, tolerance)?;
         proj.hold = hold;
+        // The velocity update of the solve that stands (the field is not copied per contact
+        // iteration).
+        let mut u = u_hat;
+        sys.pressure.update_velocity(&proj.p, &mut u);
+        proj.u = u;
         Ok(proj)
     }
 

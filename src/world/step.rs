@@ -8,11 +8,14 @@
 use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::{self, BodyFaces};
 use crate::geometry::grid::{Grid, Mac};
-use crate::stages::advect::{advect, needed_faces, FaceMask};
+use crate::stages::advect::{advect_into, needed_faces, FaceMask};
 use crate::stages::forces::add_gravity;
-use crate::stages::pressure::{BodyCoupling, Coupling, PressureParams, PressureSystem};
+use crate::stages::pressure::{
+    BodyCoupling, Coupling, PressureParams, PressureSystem, SystemMemory, SystemPool,
+};
 use crate::stages::surface;
 use serde::Serialize;
+use std::sync::Mutex;
 
 /// Geometry that does not move: tank walls and obstacles.
 #[derive(Clone, Debug)]
@@ -50,9 +53,31 @@ impl Geometry {
         bodies: &[RigidBody],
         faces: Vec<BodyFaces>,
     ) -> Geometry {
+        Geometry::new_in(None, grid, statics, bodies, faces)
+    }
+
+    /// [`Geometry::new`] into the arrays of a geometry no longer needed (the static weights
+    /// copied over them instead of cloned).
+    pub fn new_in(
+        old: Option<Geometry>,
+        grid: &Grid,
+        statics: &StaticGeometry,
+        bodies: &[RigidBody],
+        faces: Vec<BodyFaces>,
+    ) -> Geometry {
         assert_eq!(bodies.len(), faces.len());
-        let mut weights = statics.weights.clone();
-        let mut centre_in_solid = statics.centre_in_solid.clone();
+        let (mut weights, mut centre_in_solid) = match old {
+            Some(Geometry { mut weights, mut centre_in_solid, .. })
+                if centre_in_solid.len() == statics.centre_in_solid.len() =>
+            {
+                for (w, s) in weights.iter_mut().zip(&statics.weights) {
+                    w.copy_from_slice(s);
+                }
+                centre_in_solid.copy_from_slice(&statics.centre_in_solid);
+                (weights, centre_in_solid)
+            }
+            _ => (statics.weights.clone(), statics.centre_in_solid.clone()),
+        };
         let cells = grid.cells();
         for (b, faces) in bodies.iter().zip(&faces) {
             for a in 0..3 {
@@ -112,16 +137,19 @@ pub struct StepSystem {
 impl StepSystem {
     /// Assembles the step's system from the geometry and the particles' φ_L (before its
     /// extension into the solids).
+    /// The pressure system is built into `memory` (see [`Spare`]).
     pub fn assemble(
         grid: &Grid,
         bodies: &[RigidBody],
         geometry: Geometry,
         mut phi: Vec<f64>,
         params: StepParams,
+        memory: SystemMemory,
     ) -> StepSystem {
         surface::extend_into_solids(&mut phi, grid, &geometry.centre_in_solid);
         let needed = needed_faces(grid, &phi, &geometry.body_faces);
-        let mut pressure = PressureSystem::build(grid, &phi, &geometry.weights, params.pressure);
+        let mut pressure =
+            PressureSystem::build_in(memory, grid, &phi, &geometry.weights, params.pressure);
         let coupled: Vec<usize> = (0..bodies.len()).filter(|&i| bodies[i].moves()).collect();
         let dt = params.pressure.dt;
         let couplings: Vec<BodyCoupling> = coupled
@@ -212,18 +240,70 @@ impl StepSystem {
 }
 
 /// Stages 1 and 2 on the fluid: `u` advected through itself for `dt` on the faces of `mask`,
-/// plus gravity. The forward step asks for the faces the step reads; the backward pass asks
-/// for the faces it reads the intermediate field on.
+/// plus gravity, written over `out` (a field of the grid's size, whatever it holds). The
+/// forward step asks for the faces the step reads; the backward pass asks for the faces it
+/// reads the intermediate field on.
 pub fn predicted_velocity(
     u: &Mac,
     grid: &Grid,
     dt: f64,
     gravity: [f64; 3],
     mask: &FaceMask,
+    mut out: Mac,
 ) -> Mac {
-    let mut out = advect(u, grid, dt, Some(mask));
+    advect_into(u, grid, dt, Some(mask), &mut out);
     add_gravity(&mut out, gravity, dt);
     out
+}
+
+/// The whole-grid arrays a step builds (the combined face weights, the pressure and density
+/// systems with their multigrid, the advected field), kept from one step, or one step's
+/// adjoint, to be built into by the next instead of allocated and faulted in afresh: about
+/// 200 bytes a liquid cell a step that the allocator would otherwise hand back to the system
+/// and take again. Each slot holds one set (the systems two), so what it keeps is bounded by
+/// one step's arrays; what is built while a slot is empty allocates. A simulation and its
+/// clones (checkpoint snapshots, finite differences) share one; nothing here changes a
+/// result.
+#[derive(Default)]
+pub struct Spare {
+    systems: SystemPool,
+    geometry: Mutex<Option<Geometry>>,
+}
+
+impl Spare {
+    /// The pressure and density systems' memory.
+    pub fn systems(&self) -> &SystemPool {
+        &self.systems
+    }
+
+    /// A geometry to build into, if one is kept.
+    pub fn geometry(&self) -> Option<Geometry> {
+        self.geometry.lock().ok().and_then(|mut g| g.take())
+    }
+
+    /// A field of `grid`'s size to overwrite (a kept one, or zeros).
+    pub fn velocity(&self, grid: &Grid) -> Mac {
+        self.systems.field(grid)
+    }
+
+    /// Keeps a field no longer needed.
+    pub fn keep_velocity(&self, u: Mac) {
+        self.systems.keep_field(u);
+    }
+
+    /// Keeps a step's geometry and pressure system (the rest of it is dropped).
+    pub fn keep_system(&self, geometry: Geometry, pressure: PressureSystem) {
+        self.systems.give(pressure);
+        if let Ok(mut slot) = self.geometry.lock() {
+            *slot = Some(geometry);
+        }
+    }
+}
+
+impl std::fmt::Debug for Spare {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Spare")
+    }
 }
 
 /// Wall time of each stage of one step, in seconds.
