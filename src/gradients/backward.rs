@@ -531,9 +531,8 @@ impl ParticleAdjoint<'_> {
                 self.density_weight_pose(proj, q, &s, g, pose);
             }
         }
-        if let (Some((proj, _)), Some(pool)) = (projection, inputs.as_ref().and_then(|g| g.systems))
-        {
-            pool.give(proj.sys);
+        if let (Some((proj, _)), Some(g)) = (projection, &inputs) {
+            g.give_back(Some(proj.sys), None);
         }
         // The first push-out, from the advected positions before it (replayed), and the
         // advection through the start velocity.

@@ -66,6 +66,14 @@ fn unpack(s: u32) -> (usize, usize) {
     ((s >> 31) as usize, (s & !BLACK_BIT) as usize)
 }
 
+/// The lattice index of cell `c` on a lattice of `n` cells.
+#[inline]
+fn cell_ijk(n: [usize; 3], c: usize) -> [usize; 3] {
+    let i = c % n[0];
+    let r = c / n[0];
+    [i, r % n[1], r / n[1]]
+}
+
 /// A 7-point stencil on a whole lattice; a cell with a zero diagonal is absent.
 struct LatticeStencil {
     n: [usize; 3],
@@ -80,9 +88,7 @@ impl LatticeStencil {
     }
 
     fn ijk(&self, c: usize) -> [usize; 3] {
-        let i = c % self.n[0];
-        let r = c / self.n[0];
-        [i, r % self.n[1], r / self.n[1]]
+        cell_ijk(self.n, c)
     }
 
     fn present(&self) -> usize {
@@ -124,7 +130,6 @@ impl LatticeStencil {
     /// [`LatticeStencil::coarsen`] of the fine lattice, in the same order, without building
     /// the fine lattice (32 bytes a cell of the whole grid).
     fn coarsen_rows(n: [usize; 3], cell_of_row: &[u32], a: &Stencil) -> LatticeStencil {
-        let fine = LatticeStencil { n, diag: Vec::new(), plus: Vec::new() };
         let cn = n.map(|m| m.div_ceil(2));
         let len = cn[0] * cn[1] * cn[2];
         let mut coarse = LatticeStencil { n: cn, diag: vec![0.0; len], plus: vec![[0.0; 3]; len] };
@@ -143,7 +148,7 @@ impl LatticeStencil {
                 let rows = first_row(2 * kc)..first_row((2 * kc + 2).min(n[2]));
                 let mut blocks = vec![Block::default(); slab];
                 for r in rows {
-                    let ijk = fine.ijk(cell_of_row[r] as usize);
+                    let ijk = cell_ijk(n, cell_of_row[r] as usize);
                     let b = ijk[0] / 2 + cn[0] * (ijk[1] / 2);
                     blocks[b].add(ijk, a.diag[r].max(0.0), a.plus[r]);
                 }
@@ -237,6 +242,15 @@ impl Half {
     fn len(&self) -> usize {
         self.diag.len()
     }
+
+    /// Empties the cells and their coefficients for `n` entries (see [`clear_for`]).
+    fn clear_for(&mut self, n: usize) {
+        clear_for(&mut self.cell, n);
+        clear_for(&mut self.diag, n);
+        clear_for(&mut self.inv_diag, n);
+        clear_for(&mut self.nbr, n);
+        clear_for(&mut self.coef, n);
+    }
 }
 
 /// One level: red (index 0) and black (index 1) cells.
@@ -260,7 +274,7 @@ fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
         present[colour_of(c)] += 1;
     }
     for (h, &n) in level.half.iter_mut().zip(&present) {
-        clear_for(&mut h.cell, n);
+        h.clear_for(n);
     }
     for c in 0..len {
         if lat.diag[c] > 0.0 {
@@ -272,12 +286,6 @@ fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
     }
     let stride = [1, lat.n[0], lat.n[0] * lat.n[1]];
     for h in level.half.iter_mut() {
-        let n = h.cell.len();
-        for v in [&mut h.diag, &mut h.inv_diag] {
-            clear_for(v, n);
-        }
-        clear_for(&mut h.nbr, n);
-        clear_for(&mut h.coef, n);
         h.cell
             .par_iter()
             .with_min_len(MIN_PAR)
@@ -323,9 +331,8 @@ fn split_rows(
     slot_of_row: &mut Vec<u32>,
     row: &mut [Vec<u32>; 2],
 ) {
-    let lat = LatticeStencil { n, diag: Vec::new(), plus: Vec::new() };
     let colour_of = |c: u32| {
-        let [i, j, k] = lat.ijk(c as usize);
+        let [i, j, k] = cell_ijk(n, c as usize);
         (i + j + k) % 2
     };
     let mut present = [0usize; 2];
@@ -336,13 +343,8 @@ fn split_rows(
     }
     clear_for(slot_of_row, cell_of_row.len());
     for ((h, row), &n) in level.half.iter_mut().zip(row.iter_mut()).zip(&present) {
-        clear_for(&mut h.cell, n);
+        h.clear_for(n);
         clear_for(row, n);
-        for v in [&mut h.diag, &mut h.inv_diag] {
-            clear_for(v, n);
-        }
-        clear_for(&mut h.nbr, n);
-        clear_for(&mut h.coef, n);
     }
     let mut count = [0usize; 2];
     for (r, &c) in cell_of_row.iter().enumerate() {
@@ -444,9 +446,8 @@ impl Multigrid {
                     break;
                 }
                 let cn = lat.n;
-                let dims = LatticeStencil { n: fine_n, diag: Vec::new(), plus: Vec::new() };
                 let block = |c: u32| {
-                    let [i, j, k] = dims.ijk(c as usize);
+                    let [i, j, k] = cell_ijk(fine_n, c as usize);
                     (i / 2) + cn[0] * ((j / 2) + cn[1] * (k / 2))
                 };
                 for h in finer.half.iter_mut() {

@@ -65,6 +65,29 @@ pub struct DensityInputs<'a> {
 }
 
 impl DensityInputs<'_> {
+    /// A zero face field (the pool's, when there is one).
+    fn zero_field(&self) -> Mac {
+        match self.systems {
+            Some(pool) => {
+                let mut d = pool.field(self.grid);
+                d.c.iter_mut().for_each(|c| c.fill(0.0));
+                d
+            }
+            None => Mac::zeros(self.grid),
+        }
+    }
+
+    /// Hands a system and a face field no longer needed back to the pool, if there is one.
+    pub fn give_back(&self, sys: Option<PressureSystem>, field: Option<Mac>) {
+        let Some(pool) = self.systems else { return };
+        if let Some(sys) = sys {
+            pool.give(sys);
+        }
+        if let Some(field) = field {
+            pool.keep_field(field);
+        }
+    }
+
     /// Whether the projection pushes out cell `c`'s excess: not in a band's deep cells, full
     /// by construction (what the particles near them deposit there is not an excess).
     fn counts_excess(&self, c: usize) -> bool {
@@ -114,9 +137,7 @@ impl DensityProjection {
             })
             .collect();
         if b.iter().all(|&x| x == 0.0) {
-            if let Some(pool) = g.systems {
-                pool.give(sys);
-            }
+            g.give_back(Some(sys), None);
             return None;
         }
         Some(DensityProjection { phi, nearest, dens, sys, b })
@@ -138,14 +159,7 @@ impl DensityProjection {
 
     /// The displacement field of potential `q` and the faces it was projected on.
     fn displacement(&self, q: &[f64], g: &DensityInputs<'_>) -> (Mac, [Vec<u8>; 3]) {
-        let mut d = match g.systems {
-            Some(pool) => {
-                let mut d = pool.field(g.grid);
-                d.c.iter_mut().for_each(|c| c.fill(0.0));
-                d
-            }
-            None => Mac::zeros(g.grid),
-        };
+        let mut d = g.zero_field();
         let valid0 = self.sys.update_velocity(q, &mut d);
         let mut valid = valid0.clone();
         correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
@@ -160,9 +174,7 @@ impl DensityProjection {
         particles
             .par_iter_mut()
             .for_each(|x| *x = walls.keep(*x + capped(d.velocity(g.grid, *x), g.grid)));
-        if let Some(pool) = g.systems {
-            pool.keep_field(d);
-        }
+        g.give_back(None, Some(d));
     }
 
     /// Adjoint of [`DensityProjection::displace`] composed with the system's dependence on
@@ -211,9 +223,7 @@ impl DensityProjection {
         // The operator and the update read φ through the ghost-fluid θ.
         let phi_bar = self.sys.phi_adjoint(&self.phi, &s, q, &dbar);
         surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &phi_bar, pbar);
-        if let Some(pool) = g.systems {
-            pool.keep_field(d);
-        }
+        g.give_back(None, Some(d));
         (s, stats)
     }
 }
@@ -257,9 +267,7 @@ pub fn correct(
     proj.displace(particles, &q, g);
     let stats =
         DensityStats { excess_volume: proj.b.iter().sum(), cg_iterations: stats.iterations };
-    if let Some(pool) = g.systems {
-        pool.give(proj.sys);
-    }
+    g.give_back(Some(proj.sys), None);
     Ok((stats, Some(q)))
 }
 

@@ -461,7 +461,7 @@ impl PressureSystem {
     }
 
     /// The faces of `axis` next to a liquid cell that the velocity update acts on, each once,
-    /// sorted, into `out`: the open faces inside the tank with an unknown on either side. In
+    /// sorted, into `out`: those where [`PressureSystem::face_gradient`] gives a gradient. In
     /// two parallel passes over the slabs of the face lattice (count, then fill each slab's
     /// share of `out`), so nothing but `out` is allocated.
     fn projected_faces(
@@ -471,59 +471,29 @@ impl PressureSystem {
         phi: &[f64],
         out: &mut Vec<ProjectedFace>,
     ) {
-        let grid = &self.grid;
-        let lat = grid.faces(axis);
-        let w = &weights[axis];
-        let tmin = self.params.theta_min;
-        let stride = [1, grid.n[0], grid.n[0] * grid.n[1]][axis];
-        // Face (i, j, k) of `axis` lies between cell (i, j, k) − e_axis and cell (i, j, k).
-        let face = |i: usize, j: usize, k: usize| -> Option<ProjectedFace> {
-            let ijk = [i, j, k];
-            if ijk[axis] == 0 || ijk[axis] == grid.n[axis] {
-                return None;
-            }
-            let f = lat.index(i, j, k);
-            if w[f] <= 0.0 {
-                return None;
-            }
-            let p = grid.cell(i, j, k);
-            let m = p - stride;
-            let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[p]);
-            let gradient = match (rm != NONE, rp != NONE) {
-                (true, true) => FaceGradient { rm, cm: 1.0, rp, cp: 1.0 },
-                (false, true) => {
-                    FaceGradient { rm, cm: 0.0, rp, cp: 1.0 / ghost_theta(phi[p], phi[m], tmin) }
-                }
-                (true, false) => {
-                    FaceGradient { rm, cm: 1.0 / ghost_theta(phi[m], phi[p], tmin), rp, cp: 0.0 }
-                }
-                (false, false) => return None,
-            };
-            Some(ProjectedFace { face: f as u32, weight: w[f], gradient })
+        let [nx, ny, nz] = self.grid.faces(axis).n;
+        let slab = nx * ny;
+        let face = |f: usize| {
+            let gradient = self.face_gradient(axis, f, weights, phi)?;
+            Some(ProjectedFace { face: f as u32, weight: weights[axis][f], gradient })
         };
-        let [nx, ny, nz] = lat.n;
         let counts: Vec<usize> = (0..nz)
             .into_par_iter()
-            .map(|k| (0..ny).map(|j| (0..nx).filter(|&i| face(i, j, k).is_some()).count()).sum())
+            .map(|k| (k * slab..(k + 1) * slab).filter(|&f| face(f).is_some()).count())
             .collect();
         let empty = FaceGradient { rm: NONE, cm: 0.0, rp: NONE, cp: 0.0 };
         refill(out, counts.iter().sum(), ProjectedFace { face: 0, weight: 0.0, gradient: empty });
         let mut slabs = Vec::with_capacity(nz);
         let mut rest = out.as_mut_slice();
         for &n in &counts {
-            let (slab, tail) = rest.split_at_mut(n);
-            slabs.push(slab);
+            let (part, tail) = rest.split_at_mut(n);
+            slabs.push(part);
             rest = tail;
         }
-        slabs.into_par_iter().enumerate().for_each(|(k, slab)| {
-            let mut at = 0;
-            for j in 0..ny {
-                for i in 0..nx {
-                    if let Some(pf) = face(i, j, k) {
-                        slab[at] = pf;
-                        at += 1;
-                    }
-                }
+        slabs.into_par_iter().enumerate().for_each(|(k, part)| {
+            let faces = (k * slab..(k + 1) * slab).filter_map(face);
+            for (dst, pf) in part.iter_mut().zip(faces) {
+                *dst = pf;
             }
         });
     }

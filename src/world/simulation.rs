@@ -490,7 +490,6 @@ fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
 struct Projection {
     p: Vec<f64>,
     stats: crate::solvers::cg::CgStats,
-    u: Mac,
     /// Per coupled body: [v; ω] the solve started from (with the contact kick) and after it,
     /// and the pressure force and torque J·p.
     v_hat: Vec<[f64; 6]>,
@@ -942,26 +941,22 @@ impl Simulation {
             }
             contact_possible(&moving, grid.size(), dt)
         };
-        let proj = self.project(&sys, u_hat, &v_hat, dt, contact)?;
+        let (proj, u) = self.project(&sys, u_hat, &v_hat, dt, contact)?;
         for ((&i, v), f) in sys.coupled.iter().zip(&proj.v_after).zip(&proj.forces) {
             let b = &mut self.bodies[i];
             b.v = Vec3::new(v[0], v[1], v[2]);
             b.w = Vec3::new(v[3], v[4], v[5]);
             self.fluid_forces[i] = *f;
         }
-        let flux = sys.flux(&proj.u, &proj.v_after);
+        let flux = sys.flux(&u, &proj.v_after);
         let max_divergence = flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / grid.dx.powi(3);
-        let kinetic_energy = kinetic_energy(
-            &proj.u,
-            &sys.pressure,
-            &sys.geometry.weights,
-            self.settings.fluid.density,
-        );
+        let kinetic_energy =
+            kinetic_energy(&u, &sys.pressure, &sys.geometry.weights, self.settings.fluid.density);
         lap(&mut times.pressure);
 
         // 5. Velocity correction: the bodies' velocity on the faces they cover (which then
         // count as known), extrapolation into air, zero in static solids and walls.
-        let mut u = proj.u;
+        let mut u = u;
         apply_body_velocities(
             &mut u,
             &self.bodies,
@@ -1122,7 +1117,8 @@ impl Simulation {
 
     /// Stage 4: the coupled solve from the fluid velocity `u_hat` and the coupled bodies'
     /// velocities `v_hat`, warm-started from the last pressure, with contact held inside it
-    /// when `contact` (see [`hold_contact`]).
+    /// when `contact` (see [`hold_contact`]). Returns the solve and `u_hat` updated by its
+    /// pressure.
     fn project(
         &self,
         sys: &StepSystem,
@@ -1130,7 +1126,7 @@ impl Simulation {
         v_hat: &[[f64; 6]],
         dt: f64,
         contact: bool,
-    ) -> Result<Projection> {
+    ) -> Result<(Projection, Mac)> {
         let how = self.settings.solver.linear();
         let mut last_p: Option<Vec<f64>> = None;
         let solve = |kick: &[[f64; 6]]| {
@@ -1169,7 +1165,6 @@ impl Simulation {
             let proj = Projection {
                 p,
                 stats,
-                u: Mac { c: Default::default() },
                 v_hat: vel,
                 v_after: after.clone(),
                 forces,
@@ -1186,8 +1181,7 @@ impl Simulation {
         // iteration).
         let mut u = u_hat;
         sys.pressure.update_velocity(&proj.p, &mut u);
-        proj.u = u;
-        Ok(proj)
+        Ok((proj, u))
     }
 
     /// What rapier's contact step would do to each coupled body's [v; ω] if the bodies had

@@ -136,8 +136,8 @@ pub struct StepSystem {
 
 impl StepSystem {
     /// Assembles the step's system from the geometry and the particles' φ_L (before its
-    /// extension into the solids).
-    /// The pressure system is built into `memory` (see [`Spare`]).
+    /// extension into the solids). The pressure system is built into `memory` (see
+    /// [`Spare`]).
     pub fn assemble(
         grid: &Grid,
         bodies: &[RigidBody],
