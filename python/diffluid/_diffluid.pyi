@@ -88,6 +88,7 @@ class StepReport(TypedDict, total=False):
     liquid_cells: int
     cg_iterations: int
     cg_relative_residual: float
+    density_cg_iterations: int
     max_divergence: float
     liquid_volume: float
     max_speed: float

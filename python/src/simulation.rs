@@ -118,7 +118,8 @@ impl Simulation {
     }
 
     /// Advances one step of the fixed Δt and returns its report as a dict (step, time,
-    /// liquid_cells, cg_iterations, cg_relative_residual, max_divergence, liquid_volume,
+    /// liquid_cells, cg_iterations, cg_relative_residual, density_cg_iterations,
+    /// max_divergence, liquid_volume,
     /// max_speed, kinetic_energy, bodies: [{name, force, torque, volume_error}],
     /// contact_iterations, contact_residual, stage_seconds, and warnings when there are any).
     ///

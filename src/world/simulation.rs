@@ -37,7 +37,7 @@ use crate::geometry::shape::Solid;
 use crate::math::{v3, Vec3};
 use crate::stages::band::{self, Band, BandChange};
 use crate::stages::contact::{contact_possible, hold_contact, ContactChange, ContactHold};
-use crate::stages::density::{self, DensityInputs};
+use crate::stages::density::{self, DensityInputs, DensityStats};
 use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
 use crate::stages::forces::body_velocity;
 use crate::stages::pressure::PressureParams;
@@ -889,8 +889,10 @@ impl Simulation {
         lap(&mut times.geometry);
 
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
-        let particle_record = self.advect_particles(&geometry, dt, start.is_some())?;
-        lap(&mut times.advect_particles);
+        let (particle_record, density_stats) =
+            self.advect_particles(&geometry, dt, start.is_some(), &mut times)?;
+        let density_cg_iterations = density_stats.cg_iterations;
+        lap(&mut 0.0);
 
         // 3. Where the liquid is now (with a frozen surface: where it was at the start). It
         // depends on the particles only, and tells advection which faces the step reads.
@@ -1022,6 +1024,7 @@ impl Simulation {
             liquid_cells,
             cg_iterations: proj.stats.iterations,
             cg_relative_residual: proj.stats.relative_residual,
+            density_cg_iterations,
             max_divergence,
             liquid_volume: self.liquid_volume(),
             max_speed,
@@ -1036,16 +1039,21 @@ impl Simulation {
 
     /// Stage 0: the marker particles through the current field, pushed out of the solids,
     /// and the density projection (nothing with a frozen surface).
+    /// Times its three parts into `times` (`band`, `advect_particles`, `density`).
     fn advect_particles(
         &mut self,
         geometry: &Geometry,
         dt: f64,
         taped: bool,
-    ) -> Result<Option<ParticleRecord>> {
+        times: &mut StageSeconds,
+    ) -> Result<(Option<ParticleRecord>, DensityStats)> {
         if self.frozen_phi.is_some() {
-            return Ok(None);
+            return Ok((None, DensityStats::default()));
         }
+        let clock = Instant::now();
         let change = self.update_band(geometry, dt);
+        times.band = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let start = taped.then(|| self.particles.clone());
         let margin = self.push_margin();
         let substeps = match self.settings.solver.particle_substeps {
@@ -1063,12 +1071,15 @@ impl Simulation {
         );
         surface::push_out_of_bodies(&mut self.particles, &self.bodies, margin);
         let advected = taped.then(|| self.particles.clone());
+        times.advect_particles = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
         let mut density = None;
+        let mut stats = DensityStats::default();
         let mut particles = std::mem::take(&mut self.particles);
         if let Some(inputs) = self.density_inputs(geometry) {
             let corrected = density::correct(&mut particles, &inputs, self.step + 1);
             match corrected {
-                Ok((_, q)) => density = q,
+                Ok((s, q)) => (stats, density) = (s, q),
                 Err(e) => {
                     self.particles = particles;
                     return Err(e);
@@ -1077,7 +1088,8 @@ impl Simulation {
             surface::push_out_of_bodies(&mut particles, &self.bodies, margin);
         }
         self.particles = particles;
-        Ok(start.zip(advected).map(|(start, advected)| ParticleRecord {
+        times.density = clock.elapsed().as_secs_f64();
+        let record = start.zip(advected).map(|(start, advected)| ParticleRecord {
             start,
             substeps,
             advected,
@@ -1085,7 +1097,8 @@ impl Simulation {
             nearest: Vec::new(),
             change,
             deep: self.band.as_ref().map(|b| b.deep.clone()),
-        }))
+        });
+        Ok((record, stats))
     }
 
     /// How far out of a body a particle is pushed.

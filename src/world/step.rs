@@ -311,8 +311,12 @@ impl std::fmt::Debug for Spare {
 pub struct StageSeconds {
     /// Stage 3a: the bodies' face fractions, J and the combined weights.
     pub geometry: f64,
-    /// Stage 0: marker particles (with the density projection).
+    /// Stage 0, with a narrow band: its update (the deep cells, the particles they trade).
+    pub band: f64,
+    /// Stage 0: marker particles advected and pushed out of the solids.
     pub advect_particles: f64,
+    /// Stage 0: the particle density projection (its system, solve and displacement).
+    pub density: f64,
     /// Stage 3: the liquid signed distance from the particles.
     pub surface: f64,
     /// The step's system: φ_L extended into solids, the faces read, the pressure operator.
@@ -356,6 +360,9 @@ pub struct StepReport {
     pub cg_iterations: usize,
     /// ‖b − A p‖₂ / ‖b‖₂ at the end of the solve.
     pub cg_relative_residual: f64,
+    /// CG iterations of the particle density projection (0 when it is off or found no
+    /// over-full cell).
+    pub density_cg_iterations: usize,
     /// Largest |∇·u| over liquid cells after projection, 1/s.
     pub max_divergence: f64,
     /// Liquid volume from the marker particles, m³ (see [`surface::liquid_volume`]).
