@@ -220,18 +220,22 @@ impl Block {
 }
 
 /// The cells of one colour on one level, numbered in lattice order.
+///
+/// The coefficients are stored in f32 (see [`diag32`] and [`coef32`]): the cycle is memory
+/// bound, and a V-cycle of the f32-rounded operator, evaluated in f64, is as exactly
+/// symmetric as one of the f64 operator, and as good a preconditioner.
 #[derive(Debug, Default)]
 struct Half {
     /// Lattice cell of each entry.
     cell: Vec<u32>,
-    /// Diagonal.
-    diag: Vec<f64>,
-    /// Its inverse.
-    inv_diag: Vec<f64>,
-    /// Entries of the other colour at −x, +x, −y, +y, −z, +z ([`NONE`] when absent).
+    /// Diagonal (rounded up to f32).
+    diag: Vec<f32>,
+    /// Entries of the other colour at −x, +x, −y, +y, −z, +z; an absent one is the other
+    /// colour's padding slot (its length), whose value is always 0, with coupling 0, so the
+    /// sweep has no branch.
     nbr: Vec<[u32; 6]>,
-    /// Their couplings (A_ij = −coef).
-    coef: Vec<[f64; 6]>,
+    /// Their couplings (A_ij = −coef; rounded toward zero to f32).
+    coef: Vec<[f32; 6]>,
     /// Packed slot of the block on the next coarser level ([`NONE`] on the coarsest).
     parent: Vec<u32>,
     /// Red entries of the finer level in this block (coarse levels only; [`NONE`]-padded).
@@ -247,9 +251,32 @@ impl Half {
     fn clear_for(&mut self, n: usize) {
         clear_for(&mut self.cell, n);
         clear_for(&mut self.diag, n);
-        clear_for(&mut self.inv_diag, n);
         clear_for(&mut self.nbr, n);
         clear_for(&mut self.coef, n);
+    }
+}
+
+/// A positive diagonal in f32, rounded up. With the couplings rounded toward zero
+/// ([`coef32`]) a weakly diagonally dominant row stays so: the stored operator is again a
+/// symmetric positive semi-definite M-matrix, which Gauss–Seidel needs.
+#[inline]
+fn diag32(d: f64) -> f32 {
+    let r = d as f32;
+    if (r as f64) < d {
+        r.next_up()
+    } else {
+        r
+    }
+}
+
+/// A non-negative coupling in f32, rounded toward zero (see [`diag32`]).
+#[inline]
+fn coef32(c: f64) -> f32 {
+    let r = c as f32;
+    if (r as f64) > c {
+        r.next_down()
+    } else {
+        r
     }
 }
 
@@ -285,21 +312,22 @@ fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
         }
     }
     let stride = [1, lat.n[0], lat.n[0] * lat.n[1]];
-    for h in level.half.iter_mut() {
+    for (colour, h) in level.half.iter_mut().enumerate() {
+        let pad = count[1 - colour] as u32;
         h.cell
             .par_iter()
             .with_min_len(MIN_PAR)
             .map(|&c| {
                 let c = c as usize;
                 let ijk = lat.ijk(c);
-                let (mut nbr, mut coef) = ([NONE; 6], [0.0; 6]);
+                let (mut nbr, mut coef) = ([pad; 6], [0.0; 6]);
                 for a in 0..3 {
                     if ijk[a] > 0 {
                         let m = c - stride[a];
                         let w = lat.plus[m][a];
                         if w != 0.0 && slot[m] != NONE {
                             nbr[2 * a] = unpack(slot[m]).1 as u32;
-                            coef[2 * a] = w;
+                            coef[2 * a] = coef32(w);
                         }
                     }
                     if ijk[a] + 1 < lat.n[a] {
@@ -307,15 +335,14 @@ fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
                         let w = lat.plus[c][a];
                         if w != 0.0 && slot[p] != NONE {
                             nbr[2 * a + 1] = unpack(slot[p]).1 as u32;
-                            coef[2 * a + 1] = w;
+                            coef[2 * a + 1] = coef32(w);
                         }
                     }
                 }
                 (nbr, coef)
             })
             .unzip_into_vecs(&mut h.nbr, &mut h.coef);
-        h.cell.par_iter().map(|&c| lat.diag[c as usize]).collect_into_vec(&mut h.diag);
-        h.diag.par_iter().map(|d| 1.0 / d).collect_into_vec(&mut h.inv_diag);
+        h.cell.par_iter().map(|&c| diag32(lat.diag[c as usize])).collect_into_vec(&mut h.diag);
     }
     slot
 }
@@ -365,31 +392,31 @@ fn split_rows(
         (r != NONE && w != 0.0 && slot_of_row[r as usize] != NONE)
             .then(|| unpack(slot_of_row[r as usize]).1 as u32)
     };
-    for (h, rows) in level.half.iter_mut().zip(row.iter()) {
+    for (colour, (h, rows)) in level.half.iter_mut().zip(row.iter()).enumerate() {
+        let pad = count[1 - colour] as u32;
         rows.par_iter()
             .with_min_len(MIN_PAR)
             .map(|&r| {
                 let r = r as usize;
-                let (mut nbr, mut coef) = ([NONE; 6], [0.0; 6]);
+                let (mut nbr, mut coef) = ([pad; 6], [0.0; 6]);
                 for d in 0..3 {
                     let m = a.nbr[r][2 * d];
                     let w = if m == NONE { 0.0 } else { a.plus[m as usize][d] };
                     if let Some(e) = entry(m, w) {
                         nbr[2 * d] = e;
-                        coef[2 * d] = w;
+                        coef[2 * d] = coef32(w);
                     }
                     let p = a.nbr[r][2 * d + 1];
                     let w = a.plus[r][d];
                     if let Some(e) = entry(p, w) {
                         nbr[2 * d + 1] = e;
-                        coef[2 * d + 1] = w;
+                        coef[2 * d + 1] = coef32(w);
                     }
                 }
                 (nbr, coef)
             })
             .unzip_into_vecs(&mut h.nbr, &mut h.coef);
-        rows.par_iter().map(|&r| a.diag[r as usize]).collect_into_vec(&mut h.diag);
-        h.diag.par_iter().map(|d| 1.0 / d).collect_into_vec(&mut h.inv_diag);
+        rows.par_iter().map(|&r| diag32(a.diag[r as usize])).collect_into_vec(&mut h.diag);
     }
 }
 
@@ -488,7 +515,8 @@ impl Multigrid {
             let (nr, nb) = (l.half[0].len(), l.half[1].len());
             let [x0, x1] = &mut w.x;
             let [b0, b1] = &mut w.b;
-            for (v, len) in [(x0, nr), (x1, nb), (b0, nr), (b1, nb), (&mut w.r, nr)] {
+            // x of each colour with its padding slot.
+            for (v, len) in [(x0, nr + 1), (x1, nb + 1), (b0, nr), (b1, nb), (&mut w.r, nr)] {
                 refill(v, len, 0.0);
             }
         }
@@ -546,7 +574,7 @@ impl Multigrid {
             let [xr, xb] = &w.x;
             let b = &w.b[0];
             w.r.par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, ri)| {
-                *ri = b[i] - red.diag[i] * xr[i] + neighbours(red, i, xb);
+                *ri = b[i] - red.diag[i] as f64 * xr[i] + neighbours(red, i, xb);
             });
         }
         let c = &mut coarser[0];
@@ -582,17 +610,13 @@ impl Multigrid {
     }
 }
 
-/// `Σ coef·x_other` over the neighbours of entry `i`.
-#[inline]
+/// `Σ coef·x_other` over the neighbours of entry `i` (absent ones read the padding slot, 0,
+/// with coupling 0), summed in pairs.
+#[inline(always)]
 fn neighbours(h: &Half, i: usize, other: &[f64]) -> f64 {
-    let (nbr, coef) = (&h.nbr[i], &h.coef[i]);
-    let mut t = 0.0;
-    for d in 0..6 {
-        if nbr[d] != NONE {
-            t += coef[d] * other[nbr[d] as usize];
-        }
-    }
-    t
+    let (n, c) = (&h.nbr[i], &h.coef[i]);
+    let t = |d: usize| c[d] as f64 * other[n[d] as usize];
+    (t(0) + t(1)) + (t(2) + t(3)) + (t(4) + t(5))
 }
 
 /// Gauss–Seidel half-sweep over one colour: each of its cells solved for with the other
@@ -602,8 +626,8 @@ fn relax(level: &Level, colour: usize, w: &mut Work) {
     let [x0, x1] = &mut w.x;
     let (x, other) = if colour == 0 { (x0, &*x1) } else { (x1, &*x0) };
     let b = &w.b[colour];
-    x.par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, xi)| {
-        *xi = (b[i] + neighbours(h, i, other)) * h.inv_diag[i];
+    x[..h.len()].par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, xi)| {
+        *xi = (b[i] + neighbours(h, i, other)) / h.diag[i] as f64;
     });
 }
 
@@ -790,7 +814,7 @@ mod tests {
                     h.coef
                         .iter()
                         .zip(&g.coef)
-                        .all(|(x, y)| x.map(f64::to_bits) == y.map(f64::to_bits)),
+                        .all(|(x, y)| x.map(f32::to_bits) == y.map(f32::to_bits)),
                     "{name}"
                 );
                 assert!(
