@@ -99,7 +99,8 @@ impl DensityInputs<'_> {
 pub struct DensityProjection {
     /// φ_L of P, extended into solids.
     pub phi: Vec<f64>,
-    /// The particle each cell's φ is the distance to (see [`surface::liquid_sdf_nearest`]).
+    /// The particle each cell's φ is the distance to (see [`surface::liquid_sdf_nearest`];
+    /// `NONE` where the extension into the solids set φ).
     pub nearest: Vec<u32>,
     /// Particle density at cell centres.
     pub dens: Vec<f64>,
@@ -115,9 +116,12 @@ impl DensityProjection {
         let grid = g.grid;
         let bins = Bins::new(particles, grid);
         let deep = g.band.map(Band::deep);
-        let (mut phi, nearest) =
+        let (mut phi, mut nearest) =
             surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface, deep);
-        surface::extend_into_solids(&mut phi, grid, g.centre_in_solid);
+        // A cell the extension into the solids sets moves with no particle.
+        for c in surface::extend_into_solids(&mut phi, grid, g.centre_in_solid) {
+            nearest[c as usize] = crate::geometry::grid::NONE;
+        }
         let base = g.band.map(|b| b.density.as_slice());
         let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };

@@ -8,7 +8,11 @@
 //! backward pass (paper, eq. 10).
 
 use crate::geometry::grid::{Grid, Lattice, Mac};
+use crate::math::par::for_each_keyed_mut;
 use rayon::prelude::*;
+
+/// Smallest piece of a face list handed to rayon.
+const CHUNK: usize = 4096;
 
 /// The neighbours of sample `idx` along the 6 lattice directions, in the order −x, +x, −y,
 /// +y, −z, +z, that `keep` accepts (at most 6).
@@ -52,20 +56,33 @@ struct Layers {
 impl Layers {
     fn new(valid0: &[u8], lat: &Lattice, layers: usize) -> Layers {
         assert!(layers < NEVER as usize - 1, "at most 253 extrapolation layers");
-        let mut level: Vec<u8> = valid0.iter().map(|&v| if v != 0 { 0 } else { NEVER }).collect();
-        let mut last: Vec<usize> = (0..valid0.len()).filter(|&i| valid0[i] != 0).collect();
+        let mut level: Vec<u8> =
+            valid0.par_iter().map(|&v| if v != 0 { 0 } else { NEVER }).collect();
+        let mut last: Vec<usize> = (0..valid0.len())
+            .into_par_iter()
+            .with_min_len(CHUNK)
+            .filter(|&i| valid0[i] != 0)
+            .collect();
         let mut fronts = Vec::with_capacity(layers);
-        let mut nb = [0usize; 6];
         for l in 0..layers {
-            let mut front = Vec::new();
-            for &idx in &last {
-                let n = neighbours(lat, idx, |m| level[m] == NEVER, &mut nb);
-                for &m in &nb[..n] {
-                    level[m] = l as u8 + 1;
-                    front.push(m);
-                }
-            }
-            front.sort_unstable();
+            // The never-set neighbours of the last front, found in parallel, then sorted
+            // (a face next to two of the front is found twice).
+            let level_now = &level;
+            let mut front: Vec<usize> = last
+                .par_chunks(CHUNK)
+                .flat_map_iter(|chunk| {
+                    let mut found = Vec::new();
+                    let mut nb = [0usize; 6];
+                    for &idx in chunk {
+                        let n = neighbours(lat, idx, |m| level_now[m] == NEVER, &mut nb);
+                        found.extend_from_slice(&nb[..n]);
+                    }
+                    found
+                })
+                .collect();
+            front.par_sort_unstable();
+            front.dedup();
+            for_each_keyed_mut(&mut level, &front, |&m| m, |_, _, x| *x = l as u8 + 1);
             last = front.clone();
             fronts.push(front);
         }
@@ -86,17 +103,16 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
     for (l, front) in lay.fronts.iter().enumerate() {
         // A face of this front reads only faces known before the layer, never another face
         // of the front: compute them all, then write.
-        let values: Vec<f64> = front
-            .iter()
+        let values: Vec<(usize, f64)> = front
+            .par_iter()
+            .with_min_len(CHUNK)
             .map(|&idx| {
                 let mut nb = [0usize; 6];
                 let n = neighbours(lat, idx, |m| lay.known_before(m, l), &mut nb);
-                nb[..n].iter().map(|&m| field[m]).sum::<f64>() / n as f64
+                (idx, nb[..n].iter().map(|&m| field[m]).sum::<f64>() / n as f64)
             })
             .collect();
-        for (&idx, v) in front.iter().zip(values) {
-            field[idx] = v;
-        }
+        for_each_keyed_mut(field, &values, |v| v.0, |_, v, x| *x = v.1);
     }
     field.par_iter_mut().zip(valid.par_iter_mut()).zip(lay.level.par_iter()).for_each(
         |((f, v), &lev)| {

@@ -16,6 +16,7 @@
 
 use crate::geometry::grid::{Grid, Mac, NONE};
 use crate::math::buffer::{clear_for, refill};
+use crate::math::par::for_each_keyed_mut;
 use crate::math::Vec3;
 use crate::solvers::cg::{pcg_from, CgSettings, CgStats};
 use crate::solvers::mic0::Mic0;
@@ -375,12 +376,15 @@ impl PressureSystem {
             })
             .sum();
         clear_for(&mut cell_of_row, rows);
-        for (c, r) in row_of_cell.iter_mut().enumerate() {
-            if *r != NONE {
-                *r = cell_of_row.len() as u32;
-                cell_of_row.push(c as u32);
-            }
-        }
+        cell_of_row.par_extend(
+            (0..cells.len() as u32).into_par_iter().filter(|&c| row_of_cell[c as usize] != NONE),
+        );
+        for_each_keyed_mut(
+            &mut row_of_cell,
+            &cell_of_row,
+            |&c| c as usize,
+            |r, _, x| *x = r as u32,
+        );
         let s = params.dt * grid.dx / params.density;
         let len = cell_of_row.len();
         refill(&mut stencil.diag, len, 0.0);
@@ -601,11 +605,11 @@ impl PressureSystem {
         let k = self.params.dt / (self.params.density * grid.dx);
         let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
         for a in 0..3 {
-            for pf in &self.faces[a] {
-                let f = pf.face as usize;
-                u.c[a][f] -= k * pf.gradient.apply(p);
-                valid[a][f] = 1;
-            }
+            let face = |pf: &ProjectedFace| pf.face as usize;
+            for_each_keyed_mut(&mut u.c[a], &self.faces[a], face, |_, pf, x| {
+                *x -= k * pf.gradient.apply(p)
+            });
+            for_each_keyed_mut(&mut valid[a], &self.faces[a], face, |_, _, v| *v = 1);
         }
         valid
     }

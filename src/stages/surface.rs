@@ -624,33 +624,39 @@ pub fn liquid_sdf_adjoint(
 
 /// Marks cells whose centre is inside a static solid as liquid when a face neighbour is
 /// liquid, so a partly solid cell next to liquid is not mistaken for air (which would put a
-/// spurious p = 0 against the wall and let liquid leak along it).
-pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]) {
-    let src = phi.to_vec();
+/// spurious p = 0 against the wall and let liquid leak along it). Returns the cells it set
+/// (in increasing order): their φ no longer depends on the particles.
+pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]) -> Vec<u32> {
     let cells = grid.cells();
-    for c in 0..phi.len() {
+    let src = &*phi;
+    let wet = |c: usize| {
         if !centre_in_solid[c] || src[c] < 0.0 {
-            continue;
+            return false;
         }
-        let [i, j, k] = cells.ijk(c);
-        let mut wet = false;
-        for a in 0..3 {
-            let p = [i, j, k];
-            if p[a] > 0 {
-                let mut q = p;
-                q[a] -= 1;
-                wet |= src[grid.cell(q[0], q[1], q[2])] < 0.0;
-            }
-            if p[a] + 1 < grid.n[a] {
-                let mut q = p;
-                q[a] += 1;
-                wet |= src[grid.cell(q[0], q[1], q[2])] < 0.0;
-            }
-        }
-        if wet {
-            phi[c] = -0.5 * grid.dx;
-        }
+        let p = cells.ijk(c);
+        (0..3).any(|a| {
+            let mut q = p;
+            let below = p[a] > 0 && {
+                q[a] = p[a] - 1;
+                src[grid.cell(q[0], q[1], q[2])] < 0.0
+            };
+            let above = p[a] + 1 < grid.n[a] && {
+                q[a] = p[a] + 1;
+                src[grid.cell(q[0], q[1], q[2])] < 0.0
+            };
+            below || above
+        })
+    };
+    let set: Vec<u32> = (0..phi.len())
+        .into_par_iter()
+        .with_min_len(4096)
+        .filter(|&c| wet(c))
+        .map(|c| c as u32)
+        .collect();
+    for &c in &set {
+        phi[c as usize] = -0.5 * grid.dx;
     }
+    set
 }
 
 /// Marker particle number density at cell centres, in full cells (1 = as dense as freshly

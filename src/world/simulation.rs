@@ -1151,7 +1151,8 @@ impl Simulation {
             let guess = match last_p.take() {
                 Some(p) => p,
                 None => {
-                    sys.pressure.cell_of_row.iter().map(|&c| self.pressure[c as usize]).collect()
+                    let cells = &sys.pressure.cell_of_row;
+                    cells.par_iter().map(|&c| self.pressure[c as usize]).collect()
                 }
             };
             let (p, stats) = sys.pressure.solve_from(&b, guess, &how);

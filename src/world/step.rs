@@ -8,10 +8,11 @@
 use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::{self, BodyFaces};
 use crate::geometry::grid::{Grid, Mac};
+use crate::math::par::{for_each_keyed_mut, sum_by};
 use crate::stages::advect::{advect_into, needed_faces, FaceMask};
 use crate::stages::forces::add_gravity;
 use crate::stages::pressure::{
-    BodyCoupling, Coupling, PressureParams, PressureSystem, SystemMemory, SystemPool,
+    BodyCoupling, Coupling, PressureParams, PressureSystem, ProjectedFace, SystemMemory, SystemPool,
 };
 use crate::stages::surface;
 use serde::Serialize;
@@ -230,9 +231,8 @@ impl StepSystem {
         let grid = &self.pressure.grid;
         let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
         for a in 0..3 {
-            for pf in &self.pressure.faces[a] {
-                valid[a][pf.face as usize] = 1;
-            }
+            let face = |pf: &ProjectedFace| pf.face as usize;
+            for_each_keyed_mut(&mut valid[a], &self.pressure.faces[a], face, |_, _, v| *v = 1);
         }
         crate::stages::extrapolate::mark_body_faces(&mut valid, &self.geometry.body_faces);
         valid
@@ -389,13 +389,14 @@ pub struct StepReport {
 /// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated. Sequential on purpose: the
 /// sum is cheap and its order fixed.
 pub fn kinetic_energy(u: &Mac, sys: &PressureSystem, weights: &[Vec<f64>; 3], rho: f64) -> f64 {
-    let mut e = 0.0;
-    for a in 0..3 {
-        for pf in &sys.faces[a] {
-            let uf = u.c[a][pf.face as usize];
-            e += weights[a][pf.face as usize] * uf * uf;
-        }
-    }
+    let e: f64 = (0..3)
+        .map(|a| {
+            sum_by(&sys.faces[a], |pf| {
+                let uf = u.c[a][pf.face as usize];
+                weights[a][pf.face as usize] * uf * uf
+            })
+        })
+        .sum();
     0.5 * rho * sys.grid.dx.powi(3) * e
 }
 
