@@ -265,6 +265,18 @@ fn too_many_extrapolation_layers() {
     assert_refused(&output, &dir.out(), &["solver.extrapolation_layers", "got 254", &line]);
 }
 
+/// The density projection's tolerance is checked like the pressure's: zero would ask CG for
+/// an exact answer it cannot give.
+#[test]
+fn zero_density_tolerance() {
+    let dir = TempDir::new("density_tolerance");
+    let text =
+        broken("extrapolation_layers = 3\n", "extrapolation_layers = 3\ndensity_tolerance = 0.0\n");
+    let line = at_line(line_of(&text, "density_tolerance ="));
+    let output = run(&dir.scene(&text), &dir.out(), &[]);
+    assert_refused(&output, &dir.out(), &["solver.density_tolerance", "got 0", &line]);
+}
+
 /// A 800 × 300 × 400 tank (96M cells) needs some 40 GB: refused before anything is allocated
 /// with the estimate and what is available (it used to abort on a failed allocation, or take
 /// the machine's memory until the OS killed it).

@@ -122,6 +122,8 @@ fn scene() -> impl Strategy<Value = String> {
             .prop_map(|v| format!("particles_per_cell = {v}")),
         2 => num(0.0, 0.6).prop_map(|v| format!("theta_min = {v}")),
         2 => any::<bool>().prop_map(|v| format!("density_correction = {v}")),
+        1 => num(1e-12, 0.5).prop_map(|v| format!("density_tolerance = {v}")),
+        1 => hostile().prop_map(|v| format!("density_tolerance = {v}")),
         2 => any::<bool>().prop_map(|v| format!("sparse_cells = {v}")),
         2 => (0u64..80).prop_map(|v| format!("particle_substeps = {v}")),
         2 => (0u64..40).prop_map(|v| format!("narrow_band = {v}")),

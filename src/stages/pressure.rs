@@ -475,30 +475,56 @@ impl PressureSystem {
         phi: &[f64],
         out: &mut Vec<ProjectedFace>,
     ) {
-        let [nx, ny, nz] = self.grid.faces(axis).n;
-        let slab = nx * ny;
-        let face = |f: usize| {
-            let gradient = self.face_gradient(axis, f, weights, phi)?;
-            Some(ProjectedFace { face: f as u32, weight: weights[axis][f], gradient })
+        let lat = self.grid.faces(axis);
+        let [nx, ny, nz] = lat.n;
+        let n = self.grid.n;
+        // The cell on the − side of a face is this far below the one on its + side.
+        let below = [1, n[0], n[0] * n[1]][axis];
+        let w = &weights[axis];
+        // Visits the faces of slab k that have a gradient, in order, without a division per
+        // face: f runs over the face lattice, c over the cell on each face's + side.
+        let visit = |k: usize, emit: &mut dyn FnMut(ProjectedFace)| {
+            if axis == 2 && (k == 0 || k == n[2]) {
+                return;
+            }
+            for j in 0..ny {
+                if axis == 1 && (j == 0 || j == n[1]) {
+                    continue;
+                }
+                let (f0, c0) = (nx * (j + ny * k), n[0] * (j + n[1] * k));
+                let (lo, hi) = if axis == 0 { (1, n[0]) } else { (0, nx) };
+                for i in lo..hi {
+                    let f = f0 + i;
+                    if w[f] <= 0.0 {
+                        continue;
+                    }
+                    let c = c0 + i;
+                    if let Some(gradient) = self.gradient_between(c - below, c, phi) {
+                        emit(ProjectedFace { face: f as u32, weight: w[f], gradient });
+                    }
+                }
+            }
         };
         let counts: Vec<usize> = (0..nz)
             .into_par_iter()
-            .map(|k| (k * slab..(k + 1) * slab).filter(|&f| face(f).is_some()).count())
+            .map(|k| {
+                let mut count = 0;
+                visit(k, &mut |_| count += 1);
+                count
+            })
             .collect();
         let empty = FaceGradient { rm: NONE, cm: 0.0, rp: NONE, cp: 0.0 };
         refill(out, counts.iter().sum(), ProjectedFace { face: 0, weight: 0.0, gradient: empty });
         let mut slabs = Vec::with_capacity(nz);
         let mut rest = out.as_mut_slice();
-        for &n in &counts {
-            let (part, tail) = rest.split_at_mut(n);
+        for &c in &counts {
+            let (part, tail) = rest.split_at_mut(c);
             slabs.push(part);
             rest = tail;
         }
         slabs.into_par_iter().enumerate().for_each(|(k, part)| {
-            let faces = (k * slab..(k + 1) * slab).filter_map(face);
-            for (dst, pf) in part.iter_mut().zip(faces) {
-                *dst = pf;
-            }
+            let mut next = part.iter_mut();
+            visit(k, &mut |pf| *next.next().expect("counted") = pf);
         });
     }
 
@@ -631,7 +657,13 @@ impl PressureSystem {
         }
         let grid = &self.grid;
         let (m, pl) = grid.face_cells(axis, grid.faces(axis).ijk(f));
-        let (m, pl) = (m?, pl?);
+        self.gradient_between(m?, pl?, phi)
+    }
+
+    /// [`PressureSystem::face_gradient`] of an open face between cells `m` (its − side) and
+    /// `pl`.
+    #[inline]
+    fn gradient_between(&self, m: usize, pl: usize, phi: &[f64]) -> Option<FaceGradient> {
         let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[pl]);
         let tmin = self.params.theta_min;
         match (rm != NONE, rp != NONE) {

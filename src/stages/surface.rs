@@ -381,23 +381,34 @@ pub struct Bins {
 }
 
 impl Bins {
-    /// Bins `pos` into the cells of `grid`.
+    /// Bins `pos` into the cells of `grid`, each cell's particles in increasing order. In
+    /// parallel over z-slabs after a counting sort of the particles by slab.
     pub fn new(pos: &[Vec3], grid: &Grid) -> Bins {
         let cells = grid.num_cells();
+        let slab = grid.n[0] * grid.n[1];
         let cell_of: Vec<u32> = pos.par_iter().map(|x| cell_of(grid, *x) as u32).collect();
+        let by_slab = SlabBuckets::new(cell_of.iter().map(|&c| c as usize / slab), grid.n[2]);
         let mut start = vec![0u32; cells + 1];
-        for &c in &cell_of {
-            start[c as usize + 1] += 1;
-        }
-        for c in 0..cells {
-            start[c + 1] += start[c];
-        }
-        let mut fill = start.clone();
+        start[..cells].par_chunks_mut(slab).enumerate().for_each(|(k, counts)| {
+            for &p in by_slab.of(k) {
+                counts[cell_of[p as usize] as usize - k * slab] += 1;
+            }
+            let mut sum = by_slab.start[k];
+            for c in counts.iter_mut() {
+                (*c, sum) = (sum, sum + *c);
+            }
+        });
+        start[cells] = pos.len() as u32;
         let mut items = vec![0u32; pos.len()];
-        for (p, &c) in cell_of.iter().enumerate() {
-            items[fill[c as usize] as usize] = p as u32;
-            fill[c as usize] += 1;
-        }
+        by_slab.split_mut(&mut items).into_par_iter().enumerate().for_each(|(k, part)| {
+            let first = by_slab.start[k];
+            let mut fill: Vec<u32> = start[k * slab..(k + 1) * slab].to_vec();
+            for &p in by_slab.of(k) {
+                let f = &mut fill[cell_of[p as usize] as usize - k * slab];
+                part[(*f - first) as usize] = p;
+                *f += 1;
+            }
+        });
         Bins { start, items }
     }
 
@@ -405,6 +416,49 @@ impl Bins {
     #[inline]
     pub fn cell(&self, c: usize) -> &[u32] {
         &self.items[self.start[c] as usize..self.start[c + 1] as usize]
+    }
+}
+
+/// Particle indices sorted into buckets (a counting sort, in particle order within each).
+struct SlabBuckets {
+    /// `start[b]..start[b + 1]` indexes `items` for bucket b.
+    start: Vec<u32>,
+    items: Vec<u32>,
+}
+
+impl SlabBuckets {
+    /// Buckets `0..n` of the particles, particle p in bucket `keys[p]`.
+    fn new(keys: impl Iterator<Item = usize> + Clone, n: usize) -> SlabBuckets {
+        let mut start = vec![0u32; n + 1];
+        for b in keys.clone() {
+            start[b + 1] += 1;
+        }
+        for b in 0..n {
+            start[b + 1] += start[b];
+        }
+        let mut fill = start.clone();
+        let mut items = vec![0u32; start[n] as usize];
+        for (p, b) in keys.enumerate() {
+            items[fill[b] as usize] = p as u32;
+            fill[b] += 1;
+        }
+        SlabBuckets { start, items }
+    }
+
+    /// The particles of bucket `b`.
+    fn of(&self, b: usize) -> &[u32] {
+        &self.items[self.start[b] as usize..self.start[b + 1] as usize]
+    }
+
+    /// `v` (one entry per particle) split into each bucket's run.
+    fn split_mut<'a, T>(&self, mut v: &'a mut [T]) -> Vec<&'a mut [T]> {
+        let mut parts = Vec::with_capacity(self.start.len() - 1);
+        for w in self.start.windows(2) {
+            let (part, rest) = v.split_at_mut((w[1] - w[0]) as usize);
+            parts.push(part);
+            v = rest;
+        }
+        parts
     }
 }
 
@@ -666,16 +720,46 @@ pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]
 /// order on one thread, so the sums do not depend on the thread count. They add to `base`
 /// (a narrow band's deep cells' deposit) when given.
 pub fn particle_density(pos: &[Vec3], grid: &Grid, ppc: usize, base: Option<&[f64]>) -> Vec<f64> {
-    let mut out = base.map_or_else(|| vec![0.0; grid.num_cells()], <[f64]>::to_vec);
+    let mut out =
+        base.map_or_else(|| vec![0.0; grid.num_cells()], |b| b.par_iter().copied().collect());
     let unit = 1.0 / ppc as f64;
-    for x in pos {
-        let (idx, w, _) = deposit_weights(grid, *x);
+    let deposit = |x: Vec3, out: &mut [f64], first: usize| {
+        let (idx, w, _) = deposit_weights(grid, x);
         for c in 0..8 {
             let (bi, bj, bk) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
-            out[grid.cell(idx[0][bi], idx[1][bj], idx[2][bk])] +=
+            out[grid.cell(idx[0][bi], idx[1][bj], idx[2][bk]) - first] +=
                 w[0][bi] * w[1][bj] * w[2][bk] * unit;
         }
+    };
+    let (nz, slab) = (grid.n[2], grid.n[0] * grid.n[1]);
+    if nz < 2 {
+        pos.iter().for_each(|x| deposit(*x, &mut out, 0));
+        return out;
     }
+    // A particle in bucket b deposits on z-slabs b and b + 1 only, so the buckets of one
+    // parity write disjoint pairs of slabs: even buckets in parallel, then odd ones, each in
+    // particle order. A particle outside the tank (whose folded slabs are not adjacent) is
+    // deposited last, on one thread.
+    let bucket = |x: &Vec3| {
+        let [k0, k1] = deposit_weights(grid, *x).0[2];
+        let b = k0.min(k1).min(nz - 2);
+        if k0.max(k1) <= b + 1 {
+            b
+        } else {
+            nz - 1
+        }
+    };
+    let keys: Vec<u32> = pos.par_iter().map(|x| bucket(x) as u32).collect();
+    let buckets = SlabBuckets::new(keys.iter().map(|&b| b as usize), nz);
+    for parity in 0..2 {
+        out[parity * slab..].par_chunks_mut(2 * slab).enumerate().for_each(|(m, pair)| {
+            let b = 2 * m + parity;
+            if b + 1 < nz {
+                buckets.of(b).iter().for_each(|&p| deposit(pos[p as usize], pair, b * slab));
+            }
+        });
+    }
+    buckets.of(nz - 1).iter().for_each(|&p| deposit(pos[p as usize], &mut out, 0));
     out
 }
 
@@ -748,7 +832,7 @@ pub fn particle_density_adjoint(
 pub fn liquid_volume(pos: &[Vec3], grid: &Grid, ppc: usize, base: Option<&[f64]>) -> f64 {
     let dens = particle_density(pos, grid, ppc, base);
     let parts: Vec<f64> = dens
-        .chunks(crate::geometry::grid::REDUCE_CHUNK)
+        .par_chunks(crate::geometry::grid::REDUCE_CHUNK)
         .map(|c| c.iter().map(|d| d.min(1.0)).sum())
         .collect();
     parts.iter().sum::<f64>() * grid.dx.powi(3)
@@ -757,6 +841,64 @@ pub fn liquid_volume(pos: &[Vec3], grid: &Grid, ppc: usize, base: Option<&[f64]>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Scattered particles, some on the tank's faces and edges.
+    fn scattered(grid: &Grid, n: usize) -> Vec<Vec3> {
+        let size = grid.size();
+        (0..n)
+            .map(|i| {
+                let r = |k: usize| ((i * 7919 + k * 104_729) % 10_007) as f64 / 10_006.0;
+                let edge = |t: f64| if i % 97 == 0 { t.round() } else { t };
+                Vec3::new(edge(r(1)) * size.x, r(2) * size.y, edge(r(3)) * size.z)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn bins_list_each_cells_particles_in_order_with_any_thread_count() {
+        let grid = Grid { n: [7, 5, 9], dx: 0.1 };
+        let pos = scattered(&grid, 5000);
+        let run = |t: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+            pool.install(|| Bins::new(&pos, &grid))
+        };
+        let (a, b) = (run(1), run(2));
+        assert_eq!((&a.start, &a.items), (&b.start, &b.items));
+        for c in 0..grid.num_cells() {
+            let want: Vec<u32> =
+                (0..pos.len() as u32).filter(|&p| cell_of(&grid, pos[p as usize]) == c).collect();
+            assert_eq!(a.cell(c), &want[..], "cell {c}");
+        }
+    }
+
+    #[test]
+    fn deposit_is_the_serial_scatter_with_any_thread_count() {
+        let grid = Grid { n: [6, 5, 8], dx: 0.1 };
+        let mut pos = scattered(&grid, 4000);
+        // Two outside the tank, whose folded slabs are not adjacent.
+        pos.insert(17, Vec3::new(0.21, 0.33, -0.25));
+        pos.push(Vec3::new(0.43, 0.12, 1.06));
+        let run = |t: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+            pool.install(|| particle_density(&pos, &grid, 8, None))
+        };
+        let (a, b) = (run(1), run(2));
+        assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+        let mut serial = vec![0.0; grid.num_cells()];
+        for x in &pos {
+            let (idx, w, _) = deposit_weights(&grid, *x);
+            for c in 0..8 {
+                let (bi, bj, bk) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
+                serial[grid.cell(idx[0][bi], idx[1][bj], idx[2][bk])] +=
+                    w[0][bi] * w[1][bj] * w[2][bk] / 8.0;
+            }
+        }
+        for (x, y) in a.iter().zip(&serial) {
+            assert!((x - y).abs() <= 1e-13, "{x} against {y}");
+        }
+        let total: f64 = a.iter().sum();
+        assert!((total - pos.len() as f64 / 8.0).abs() < 1e-9, "each particle deposits one unit");
+    }
 
     #[test]
     fn radius_for_eight_per_cell() {

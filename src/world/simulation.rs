@@ -1122,7 +1122,7 @@ impl Simulation {
             surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,
             theta_min: solver.theta_min,
-            solve: solver.linear(),
+            solve: solver.density_linear(),
             band: self.band.as_deref(),
             systems: Some(self.spare.systems()),
         })
