@@ -346,12 +346,13 @@ fn step_adjoint(
 
     // 4ᵀ: projection.
     let adj_v: Vec<[f64; 6]> = sys.coupled.iter().map(|&i| vbar[i]).collect();
+    let how = settings.solver.linear();
     let (uhat_bar, vhat_bar, s, stats) =
-        sys.pressure.projection_adjoint(&ubar, &adj_v, &settings.solver.linear());
+        sys.pressure.projection_adjoint(&ubar, &adj_v, &sys.geometry.weights, &how);
     // The surface's part: ∂L/∂φ_L through the ghost-fluid θ (cells whose φ the extension
     // into solids set carry none).
     let phi_bar = particle_phi.as_ref().map(|pp| {
-        let mut g = sys.pressure.phi_adjoint(&sys.phi, &s, &rec.p, &ubar);
+        let mut g = sys.pressure.phi_adjoint(&sys.phi, &sys.geometry.weights, &s, &rec.p, &ubar);
         for (c, x) in g.iter_mut().enumerate() {
             if sys.phi[c] != pp[c] {
                 *x = 0.0;

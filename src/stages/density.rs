@@ -225,7 +225,7 @@ impl DensityProjection {
         }
         surface::particle_density_adjoint(particles, grid, g.particles_per_cell, &dens_bar, pbar);
         // The operator and the update read φ through the ghost-fluid θ.
-        let phi_bar = self.sys.phi_adjoint(&self.phi, &s, q, &dbar);
+        let phi_bar = self.sys.phi_adjoint(&self.phi, g.weights, &s, q, &dbar);
         surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &phi_bar, pbar);
         g.give_back(None, Some(d));
         (s, stats)

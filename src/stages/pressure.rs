@@ -27,25 +27,45 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// The pressure gradient across one face in terms of the rows beside it (see
-/// [`PressureSystem::face_gradient`]).
-#[derive(Clone, Copy, Debug)]
+/// [`PressureSystem::face_gradient`]): `c·(p[rp] − p[rm])` with p = 0 on a side in air. A
+/// face between two rows has c = 1; a face with one side in air carries the ghost-fluid 1/θ
+/// on its liquid side. One coefficient for both sides keeps a projected face at 16 bytes.
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FaceGradient {
     /// Row on the − side ([`NONE`] in air).
     pub rm: u32,
-    /// Its coefficient.
-    pub cm: f64,
     /// Row on the + side ([`NONE`] in air).
     pub rp: u32,
-    /// Its coefficient.
-    pub cp: f64,
+    /// The coefficient of each side that is a row.
+    pub c: f64,
 }
 
 impl FaceGradient {
+    /// The − side's coefficient (0 in air).
+    #[inline]
+    pub fn cm(&self) -> f64 {
+        if self.rm != NONE {
+            self.c
+        } else {
+            0.0
+        }
+    }
+
+    /// The + side's coefficient (0 in air).
+    #[inline]
+    pub fn cp(&self) -> f64 {
+        if self.rp != NONE {
+            self.c
+        } else {
+            0.0
+        }
+    }
+
     /// `cp·p[rp] − cm·p[rm]`.
     #[inline]
     pub fn apply(&self, p: &[f64]) -> f64 {
-        let at = |r: u32, c: f64| if c != 0.0 { c * p[r as usize] } else { 0.0 };
-        at(self.rp, self.cp) - at(self.rm, self.cm)
+        let at = |r: u32| if r != NONE { self.c * p[r as usize] } else { 0.0 };
+        at(self.rp) - at(self.rm)
     }
 }
 
@@ -178,24 +198,39 @@ pub struct SystemMemory {
 }
 
 /// The [`SystemMemory`]s of the systems a simulation built last, for the next ones: each
-/// system takes one, and gives its own back when done. It keeps two (a step's adjoint holds
-/// the pressure system while it builds the density projection's; a forward step never holds
-/// both); a system built while none is kept allocates afresh. It also keeps one face field
-/// for whichever stage needs one next (the density projection's displacement, then the
-/// step's advected velocity), so that no field lies idle through a stage.
+/// system takes one, and gives its own back when done. It keeps as many as were ever taken
+/// and not yet given back at once, at most two: one for a forward step (its density
+/// projection's system is given back before the pressure's is built, so keeping a second
+/// would hold some 130 bytes a liquid cell idle all run), two once a step's adjoint has held
+/// the pressure system while it built the density projection's. A system built while none is
+/// kept allocates afresh. It also keeps one face field for whichever stage needs one next
+/// (the density projection's displacement, then the step's advected velocity), so that no
+/// field lies idle through a stage.
 #[derive(Default)]
 pub struct SystemPool {
-    systems: std::sync::Mutex<Vec<SystemMemory>>,
+    systems: std::sync::Mutex<PoolState>,
     field: std::sync::Mutex<Option<Mac>>,
 }
 
-/// Memories a [`SystemPool`] keeps.
+#[derive(Default)]
+struct PoolState {
+    kept: Vec<SystemMemory>,
+    /// Memories taken and not given back.
+    out: usize,
+    /// The most ever out at once (at most [`POOL_SIZE`]): how many are worth keeping.
+    most: usize,
+}
+
+/// The most memories a [`SystemPool`] keeps.
 const POOL_SIZE: usize = 2;
 
 impl SystemPool {
     /// The memory given back last (empty when none is kept).
     pub fn take(&self) -> SystemMemory {
-        self.systems.lock().ok().and_then(|mut m| m.pop()).unwrap_or_default()
+        let Ok(mut m) = self.systems.lock() else { return SystemMemory::default() };
+        m.out += 1;
+        m.most = m.most.max(m.out).min(POOL_SIZE);
+        m.kept.pop().unwrap_or_default()
     }
 
     /// A face field of `grid`'s size to overwrite (the one kept, or zeros).
@@ -214,14 +249,15 @@ impl SystemPool {
         }
     }
 
-    /// Keeps `sys`'s memory for the next system (the oldest kept one goes when the pool is
-    /// full).
+    /// Keeps `sys`'s memory for the next system (the oldest kept one goes when the pool
+    /// holds as many as are worth keeping).
     pub fn give(&self, sys: PressureSystem) {
         if let Ok(mut m) = self.systems.lock() {
-            if m.len() == POOL_SIZE {
-                m.remove(0);
+            m.out = m.out.saturating_sub(1);
+            if m.kept.len() >= m.most.max(1) {
+                m.kept.remove(0);
             }
-            m.push(sys.into_memory());
+            m.kept.push(sys.into_memory());
         }
     }
 }
@@ -237,8 +273,6 @@ impl std::fmt::Debug for SystemPool {
 pub struct ProjectedFace {
     /// Face index on its axis's lattice.
     pub face: u32,
-    /// Its fluid weight.
-    pub weight: f64,
     /// The pressure gradient across it.
     pub gradient: FaceGradient,
 }
@@ -500,7 +534,7 @@ impl PressureSystem {
                     }
                     let c = c0 + i;
                     if let Some(gradient) = self.gradient_between(c - below, c, phi) {
-                        emit(ProjectedFace { face: f as u32, weight: w[f], gradient });
+                        emit(ProjectedFace { face: f as u32, gradient });
                     }
                 }
             }
@@ -513,8 +547,8 @@ impl PressureSystem {
                 count
             })
             .collect();
-        let empty = FaceGradient { rm: NONE, cm: 0.0, rp: NONE, cp: 0.0 };
-        refill(out, counts.iter().sum(), ProjectedFace { face: 0, weight: 0.0, gradient: empty });
+        let empty = FaceGradient { rm: NONE, rp: NONE, c: 0.0 };
+        refill(out, counts.iter().sum(), ProjectedFace { face: 0, gradient: empty });
         let mut slabs = Vec::with_capacity(nz);
         let mut rest = out.as_mut_slice();
         for &c in &counts {
@@ -667,12 +701,12 @@ impl PressureSystem {
         let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[pl]);
         let tmin = self.params.theta_min;
         match (rm != NONE, rp != NONE) {
-            (true, true) => Some(FaceGradient { rm, cm: 1.0, rp, cp: 1.0 }),
+            (true, true) => Some(FaceGradient { rm, rp, c: 1.0 }),
             (true, false) => {
-                Some(FaceGradient { rm, cm: 1.0 / ghost_theta(phi[m], phi[pl], tmin), rp, cp: 0.0 })
+                Some(FaceGradient { rm, rp, c: 1.0 / ghost_theta(phi[m], phi[pl], tmin) })
             }
             (false, true) => {
-                Some(FaceGradient { rm, cm: 0.0, rp, cp: 1.0 / ghost_theta(phi[pl], phi[m], tmin) })
+                Some(FaceGradient { rm, rp, c: 1.0 / ghost_theta(phi[pl], phi[m], tmin) })
             }
             (false, false) => None,
         }
@@ -694,13 +728,7 @@ impl PressureSystem {
         let Some(fg) = self.face_gradient(axis, f, weights, phi) else {
             return 0.0;
         };
-        let theta = if fg.cp == 0.0 {
-            1.0 / fg.cm
-        } else if fg.cm == 0.0 {
-            1.0 / fg.cp
-        } else {
-            1.0
-        };
+        let theta = 1.0 / fg.c;
         let scale = self.params.dt * self.grid.dx / self.params.density;
         scale * theta * fg.apply(s) * fg.apply(p)
     }
@@ -710,7 +738,15 @@ impl PressureSystem {
     /// and the adjoint `ubar` of the updated velocity: dL = −sᵀ·(∂A/∂θ)·p·dθ + ūᵀ·(∂u/∂θ)·dθ,
     /// with A ∋ Δt·dx/ρ·w/θ on the liquid cell's diagonal and u_f = û_f ∓ k·p_l/θ. Zero where
     /// θ is clamped at θ_min.
-    pub fn phi_adjoint(&self, phi: &[f64], s: &[f64], p: &[f64], ubar: &Mac) -> Vec<f64> {
+    /// `weights` are the face weights the system was built with.
+    pub fn phi_adjoint(
+        &self,
+        phi: &[f64],
+        weights: &[Vec<f64>; 3],
+        s: &[f64],
+        p: &[f64],
+        ubar: &Mac,
+    ) -> Vec<f64> {
         let mut out = vec![0.0; self.grid.num_cells()];
         let scale = self.params.dt * self.grid.dx / self.params.density;
         let k = self.params.dt / (self.params.density * self.grid.dx);
@@ -719,7 +755,7 @@ impl PressureSystem {
             for pf in &self.faces[a] {
                 let g = &pf.gradient;
                 // The liquid row and its side: + side liquid when the − side is air.
-                let (r, sign) = match (g.cm == 0.0, g.cp == 0.0) {
+                let (r, sign) = match (g.rm == NONE, g.rp == NONE) {
                     (true, false) => (g.rp as usize, 1.0),
                     (false, true) => (g.rm as usize, -1.0),
                     _ => continue,
@@ -734,7 +770,7 @@ impl PressureSystem {
                 }
                 let theta2 = raw * raw;
                 // u_f = û_f − k·sign·p_l/θ.
-                let theta_bar = s[r] * scale * pf.weight * p[r] / theta2
+                let theta_bar = s[r] * scale * weights[a][pf.face as usize] * p[r] / theta2
                     + ubar.c[a][pf.face as usize] * sign * k * p[r] / theta2;
                 let den = (pl_ - pa) * (pl_ - pa);
                 out[l] += theta_bar * (-pa) / den;
@@ -756,11 +792,11 @@ impl PressureSystem {
                     continue;
                 }
                 let g = &pf.gradient;
-                if g.cp != 0.0 {
-                    out[g.rp as usize] -= k * g.cp * adj;
+                if g.rp != NONE {
+                    out[g.rp as usize] -= k * g.c * adj;
                 }
-                if g.cm != 0.0 {
-                    out[g.rm as usize] += k * g.cm * adj;
+                if g.rm != NONE {
+                    out[g.rm as usize] += k * g.c * adj;
                 }
             }
         }
@@ -768,8 +804,9 @@ impl PressureSystem {
     }
 
     /// Transpose of [`PressureSystem::fluid_flux`]: the face adjoint `dx²·w_f·(s_m − s_p)`
-    /// from a row adjoint `s` (zero in air and solid).
-    pub fn fluid_flux_adjoint(&self, s: &[f64]) -> Mac {
+    /// from a row adjoint `s` (zero in air and solid), for the system's face weights
+    /// `weights`.
+    pub fn fluid_flux_adjoint(&self, s: &[f64], weights: &[Vec<f64>; 3]) -> Mac {
         let grid = &self.grid;
         let area = grid.dx * grid.dx;
         let mut out = Mac::zeros(grid);
@@ -777,7 +814,8 @@ impl PressureSystem {
         for a in 0..3 {
             for pf in &self.faces[a] {
                 let g = &pf.gradient;
-                out.c[a][pf.face as usize] = area * pf.weight * (sv(g.rm) - sv(g.rp));
+                let f = pf.face as usize;
+                out.c[a][f] = area * weights[a][f] * (sv(g.rm) - sv(g.rp));
             }
         }
         out
@@ -788,10 +826,12 @@ impl PressureSystem {
     /// projected face velocities `adj_u` and of the bodies' `[v; ω]` after the solve, one more
     /// solve with the same operator gives `s`, and the adjoints before the projection are
     /// `adj_u − Fᵀ s` and `adj_v − J s`. Returns (adjoint of u, of each body's velocity, s).
+    /// `weights` are the face weights the system was built with.
     pub fn projection_adjoint(
         &self,
         adj_u: &Mac,
         adj_v: &[[f64; 6]],
+        weights: &[Vec<f64>; 3],
         how: &LinearSolve,
     ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
         let mut pbar = self.update_velocity_adjoint(adj_u);
@@ -801,7 +841,7 @@ impl PressureSystem {
         // No warm start here: the adjoint pressure of the step after this one saves half an
         // iteration of 18 on block_drop.
         let (s, stats) = self.solve(&pbar, how);
-        let ft = self.fluid_flux_adjoint(&s);
+        let ft = self.fluid_flux_adjoint(&s, weights);
         let mut u_hat = adj_u.clone();
         for a in 0..3 {
             for (x, y) in u_hat.c[a].iter_mut().zip(&ft.c[a]) {
@@ -1015,8 +1055,7 @@ mod tests {
             for pf in &sys.faces[a] {
                 let g = sys.face_gradient(a, pf.face as usize, &weights, &phi).unwrap();
                 let h = pf.gradient;
-                assert_eq!((g.rm, g.cm, g.rp, g.cp), (h.rm, h.cm, h.rp, h.cp), "face {}", pf.face);
-                assert_eq!(pf.weight, weights[a][pf.face as usize]);
+                assert_eq!(g, h, "face {}", pf.face);
             }
         }
     }
@@ -1050,7 +1089,7 @@ mod tests {
         for a in 0..3 {
             let key = |f: &ProjectedFace| {
                 let g = f.gradient;
-                (f.face, f.weight.to_bits(), g.rm, g.cm.to_bits(), g.rp, g.cp.to_bits())
+                (f.face, g.rm, g.rp, g.c.to_bits())
             };
             let (x, y): (Vec<_>, Vec<_>) =
                 (reused.faces[a].iter().map(key).collect(), sys.faces[a].iter().map(key).collect());
@@ -1107,7 +1146,7 @@ mod tests {
         let dv = sys.bodies[0].dt_minv_times(&sys.bodies[0].force(&p));
         let v1: [f64; 6] = std::array::from_fn(|d| vh[d] + dv[d]);
         // Adjoint.
-        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &how);
+        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &weights, &how);
         let lhs = u1.dot(&ub) + (0..6).map(|d| v1[d] * vb[d]).sum::<f64>();
         let rhs = uh.dot(&ua) + (0..6).map(|d| vh[d] * va[0][d]).sum::<f64>();
         assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");
@@ -1144,7 +1183,7 @@ mod tests {
         };
         let (_, p) = run(&phi);
         let (s, _) = sys.solve(&sys.update_velocity_adjoint(&c), &how);
-        let g = sys.phi_adjoint(&phi, &s, &p, &c);
+        let g = sys.phi_adjoint(&phi, &weights, &s, &p, &c);
         assert!(g.iter().filter(|x| **x != 0.0).count() > 20, "the surface cells carry a gradient");
         let d: Vec<f64> = (0..phi.len()).map(|i| ((i * 13) % 7) as f64 / 3.0 - 1.0).collect();
         let eps = 1e-8;
