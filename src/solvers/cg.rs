@@ -69,11 +69,14 @@ where
     M: Fn(&[f64], &mut [f64]),
 {
     let n = b.len();
-    let mut b0 = b.to_vec();
-    if s.project_constant {
+    // ‖b‖ with the constant removed (a copy of b only when there is one to remove).
+    let bnorm = if s.project_constant {
+        let mut b0 = b.to_vec();
         remove_mean(&mut b0);
-    }
-    let bnorm = dot(&b0, &b0).sqrt();
+        dot(&b0, &b0).sqrt()
+    } else {
+        dot(b, b).sqrt()
+    };
     if bnorm == 0.0 || n == 0 {
         x.iter_mut().for_each(|v| *v = 0.0);
         return CgStats { iterations: 0, relative_residual: 0.0, converged: true };
@@ -145,10 +148,11 @@ where
         remove_mean(x);
     }
     apply(x, &mut q);
-    let mut res: Vec<f64> = b.iter().zip(&q).map(|(bi, qi)| bi - qi).collect();
+    let res = &mut r;
+    res.par_iter_mut().zip(b.par_iter().zip(q.par_iter())).for_each(|(ri, (bi, qi))| *ri = bi - qi);
     if s.project_constant {
-        remove_mean(&mut res);
+        remove_mean(res);
     }
-    let rel = dot(&res, &res).sqrt() / bnorm;
+    let rel = dot(res, res).sqrt() / bnorm;
     CgStats { iterations: it, relative_residual: rel, converged: rel <= s.tolerance }
 }
