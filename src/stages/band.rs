@@ -133,7 +133,7 @@ fn stencil(m: usize) -> [f64; 3] {
 pub fn full_density(grid: &Grid, deep: &[bool], m: usize) -> Vec<f64> {
     let w = stencil(m);
     let n = grid.n;
-    let mut f: Vec<f64> = deep.iter().map(|&d| if d { 1.0 } else { 0.0 }).collect();
+    let mut f: Vec<f64> = deep.par_iter().map(|&d| if d { 1.0 } else { 0.0 }).collect();
     for axis in 0..3 {
         let stride = [1, n[0], n[0] * n[1]][axis];
         let len = n[axis];
@@ -212,12 +212,8 @@ pub fn update(
         .collect();
     // Deletions: everything in a deep cell, and what the deep cells take in, in cell order
     // (a particle two cells would take goes to the first; the other keeps its debt).
-    let mut gone = vec![false; particles.len()];
-    for c in (0..deep.len()).filter(|&c| deep[c]) {
-        for &p in bins.cell(c) {
-            gone[p as usize] = true;
-        }
-    }
+    let mut gone: Vec<bool> =
+        particles.par_iter().map(|x| deep[surface::cell_of(grid, *x)]).collect();
     let before = particles.len();
     let mut added = 0;
     let mut seeded = Vec::new();
