@@ -7,6 +7,7 @@
 
 use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
+use rayon::prelude::*;
 
 /// Faces whose advected value the step reads, per axis (see [`needed_faces`]); `None` in the
 /// functions below means every face.
@@ -16,23 +17,30 @@ pub type FaceMask = [Vec<bool>; 3];
 /// after extension into solids: the projection's faces) and those a body covers (the velocity correction mixes the fluid
 /// velocity there with the body's). Every other face is overwritten by extrapolation or set
 /// to zero before the step ends, so advecting it would be wasted work: with the mask, air
-/// far from the liquid costs nothing here.
+/// far from the liquid costs nothing here. An empty `phi` marks the bodies' faces alone.
 pub fn needed_faces(
     grid: &Grid,
     phi: &[f64],
     body_faces: &[crate::geometry::fractions::BodyFaces],
 ) -> FaceMask {
-    let cells = grid.cells();
+    let n = grid.n;
     let mut mask = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
     for (a, m) in mask.iter_mut().enumerate() {
+        // A face is needed when the cell on either side of it is liquid (no φ: none is).
         let lat = grid.faces(a);
-        for (c, _) in phi.iter().enumerate().filter(|(_, p)| **p < 0.0) {
-            let [i, j, k] = cells.ijk(c);
-            m[lat.index(i, j, k)] = true;
-            let mut hi = [i, j, k];
-            hi[a] += 1;
-            m[lat.index(hi[0], hi[1], hi[2])] = true;
-        }
+        let below = [1, n[0], n[0] * n[1]][a];
+        let slabs = if phi.is_empty() { 0 } else { lat.n[2] };
+        m[..slabs * lat.slab()].par_chunks_mut(lat.slab()).enumerate().for_each(|(k, slab)| {
+            for j in 0..lat.n[1] {
+                for i in 0..lat.n[0] {
+                    let at = [i, j, k][a];
+                    let c = grid.cell(i.min(n[0] - 1), j.min(n[1] - 1), k.min(n[2] - 1));
+                    let plus = at < n[a] && phi[c] < 0.0;
+                    let minus = at > 0 && phi[if at < n[a] { c - below } else { c }] < 0.0;
+                    slab[i + lat.n[0] * j] = plus || minus;
+                }
+            }
+        });
         for bf in body_faces {
             for &(f, _) in &bf.faces[a] {
                 m[f] = true;
@@ -84,19 +92,19 @@ pub fn face_velocity(u: &Mac, grid: &Grid, axis: usize, ijk: [usize; 3], f: usiz
 /// Transpose of [`face_velocity`]: adds `Σ_b coef_b · ∂v_b/∂u` into `out`.
 #[inline]
 fn face_velocity_adjoint(
-    out: &mut Mac,
+    out: &mut Scatter<'_>,
     grid: &Grid,
     axis: usize,
     ijk: [usize; 3],
     f: usize,
     coef: Vec3,
 ) {
-    out.c[axis][f] += crate::math::comp(coef, axis);
+    out.add(axis, f, crate::math::comp(coef, axis));
     for b in (0..3).filter(|&b| b != axis) {
         let c = 0.25 * crate::math::comp(coef, b);
         if c != 0.0 {
             for q in cross_faces(grid, axis, ijk, b) {
-                out.c[b][q] += c;
+                out.add(b, q, c);
             }
         }
     }
@@ -129,6 +137,27 @@ pub fn advect_into(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>, out: 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn needed_faces_are_the_faces_of_liquid_cells() {
+        let grid = Grid { n: [6, 5, 7], dx: 0.1 };
+        let cells = grid.cells();
+        let phi: Vec<f64> = (0..cells.len()).map(|c| ((c * 7919) % 13) as f64 - 6.5).collect();
+        let mask = needed_faces(&grid, &phi, &[]);
+        for a in 0..3 {
+            let lat = grid.faces(a);
+            let mut want = vec![false; lat.len()];
+            for c in (0..cells.len()).filter(|&c| phi[c] < 0.0) {
+                let [i, j, k] = cells.ijk(c);
+                let mut hi = [i, j, k];
+                hi[a] += 1;
+                want[lat.index(i, j, k)] = true;
+                want[lat.index(hi[0], hi[1], hi[2])] = true;
+            }
+            assert_eq!(mask[a], want, "axis {a}");
+        }
+        assert!(needed_faces(&grid, &[], &[]).iter().all(|m| m.iter().all(|x| !x)));
+    }
 
     #[test]
     fn uniform_flow_is_preserved() {
@@ -169,30 +198,84 @@ pub fn advect_tangent(u: &Mac, du: &Mac, grid: &Grid, dt: f64, mask: Option<&Fac
 }
 
 /// Adjoint of [`advect`] at `u`: `(W + ∂W/∂u·u)ᵀ·adj` (paper, eq. 4), the exact transpose of
-/// [`advect_tangent`] with the same mask. A scatter, run in face order on one thread so it is
-/// deterministic.
+/// [`advect_tangent`] with the same mask. A scatter, in parallel and deterministic: a face
+/// scatters only within `reach` z-slabs of its own (its backtrace moves at most Δt·max|w|,
+/// its stencils add a slab each way), so the faces are taken in blocks of 2·`reach` slabs,
+/// the even blocks in parallel and then the odd ones (blocks of one parity write disjoint
+/// slabs), each block's faces in face order. The order in which a sample's sums are taken
+/// depends on the field only, never on the thread count.
 pub fn advect_adjoint(u: &Mac, adj: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>) -> Mac {
     let mut out = Mac::zeros(grid);
-    for axis in 0..3 {
+    let w_max = u.c[2].iter().fold(0.0f64, |m, w| m.max(w.abs()));
+    let reach = (dt * w_max / grid.dx).ceil() as usize + 2;
+    let block = 2 * reach;
+    // Slabs of each lattice along z (the z faces have one more).
+    let slabs = [0, 1, 2].map(|a| grid.faces(a).n[2]);
+    let blocks = slabs.iter().max().expect("three axes").div_ceil(block);
+    let face = |axis: usize, g: usize, out: &mut Scatter<'_>| {
         let lat = grid.faces(axis);
-        for g in 0..lat.len() {
-            let a = adj.c[axis][g];
-            if a == 0.0 || mask.is_some_and(|m| !m[axis][g]) {
-                continue;
-            }
-            let ijk = lat.ijk(g);
-            let xb =
-                lat.position(ijk[0], ijk[1], ijk[2]) - dt * face_velocity(u, grid, axis, ijk, g);
-            let sb = lat.stencil(xb);
-            let mut grad = Vec3::ZERO;
-            for c in 0..8 {
-                out.c[axis][sb.idx[c]] += a * sb.w[c];
-                grad += sb.dw[c] * u.c[axis][sb.idx[c]];
-            }
-            face_velocity_adjoint(&mut out, grid, axis, ijk, g, (-dt * a) * grad);
+        let a = adj.c[axis][g];
+        if a == 0.0 || mask.is_some_and(|m| !m[axis][g]) {
+            return;
         }
+        let ijk = lat.ijk(g);
+        let xb = lat.position(ijk[0], ijk[1], ijk[2]) - dt * face_velocity(u, grid, axis, ijk, g);
+        let sb = lat.stencil(xb);
+        let mut grad = Vec3::ZERO;
+        for c in 0..8 {
+            out.add(axis, sb.idx[c], a * sb.w[c]);
+            grad += sb.dw[c] * u.c[axis][sb.idx[c]];
+        }
+        face_velocity_adjoint(out, grid, axis, ijk, g, (-dt * a) * grad);
+    };
+    for parity in 0..2 {
+        // Each block of this parity owns the slabs within `reach` of its own.
+        let mut parts: Vec<(usize, Scatter<'_>)> = Vec::new();
+        let mut rest: [&mut [f64]; 3] = {
+            let [x, y, z] = &mut out.c;
+            [x.as_mut_slice(), y.as_mut_slice(), z.as_mut_slice()]
+        };
+        let mut at = [0usize; 3];
+        for j in (parity..blocks).step_by(2) {
+            let lo = (j * block).saturating_sub(reach);
+            let mut pieces: [&mut [f64]; 3] = Default::default();
+            let mut first = [0usize; 3];
+            for a in 0..3 {
+                let slab = grid.faces(a).slab();
+                let l = lo.min(slabs[a]) * slab;
+                let h = ((j + 1) * block + reach).min(slabs[a]) * slab;
+                // Blocks of one parity are 2·reach slabs apart: their shares follow in order.
+                let (_, tail) = std::mem::take(&mut rest[a]).split_at_mut(l - at[a]);
+                let (mine, tail) = tail.split_at_mut(h - l);
+                (pieces[a], rest[a], first[a], at[a]) = (mine, tail, l, h);
+            }
+            parts.push((j, Scatter { pieces, first }));
+        }
+        parts.into_par_iter().for_each(|(j, mut sc)| {
+            for axis in 0..3 {
+                let slab = grid.faces(axis).slab();
+                let z = (j * block).min(slabs[axis])..((j + 1) * block).min(slabs[axis]);
+                for g in z.start * slab..z.end * slab {
+                    face(axis, g, &mut sc);
+                }
+            }
+        });
     }
     out
+}
+
+/// One block's share of the three components of the adjoint field: the samples of each
+/// component from `first[a]` on.
+struct Scatter<'a> {
+    pieces: [&'a mut [f64]; 3],
+    first: [usize; 3],
+}
+
+impl Scatter<'_> {
+    #[inline]
+    fn add(&mut self, axis: usize, idx: usize, v: f64) {
+        self.pieces[axis][idx - self.first[axis]] += v;
+    }
 }
 
 #[cfg(test)]
@@ -254,6 +337,29 @@ mod adjoint_tests {
             let lhs = advect_tangent(&u, &du, &grid, dt, m).dot(&w);
             let rhs = du.dot(&advect_adjoint(&u, &w, &grid, dt, m));
             assert!((lhs - rhs).abs() <= 1e-12 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");
+        }
+    }
+
+    /// Tall grids, so the scatter runs in many blocks of both parities, at a Δt that moves a
+    /// backtrace less than a slab and at one that moves it several: still the transpose, and
+    /// the same bits on one thread as on two.
+    #[test]
+    fn blocked_adjoint_is_the_transpose_with_any_thread_count() {
+        let grid = Grid { n: [5, 4, 37], dx: 0.1 };
+        let (u, du, w) = (field(&grid, 5), field(&grid, 6), field(&grid, 7));
+        let mask = some_faces(&grid);
+        for dt in [0.05, 0.6] {
+            let lhs = advect_tangent(&u, &du, &grid, dt, Some(&mask)).dot(&w);
+            let run = |t: usize| {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+                pool.install(|| advect_adjoint(&u, &w, &grid, dt, Some(&mask)))
+            };
+            let (one, two) = (run(1), run(2));
+            let rhs = du.dot(&two);
+            assert!((lhs - rhs).abs() <= 1e-12 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");
+            for a in 0..3 {
+                assert!(one.c[a].iter().zip(&two.c[a]).all(|(x, y)| x.to_bits() == y.to_bits()));
+            }
         }
     }
 

@@ -149,21 +149,46 @@ pub fn correct_velocity(
 pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers: usize) {
     let lay = Layers::new(valid0, lat, layers);
     // Faces left invalid were set to zero: nothing flows back from them.
-    for (a, &lev) in adj.iter_mut().zip(&lay.level) {
+    adj.par_iter_mut().zip(lay.level.par_iter()).for_each(|(a, &lev)| {
         if lev == NEVER {
             *a = 0.0;
         }
-    }
-    let mut nb = [0usize; 6];
+    });
     for (l, front) in lay.fronts.iter().enumerate().rev() {
-        for &idx in front {
-            // Set in layer l to the mean of its known neighbours; its old value unused.
-            let a = std::mem::take(&mut adj[idx]);
-            let n = neighbours(lat, idx, |m| lay.known_before(m, l), &mut nb);
-            for &m in &nb[..n] {
-                adj[m] += a / n as f64;
-            }
-        }
+        // A face of the front was set to the mean of its n neighbours known before the
+        // layer: each of them gets adj/n of it back, gathered per neighbour (in parallel,
+        // each sum in the order of the directions), then the front's own values are spent.
+        let known = |m: usize| lay.known_before(m, l);
+        let share = |idx: usize| {
+            let mut nb = [0usize; 6];
+            adj[idx] / neighbours(lat, idx, known, &mut nb) as f64
+        };
+        let mut targets: Vec<usize> = front
+            .par_chunks(CHUNK)
+            .flat_map_iter(|chunk| {
+                let mut found = Vec::new();
+                let mut nb = [0usize; 6];
+                for &idx in chunk {
+                    let n = neighbours(lat, idx, known, &mut nb);
+                    found.extend_from_slice(&nb[..n]);
+                }
+                found
+            })
+            .collect();
+        targets.par_sort_unstable();
+        targets.dedup();
+        let set_in_layer = |m: usize| lay.level[m] as usize == l + 1;
+        let adds: Vec<(usize, f64)> = targets
+            .par_iter()
+            .with_min_len(CHUNK)
+            .map(|&m| {
+                let mut nb = [0usize; 6];
+                let n = neighbours(lat, m, set_in_layer, &mut nb);
+                (m, nb[..n].iter().map(|&idx| share(idx)).sum())
+            })
+            .collect();
+        for_each_keyed_mut(adj, front, |&i| i, |_, _, a| *a = 0.0);
+        for_each_keyed_mut(adj, &adds, |p| p.0, |_, p, a| *a += p.1);
     }
 }
 
@@ -177,11 +202,11 @@ pub fn correct_velocity_adjoint(
     layers: usize,
 ) {
     for a in 0..3 {
-        for (x, w) in adj.c[a].iter_mut().zip(&weights[a]) {
+        adj.c[a].par_iter_mut().zip(weights[a].par_iter()).for_each(|(x, w)| {
             if *w <= 0.0 {
                 *x = 0.0;
             }
-        }
+        });
         extrapolate_adjoint(&mut adj.c[a], &valid0[a], &grid.faces(a), layers);
     }
 }
