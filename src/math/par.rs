@@ -5,6 +5,17 @@ use rayon::prelude::*;
 /// Elements of an index list handed to rayon as one piece.
 const CHUNK: usize = 4096;
 
+/// The fewest elements a parallel loop splits off: below it a loop runs on the calling
+/// thread, since waking a worker costs more than a small grid's loop (the block drop's
+/// 10,000 cells take a hundred-odd such loops a step).
+pub const MIN_LEN: usize = 16_384;
+
+/// For a loop over pieces of `piece` elements each: the fewest pieces to split off (see
+/// [`MIN_LEN`]).
+pub fn min_pieces(piece: usize) -> usize {
+    (MIN_LEN / piece.max(1)).max(1)
+}
+
 /// Calls `f(n, e, &mut out[key(e)])` for every entry `e` of `list` (`n` its position), in
 /// parallel. The keys must
 /// increase strictly along `list` (a sorted list of faces or cells), so each call owns its
@@ -29,7 +40,7 @@ where
         parts.push((n * CHUNK, *chunk, mine, lo));
         (rest, offset) = (tail, hi);
     }
-    parts.into_par_iter().for_each(|(first, chunk, mine, lo)| {
+    parts.into_par_iter().with_min_len(min_pieces(CHUNK)).for_each(|(first, chunk, mine, lo)| {
         for (n, e) in chunk.iter().enumerate() {
             f(first + n, e, &mut mine[key(e) - lo]);
         }
@@ -43,7 +54,11 @@ where
     E: Sync,
     F: Fn(&E) -> f64 + Sync,
 {
-    let parts: Vec<f64> = list.par_chunks(CHUNK).map(|c| c.iter().map(&f).sum::<f64>()).collect();
+    let parts: Vec<f64> = list
+        .par_chunks(CHUNK)
+        .with_min_len(min_pieces(CHUNK))
+        .map(|c| c.iter().map(&f).sum::<f64>())
+        .collect();
     parts.iter().sum()
 }
 

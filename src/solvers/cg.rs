@@ -149,7 +149,10 @@ where
     }
     apply(x, &mut q);
     let res = &mut r;
-    res.par_iter_mut().zip(b.par_iter().zip(q.par_iter())).for_each(|(ri, (bi, qi))| *ri = bi - qi);
+    res.par_iter_mut()
+        .zip(b.par_iter().zip(q.par_iter()))
+        .with_min_len(crate::math::par::MIN_LEN)
+        .for_each(|(ri, (bi, qi))| *ri = bi - qi);
     if s.project_constant {
         remove_mean(res);
     }

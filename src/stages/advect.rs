@@ -6,6 +6,7 @@
 //! derivative is simple: the map is `W(u)·u`, and its adjoint is `(W + ∂W/∂u·u)ᵀ` (eq. 4).
 
 use crate::geometry::grid::{Grid, Mac};
+use crate::math::par::min_pieces;
 use crate::math::Vec3;
 use rayon::prelude::*;
 
@@ -30,7 +31,8 @@ pub fn needed_faces(
         let lat = grid.faces(a);
         let below = [1, n[0], n[0] * n[1]][a];
         let slabs = if phi.is_empty() { 0 } else { lat.n[2] };
-        m[..slabs * lat.slab()].par_chunks_mut(lat.slab()).enumerate().for_each(|(k, slab)| {
+        let pieces = m[..slabs * lat.slab()].par_chunks_mut(lat.slab());
+        pieces.with_min_len(min_pieces(lat.slab())).enumerate().for_each(|(k, slab)| {
             for j in 0..lat.n[1] {
                 for i in 0..lat.n[0] {
                     let at = [i, j, k][a];
@@ -251,7 +253,9 @@ pub fn advect_adjoint(u: &Mac, adj: &Mac, grid: &Grid, dt: f64, mask: Option<&Fa
             }
             parts.push((j, Scatter { pieces, first }));
         }
-        parts.into_par_iter().for_each(|(j, mut sc)| {
+        // A block of a small grid is less work than waking a worker.
+        let per = min_pieces(block * grid.faces(0).slab());
+        parts.into_par_iter().with_min_len(per).for_each(|(j, mut sc)| {
             for axis in 0..3 {
                 let slab = grid.faces(axis).slab();
                 let z = (j * block).min(slabs[axis])..((j + 1) * block).min(slabs[axis]);

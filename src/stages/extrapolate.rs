@@ -8,7 +8,7 @@
 //! backward pass (paper, eq. 10).
 
 use crate::geometry::grid::{Grid, Lattice, Mac};
-use crate::math::par::for_each_keyed_mut;
+use crate::math::par::{for_each_keyed_mut, min_pieces, MIN_LEN};
 use rayon::prelude::*;
 
 /// Smallest piece of a face list handed to rayon.
@@ -56,11 +56,14 @@ struct Layers {
 impl Layers {
     fn new(valid0: &[u8], lat: &Lattice, layers: usize) -> Layers {
         assert!(layers < NEVER as usize - 1, "at most 253 extrapolation layers");
-        let mut level: Vec<u8> =
-            valid0.par_iter().map(|&v| if v != 0 { 0 } else { NEVER }).collect();
+        let mut level: Vec<u8> = valid0
+            .par_iter()
+            .with_min_len(MIN_LEN)
+            .map(|&v| if v != 0 { 0 } else { NEVER })
+            .collect();
         let mut last: Vec<usize> = (0..valid0.len())
             .into_par_iter()
-            .with_min_len(CHUNK)
+            .with_min_len(MIN_LEN)
             .filter(|&i| valid0[i] != 0)
             .collect();
         let mut fronts = Vec::with_capacity(layers);
@@ -70,6 +73,7 @@ impl Layers {
             let level_now = &level;
             let mut front: Vec<usize> = last
                 .par_chunks(CHUNK)
+                .with_min_len(min_pieces(CHUNK))
                 .flat_map_iter(|chunk| {
                     let mut found = Vec::new();
                     let mut nb = [0usize; 6];
@@ -114,15 +118,18 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
             .collect();
         for_each_keyed_mut(field, &values, |v| v.0, |_, v, x| *x = v.1);
     }
-    field.par_iter_mut().zip(valid.par_iter_mut()).zip(lay.level.par_iter()).for_each(
-        |((f, v), &lev)| {
+    field
+        .par_iter_mut()
+        .zip(valid.par_iter_mut())
+        .zip(lay.level.par_iter())
+        .with_min_len(MIN_LEN)
+        .for_each(|((f, v), &lev)| {
             if lev == NEVER {
                 *f = 0.0;
             } else {
                 *v = 1;
             }
-        },
-    );
+        });
 }
 
 /// Extrapolates all three components and then sets every face `weights` closes (weight 0:
@@ -136,11 +143,13 @@ pub fn correct_velocity(
 ) {
     for a in 0..3 {
         extrapolate(&mut u.c[a], &mut valid[a], &grid.faces(a), layers);
-        u.c[a].par_iter_mut().zip(weights[a].par_iter()).for_each(|(x, w)| {
-            if *w <= 0.0 {
-                *x = 0.0;
-            }
-        });
+        u.c[a].par_iter_mut().zip(weights[a].par_iter()).with_min_len(MIN_LEN).for_each(
+            |(x, w)| {
+                if *w <= 0.0 {
+                    *x = 0.0;
+                }
+            },
+        );
     }
 }
 
@@ -149,7 +158,7 @@ pub fn correct_velocity(
 pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers: usize) {
     let lay = Layers::new(valid0, lat, layers);
     // Faces left invalid were set to zero: nothing flows back from them.
-    adj.par_iter_mut().zip(lay.level.par_iter()).for_each(|(a, &lev)| {
+    adj.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(a, &lev)| {
         if lev == NEVER {
             *a = 0.0;
         }
@@ -165,6 +174,7 @@ pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers
         };
         let mut targets: Vec<usize> = front
             .par_chunks(CHUNK)
+            .with_min_len(min_pieces(CHUNK))
             .flat_map_iter(|chunk| {
                 let mut found = Vec::new();
                 let mut nb = [0usize; 6];
@@ -202,11 +212,13 @@ pub fn correct_velocity_adjoint(
     layers: usize,
 ) {
     for a in 0..3 {
-        adj.c[a].par_iter_mut().zip(weights[a].par_iter()).for_each(|(x, w)| {
-            if *w <= 0.0 {
-                *x = 0.0;
-            }
-        });
+        adj.c[a].par_iter_mut().zip(weights[a].par_iter()).with_min_len(MIN_LEN).for_each(
+            |(x, w)| {
+                if *w <= 0.0 {
+                    *x = 0.0;
+                }
+            },
+        );
         extrapolate_adjoint(&mut adj.c[a], &valid0[a], &grid.faces(a), layers);
     }
 }

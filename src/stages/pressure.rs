@@ -16,7 +16,7 @@
 
 use crate::geometry::grid::{Grid, Mac, NONE};
 use crate::math::buffer::{clear_for, refill};
-use crate::math::par::for_each_keyed_mut;
+use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use crate::math::Vec3;
 use crate::solvers::cg::{pcg_from, CgSettings, CgStats};
 use crate::solvers::mic0::Mic0;
@@ -411,7 +411,10 @@ impl PressureSystem {
             .sum();
         clear_for(&mut cell_of_row, rows);
         cell_of_row.par_extend(
-            (0..cells.len() as u32).into_par_iter().filter(|&c| row_of_cell[c as usize] != NONE),
+            (0..cells.len() as u32)
+                .into_par_iter()
+                .with_min_len(MIN_LEN)
+                .filter(|&c| row_of_cell[c as usize] != NONE),
         );
         for_each_keyed_mut(
             &mut row_of_cell,

@@ -12,6 +12,7 @@
 use crate::geometry::body::RigidBody;
 use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::shape::Solid;
+use crate::math::par::{min_pieces, MIN_LEN};
 use crate::math::{Pose, SharedShape, Vec3};
 use rayon::prelude::*;
 
@@ -389,7 +390,8 @@ impl Bins {
         let cell_of: Vec<u32> = pos.par_iter().map(|x| cell_of(grid, *x) as u32).collect();
         let by_slab = SlabBuckets::new(cell_of.iter().map(|&c| c as usize / slab), grid.n[2]);
         let mut start = vec![0u32; cells + 1];
-        start[..cells].par_chunks_mut(slab).enumerate().for_each(|(k, counts)| {
+        let slabs = start[..cells].par_chunks_mut(slab).with_min_len(min_pieces(slab));
+        slabs.enumerate().for_each(|(k, counts)| {
             for &p in by_slab.of(k) {
                 counts[cell_of[p as usize] as usize - k * slab] += 1;
             }
@@ -400,7 +402,8 @@ impl Bins {
         });
         start[cells] = pos.len() as u32;
         let mut items = vec![0u32; pos.len()];
-        by_slab.split_mut(&mut items).into_par_iter().enumerate().for_each(|(k, part)| {
+        let parts = by_slab.split_mut(&mut items).into_par_iter().with_min_len(min_pieces(slab));
+        parts.enumerate().for_each(|(k, part)| {
             let first = by_slab.start[k];
             let mut fill: Vec<u32> = start[k * slab..(k + 1) * slab].to_vec();
             for &p in by_slab.of(k) {
@@ -703,7 +706,7 @@ pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]
     };
     let set: Vec<u32> = (0..phi.len())
         .into_par_iter()
-        .with_min_len(4096)
+        .with_min_len(MIN_LEN)
         .filter(|&c| wet(c))
         .map(|c| c as u32)
         .collect();
@@ -752,7 +755,9 @@ pub fn particle_density(pos: &[Vec3], grid: &Grid, ppc: usize, base: Option<&[f6
     let keys: Vec<u32> = pos.par_iter().map(|x| bucket(x) as u32).collect();
     let buckets = SlabBuckets::new(keys.iter().map(|&b| b as usize), nz);
     for parity in 0..2 {
-        out[parity * slab..].par_chunks_mut(2 * slab).enumerate().for_each(|(m, pair)| {
+        let pairs =
+            out[parity * slab..].par_chunks_mut(2 * slab).with_min_len(min_pieces(2 * slab));
+        pairs.enumerate().for_each(|(m, pair)| {
             let b = 2 * m + parity;
             if b + 1 < nz {
                 buckets.of(b).iter().for_each(|&p| deposit(pos[p as usize], pair, b * slab));

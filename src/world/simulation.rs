@@ -1152,7 +1152,8 @@ impl Simulation {
                 Some(p) => p,
                 None => {
                     let cells = &sys.pressure.cell_of_row;
-                    cells.par_iter().map(|&c| self.pressure[c as usize]).collect()
+                    let min = crate::math::par::MIN_LEN;
+                    cells.par_iter().with_min_len(min).map(|&c| self.pressure[c as usize]).collect()
                 }
             };
             let (p, stats) = sys.pressure.solve_from(&b, guess, &how);
