@@ -14,7 +14,9 @@ pub struct GradientSettings {
     pub options: GradientOptions,
     /// Keep a snapshot every this many steps instead of the whole tape, and re-run one
     /// segment at a time in the backward pass (√N segments keep memory at O(√N) steps). The
-    /// forward map is deterministic, so the gradient is bit-identical to the one without.
+    /// segments are counted back from the last step (the first is the short one), and the
+    /// last is taped in the forward pass, so it is not re-run. The forward map is
+    /// deterministic, so the gradient is bit-identical to the one without.
     pub checkpoint_every: Option<usize>,
 }
 
@@ -54,44 +56,51 @@ pub fn value_and_gradient(
     on_pool(|| {
         let clock = std::time::Instant::now();
         let seg = settings.checkpoint_every.unwrap_or(steps).max(1);
+        // Segments end at the last step: the first is the short one, and the last is taped
+        // in the forward pass, so the backward pass re-runs every segment but that one.
+        let tail = if settings.checkpoint_every.is_some() { steps.saturating_sub(seg) } else { 0 };
         let mut sim = initial.clone();
         let mut snapshots = Vec::new();
-        let mut full_tape = Tape::default();
+        let mut tail_start = None;
+        let mut tape = Tape::default();
         for n in 0..steps {
-            if settings.checkpoint_every.is_some() {
-                if n % seg == 0 {
-                    snapshots.push(sim.replay_copy());
+            if n < tail {
+                if n == 0 || (steps - n) % seg == 0 {
+                    snapshots.push((n, sim.replay_copy()));
                 }
                 sim.step()?;
             } else {
-                sim.step_taped(&mut full_tape)?;
+                if n == tail && tail > 0 {
+                    tail_start = Some(sim.replay_copy());
+                }
+                sim.step_taped(&mut tape)?;
             }
         }
         let forward_seconds = clock.elapsed().as_secs_f64();
         let clock = std::time::Instant::now();
         let value = loss.value(&sim);
-        let mut adj = loss.gradient(&sim);
-        let mut bytes = full_tape.bytes_per_step();
-        let mut adjoint_seconds = AdjointSeconds::default();
-        if settings.checkpoint_every.is_none() {
-            let (a, t) = backward_adjoint(initial, &full_tape, adj, &settings.options)?;
+        let adj = loss.gradient(&sim);
+        let mut bytes = tape.bytes_per_step();
+        let (mut adj, mut adjoint_seconds) = backward_adjoint(
+            tail_start.as_ref().unwrap_or(initial),
+            &tape,
+            adj,
+            &settings.options,
+        )?;
+        drop((tape, tail_start));
+        // Each snapshot goes once its segment is done.
+        let mut end = tail;
+        while let Some((start, snap)) = snapshots.pop() {
+            let mut s = snap.clone();
+            let mut tape = Tape::default();
+            for _ in start..end {
+                s.step_taped(&mut tape)?;
+            }
+            bytes = bytes.max(tape.bytes_per_step());
+            let (a, t) = backward_adjoint(&snap, &tape, adj, &settings.options)?;
             adj = a;
             adjoint_seconds += t;
-        } else {
-            // Each snapshot goes once its segment is done.
-            while let Some(snap) = snapshots.pop() {
-                let k = snapshots.len();
-                let len = seg.min(steps - k * seg);
-                let mut s = snap.clone();
-                let mut tape = Tape::default();
-                for _ in 0..len {
-                    s.step_taped(&mut tape)?;
-                }
-                bytes = bytes.max(tape.bytes_per_step());
-                let (a, t) = backward_adjoint(&snap, &tape, adj, &settings.options)?;
-                adj = a;
-                adjoint_seconds += t;
-            }
+            end = start;
         }
         Ok(GradientRun {
             loss: value,
