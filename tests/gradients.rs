@@ -271,7 +271,8 @@ velocity = [0.2, -0.3, 0.1]
         let sim = tank_with_surface(body, 10, frozen).build().unwrap();
         let plain = value_and_gradient(&sim, 10, &loss, &GradientSettings::default()).unwrap();
         assert!(plain.gradient.bodies[0].v.length() > 0.0);
-        // Segments of 1, 3, 3 and a taped 3; two taped 5s; one segment longer than the run.
+        // Segments of 1, 3, 3 and a taped 3; a 5 and a taped 5; one taped segment longer
+        // than the run.
         for every in [3, 5, 12] {
             let settings = GradientSettings { checkpoint_every: Some(every), ..Default::default() };
             let ckpt = value_and_gradient(&sim, 10, &loss, &settings).unwrap();
