@@ -250,6 +250,11 @@ freeze_surface = true
     check("closed tank", &Scene::from_toml(text, "<test>").unwrap());
 }
 
+/// Checkpointing re-runs segments of the forward map in the backward pass, taking the
+/// pressures the forward pass kept instead of solving again (or solving again, with
+/// `re_solve`): the gradient must be the same bits as the whole tape's, with the surface
+/// moving, frozen (whose snapshots leave the particles out), and with contact acting (several
+/// solves a step, each replayed in its order).
 #[test]
 fn checkpointed_gradient_is_bit_identical() {
     use diffluid::gradients::value_and_gradient;
@@ -260,26 +265,51 @@ density = 600.0
 position = [0.41, 0.33, 0.38]
 velocity = [0.2, -0.3, 0.1]
 "#;
+    // Dropped onto the floor, where rapier holds it.
+    let on_floor = r#"
+[[body]]
+shape = { kind = "cuboid", half_extents = [0.1, 0.075, 0.1] }
+density = 1500.0
+position = [0.41, 0.1, 0.38]
+velocity = [0.1, -1.5, 0.0]
+[contact]
+enabled = true
+"#;
     let loss = BodyTargetLoss {
         body: 0,
         position: Some((Vec3::new(0.3, 0.2, 0.4), 1.0)),
         orientation: None,
         velocity: None,
     };
-    // With the surface moving, and frozen (whose snapshots leave the particles out).
-    for frozen in [false, true] {
+    for (case, body, frozen) in
+        [("live", body, false), ("frozen", body, true), ("contact", on_floor, false)]
+    {
         let sim = tank_with_surface(body, 10, frozen).build().unwrap();
-        let plain = value_and_gradient(&sim, 10, &loss, &GradientSettings::default()).unwrap();
+        let contact = case == "contact";
+        if contact {
+            let mut s = sim.clone();
+            let extra: usize = (0..10).map(|_| s.step().unwrap().contact_iterations).sum();
+            assert!(extra > 0, "the contact case makes no extra solves");
+        }
+        let options = GradientOptions { through_contact: contact, ..Default::default() };
+        let plain = value_and_gradient(&sim, 10, &loss, &options.into()).unwrap();
         assert!(plain.gradient.bodies[0].v.length() > 0.0);
         // Segments of 1, 3, 3 and a taped 3; a 5 and a taped 5; one taped segment longer
         // than the run.
         for every in [3, 5, 12] {
-            let settings = GradientSettings { checkpoint_every: Some(every), ..Default::default() };
-            let ckpt = value_and_gradient(&sim, 10, &loss, &settings).unwrap();
-            let (a, b) = (plain.gradient.bodies[0], ckpt.gradient.bodies[0]);
-            assert_eq!(a, b, "checkpointed gradient differs (frozen: {frozen}, every {every})");
-            assert!(plain.gradient.u.c.iter().zip(&ckpt.gradient.u.c).all(|(x, y)| x == y));
-            assert_eq!(plain.loss, ckpt.loss);
+            for re_solve in [false, true] {
+                let settings =
+                    GradientSettings { options, checkpoint_every: Some(every), re_solve };
+                let ckpt = value_and_gradient(&sim, 10, &loss, &settings).unwrap();
+                let (a, b) = (plain.gradient.bodies[0], ckpt.gradient.bodies[0]);
+                let what = format!("{case}, every {every}, re_solve {re_solve}");
+                assert_eq!(a, b, "checkpointed gradient differs ({what})");
+                assert!(
+                    plain.gradient.u.c.iter().zip(&ckpt.gradient.u.c).all(|(x, y)| x == y),
+                    "{what}"
+                );
+                assert_eq!(plain.loss, ckpt.loss, "{what}");
+            }
         }
     }
 }

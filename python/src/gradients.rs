@@ -8,13 +8,12 @@ use crate::{lattice, read_rows, row, rows, run, to_py_object, value_error};
 use diffluid::experiments::optimize::Optimization;
 use diffluid::geometry::body::BodyState;
 use diffluid::geometry::grid::Mac;
-use diffluid::gradients::backward::{check_differentiable, SurfaceGradient};
+use diffluid::gradients::backward::SurfaceGradient;
 use diffluid::gradients::{
-    backward_adjoint, value_and_gradient, AdjointState, BodyAdjoint, BodyTargetLoss as RLoss,
-    GradientMode, GradientOptions, GradientSettings, Loss,
+    value_and_gradient, AdjointState, BodyAdjoint, BodyTargetLoss as RLoss, GradientMode,
+    GradientOptions, GradientSettings, Loss, Rollout as RRollout,
 };
 use diffluid::math::{so3, Rotation, Vec3};
-use diffluid::world::Tape;
 use diffluid::Simulation as RSim;
 use numpy::PyReadonlyArrayDyn;
 use pyo3::exceptions::PyTypeError;
@@ -329,7 +328,7 @@ pub fn value_and_grad<'py>(
     if checkpoint_every == Some(0) {
         return Err(value_error("checkpoint_every: must be at least 1"));
     }
-    let settings = GradientSettings { options: opts, checkpoint_every };
+    let settings = GradientSettings { options: opts, checkpoint_every, re_solve: false };
     let out = run(py, || value_and_gradient(&sim, steps, &loss, &settings))?;
     let g = &out.gradient;
     let grads = PyDict::new(py);
@@ -384,45 +383,12 @@ pub fn optimize<'py>(
 /// ``diffluid.torch.rollout`` keeps between its forward and backward.
 #[pyclass(module = "diffluid._diffluid", name = "Rollout", frozen)]
 pub struct Rollout {
-    /// The run in segments, first to last: one holding the whole tape, or with
-    /// checkpointing one per `checkpoint_every` steps, each its start state alone.
-    segments: Vec<Segment>,
-    last: RSim,
+    /// The run: the whole tape, or with checkpointing its snapshots and the last segment's
+    /// tape.
+    inner: RRollout,
     options: GradientOptions,
     /// |q| of each body's initial quaternion as given (the run starts from q/|q|).
     q_norms: Vec<f64>,
-}
-
-/// A stretch of a rollout: the state it starts from, its steps, and their tape unless it is
-/// re-run in the backward pass (checkpointing).
-struct Segment {
-    start: RSim,
-    steps: usize,
-    tape: Option<Tape>,
-}
-
-impl Segment {
-    /// The adjoint at the segment's start from the adjoint at its end.
-    fn backward(
-        &self,
-        adj: AdjointState,
-        options: &GradientOptions,
-    ) -> diffluid::Result<AdjointState> {
-        let rerun;
-        let tape = match &self.tape {
-            Some(t) => t,
-            None => {
-                let mut s = self.start.clone();
-                let mut t = Tape::default();
-                for _ in 0..self.steps {
-                    s.step_taped(&mut t)?;
-                }
-                rerun = t;
-                &rerun
-            }
-        };
-        Ok(backward_adjoint(&self.start, tape, adj, options)?.0)
-    }
 }
 
 /// Body states as four row arrays (v, w, x, q).
@@ -494,46 +460,34 @@ pub fn rollout(
         let flat = crate::read_flat("u", &u, sim.faces_len())?;
         initial.u = sim.mac_from_flat(&flat);
     }
-    let every = checkpoint_every.unwrap_or(steps);
-    let (segments, last) = run(py, || {
-        let mut s = initial;
-        let mut segments = Vec::new();
-        let mut done = 0;
-        while done < steps {
-            let len = every.min(steps - done);
-            let start = s.clone();
-            let mut tape = Tape::default();
-            for _ in 0..len {
-                s.step_taped(&mut tape)?;
-            }
-            check_differentiable(&start, &tape, &options)?;
-            let keep = checkpoint_every.is_none();
-            segments.push(Segment { start, steps: len, tape: keep.then_some(tape) });
-            done += len;
-        }
-        Ok((segments, s))
+    let settings = GradientSettings { options, checkpoint_every, re_solve: false };
+    let inner = run(py, || {
+        let rollout = RRollout::run(&initial, steps, &settings)?;
+        rollout.check(&options)?;
+        Ok(rollout)
     })?;
     let q_norms = q.iter().map(|r| crate::simulation::quat_norm(r)).collect();
-    Ok(Rollout { segments, last, options, q_norms })
+    Ok(Rollout { inner, options, q_norms })
 }
 
 #[pymethods]
 impl Rollout {
     /// The final body states: a tuple (v, w, x, q) of arrays (bodies, 3) and (bodies, 4).
     fn final_state<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
-        let s: Vec<BodyState> = self.last.bodies().iter().map(|b| b.state()).collect();
+        let s: Vec<BodyState> =
+            self.inner.final_state().bodies().iter().map(|b| b.state()).collect();
         state_rows(py, &s)
     }
 
     /// The simulation at the end of the run (a copy).
     fn final_simulation(&self) -> Simulation {
-        Simulation { inner: self.last.clone(), scene_steps: self.steps(), loss: None }
+        Simulation { inner: self.inner.final_state().clone(), scene_steps: self.steps(), loss: None }
     }
 
     /// Steps run.
     #[getter]
     fn steps(&self) -> usize {
-        self.segments.iter().map(|s| s.steps).sum()
+        self.inner.steps()
     }
 
     /// The vector–Jacobian product: from the gradient of a loss on the final body state
@@ -553,7 +507,7 @@ impl Rollout {
         gq: PyReadonlyArrayDyn<'py, f64>,
         fluid: bool,
     ) -> PyResult<Bound<'py, PyTuple>> {
-        let initial = &self.segments[0].start;
+        let initial = self.inner.initial();
         let n = initial.bodies().len();
         let (gv, gw, gx, gq) = (
             read_rows("gv", &gv, n, 3)?,
@@ -569,13 +523,8 @@ impl Rollout {
                 q: Rotation::from_xyzw(gq[i][1], gq[i][2], gq[i][3], gq[i][0]),
             })
             .collect();
-        let mut adj = AdjointState { u: Mac::zeros(initial.grid()), bodies, particles: Vec::new() };
-        adj = run(py, || {
-            for seg in self.segments.iter().rev() {
-                adj = seg.backward(adj, &self.options)?;
-            }
-            Ok(adj)
-        })?;
+        let adj = AdjointState { u: Mac::zeros(initial.grid()), bodies, particles: Vec::new() };
+        let adj = run(py, || Ok(self.inner.backward(adj, &self.options)?.0))?;
         // The tangent part at q̂ = q/|q|, over |q|: the gradient through the normalisation.
         let q0: Vec<[f64; 4]> = adj
             .bodies

@@ -29,7 +29,7 @@ use crate::geometry::grid::Mac;
 use crate::math::dual::Dual;
 use crate::math::so3;
 use crate::math::{Rotation, Vec3};
-use crate::stages::advect::{advect_adjoint, needed_faces};
+use crate::stages::advect::{advect_adjoint_into, needed_faces};
 use crate::stages::band::Band;
 use crate::stages::density::{DensityInputs, DensityProjection};
 use crate::stages::extrapolate::{apply_body_velocities_adjoint, correct_velocity_adjoint};
@@ -117,25 +117,14 @@ impl std::ops::AddAssign for AdjointSeconds {
 }
 
 /// Whether `initial` and `tape` can be differentiated with `options`: monolithic coupling,
-/// and contact only when the options accept it. The one place this rule is written.
+/// contact only when the options accept it (see [`check_settings`]), and the same bodies in
+/// every taped step.
 pub fn check_differentiable(
     initial: &Simulation,
     tape: &Tape,
     options: &GradientOptions,
 ) -> Result<()> {
-    if initial.settings().solver.coupling != Coupling::Monolithic {
-        return Err(Error::Gradient(
-            "gradients are only available for solver.coupling = \"monolithic\"".into(),
-        ));
-    }
-    if tape.through_contact() && !options.through_contact {
-        return Err(Error::Gradient(
-            "rapier contact acted in the taped steps and gradients do not pass through it: set \
-             [contact] enabled = false, or accept contact as free flight in the gradient \
-             (optimize.through_contact = true)"
-                .into(),
-        ));
-    }
+    check_settings(initial, tape.through_contact(), options)?;
     for (t, rec) in tape.steps.iter().enumerate() {
         if rec.bodies.len() != initial.bodies().len() {
             return Err(Error::Gradient(format!(
@@ -146,6 +135,30 @@ pub fn check_differentiable(
                 initial.bodies().len()
             )));
         }
+    }
+    Ok(())
+}
+
+/// Whether steps from `initial`, in which rapier contact acted if `through_contact`, can be
+/// differentiated with `options`: monolithic coupling, and contact only when the options
+/// accept it. The one place this rule is written.
+pub fn check_settings(
+    initial: &Simulation,
+    through_contact: bool,
+    options: &GradientOptions,
+) -> Result<()> {
+    if initial.settings().solver.coupling != Coupling::Monolithic {
+        return Err(Error::Gradient(
+            "gradients are only available for solver.coupling = \"monolithic\"".into(),
+        ));
+    }
+    if through_contact && !options.through_contact {
+        return Err(Error::Gradient(
+            "rapier contact acted in the taped steps and gradients do not pass through it: set \
+             [contact] enabled = false, or accept contact as free flight in the gradient \
+             (optimize.through_contact = true)"
+                .into(),
+        ));
     }
     Ok(())
 }
@@ -290,8 +303,7 @@ fn step_adjoint(
     let out_field = initial.spare().velocity(&grid);
     let gravity = settings.fluid.gravity;
     let u_hat = predicted_velocity(&rec.u, &grid, dt, gravity, &at_bodies, out_field);
-    let mut u_corr = u_hat.clone();
-    sys.pressure.update_velocity(&rec.p, &mut u_corr);
+    let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
 
     // 5ᵀ: walls and static solids, extrapolation layers, then the bodies' velocities on the
     // faces they cover.
@@ -306,7 +318,7 @@ fn step_adjoint(
     }
     let bva = apply_body_velocities_adjoint(
         &mut ubar,
-        &u_corr,
+        u_corr,
         &after,
         &sys.geometry.body_faces,
         &sys.geometry.weights,
@@ -347,8 +359,7 @@ fn step_adjoint(
     // 4ᵀ: projection.
     let adj_v: Vec<[f64; 6]> = sys.coupled.iter().map(|&i| vbar[i]).collect();
     let how = settings.solver.linear();
-    let (uhat_bar, vhat_bar, s, stats) =
-        sys.pressure.projection_adjoint(&ubar, &adj_v, &sys.geometry.weights, &how);
+    let (s, stats) = sys.pressure.adjoint_solve(&ubar, &adj_v, &how);
     // The surface's part: ∂L/∂φ_L through the ghost-fluid θ (cells whose φ the extension
     // into solids set carry none).
     let phi_bar = particle_phi.as_ref().map(|pp| {
@@ -368,6 +379,10 @@ fn step_adjoint(
             tolerance: settings.solver.tolerance,
         });
     }
+    // ū before the projection, in place: ū − Fᵀs; the bodies' v̄ − J·s.
+    let mut uhat_bar = ubar;
+    sys.pressure.subtract_fluid_flux_adjoint(&s, &sys.geometry.weights, &mut uhat_bar);
+    let vhat_bar = sys.pressure.body_velocity_adjoint(&adj_v, &s);
     for (k, &i) in sys.coupled.iter().enumerate() {
         out[i].v = Vec3::new(vhat_bar[k][0], vhat_bar[k][1], vhat_bar[k][2]);
         out[i].w = Vec3::new(vhat_bar[k][3], vhat_bar[k][4], vhat_bar[k][5]);
@@ -419,7 +434,9 @@ fn step_adjoint(
     lap(&mut times.pressure);
 
     // 2ᵀ: gravity is the identity on the fluid. 1ᵀ: advection.
-    let mut u0 = advect_adjoint(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed));
+    // Into û's field, which nothing reads any more.
+    let mut u0 = u_hat;
+    advect_adjoint_into(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed), &mut u0);
     lap(&mut times.advect_velocity);
 
     // 0ᵀ: the marker particles, whose φ_L the step read.
@@ -445,7 +462,7 @@ fn step_adjoint(
         }
     }
     lap(&mut times.advect_particles);
-    initial.spare().keep_velocity(u_hat);
+    initial.spare().keep_velocity(uhat_bar);
     initial.spare().keep_system(sys.geometry, sys.pressure);
     Ok(AdjointState { u: u0, bodies: out, particles })
 }

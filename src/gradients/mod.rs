@@ -11,4 +11,4 @@ pub mod run;
 pub use backward::{backward, backward_adjoint, GradientMode, GradientOptions};
 pub use check::{central_difference, gradcheck, Coordinate, GradcheckReport, GradcheckSettings};
 pub use loss::{AdjointState, BodyAdjoint, BodyGradient, BodyTargetLoss, Gradient, Loss};
-pub use run::{value_and_gradient, GradientRun, GradientSettings};
+pub use run::{value_and_gradient, GradientRun, GradientSettings, Rollout};

@@ -1,10 +1,15 @@
-//! A loss and its gradient in one call: the forward pass taped (or checkpointed), the loss,
-//! the backward pass.
+//! A loss and its gradient in one call ([`value_and_gradient`]), and the forward run it
+//! differentiates ([`Rollout`]): the whole tape, or checkpoints and the segments between them
+//! re-run in the backward pass.
 
-use super::backward::{backward_adjoint, to_gradient, AdjointSeconds, GradientOptions};
-use super::loss::{Gradient, Loss};
+use super::backward::{
+    backward_adjoint, check_differentiable, check_settings, to_gradient, AdjointSeconds,
+    GradientOptions,
+};
+use super::loss::{AdjointState, Gradient, Loss};
 use crate::error::Result;
 use crate::geometry::grid::on_pool;
+use crate::world::tape::Solves;
 use crate::world::{Simulation, Tape};
 
 /// What [`value_and_gradient`] computes and how.
@@ -18,11 +23,175 @@ pub struct GradientSettings {
     /// last is taped in the forward pass, so it is not re-run. The forward map is
     /// deterministic, so the gradient is bit-identical to the one without.
     pub checkpoint_every: Option<usize>,
+    /// With checkpointing, solve the pressure again when a segment is re-run, instead of
+    /// taking the pressures the forward pass kept (see [`Solves`]: 8 bytes a liquid cell a
+    /// step, 4 MB a step on `large_tank`, for a re-run without its solves). For long runs on
+    /// large grids, where N pressures outweigh √N snapshots. The gradient is the same bits.
+    pub re_solve: bool,
 }
 
 impl From<GradientOptions> for GradientSettings {
     fn from(options: GradientOptions) -> Self {
-        GradientSettings { options, checkpoint_every: None }
+        GradientSettings { options, ..Default::default() }
+    }
+}
+
+/// A forward run kept for its backward pass: its segments, first to last, each the state it
+/// started from and either its tape or (re-run in the backward pass) the pressures it solved
+/// for. Without checkpointing it is one taped segment.
+#[derive(Debug)]
+pub struct Rollout {
+    segments: Vec<Segment>,
+    last: Simulation,
+}
+
+/// A stretch of a [`Rollout`].
+#[derive(Debug)]
+struct Segment {
+    /// The state it starts from (without the particles when the surface is frozen).
+    start: Simulation,
+    steps: usize,
+    kept: Kept,
+}
+
+/// What a segment keeps of its steps.
+#[derive(Debug)]
+enum Kept {
+    /// Their tape (the last segment, or the whole run without checkpointing).
+    Tape(Tape),
+    /// Nothing but (unless `re_solve`) their pressures: they are re-run, without solving.
+    Rerun(Option<Solves>),
+}
+
+impl Rollout {
+    /// Runs `steps` steps from `initial`, keeping what the backward pass needs as `settings`
+    /// ask (the whole tape, or checkpoints; see [`GradientSettings`]). `initial` is not
+    /// changed.
+    pub fn run(initial: &Simulation, steps: usize, settings: &GradientSettings) -> Result<Rollout> {
+        on_pool(|| {
+            let every = settings.checkpoint_every.unwrap_or(steps).max(1);
+            // Segments end at the last step: the first is the short one, and the last is
+            // taped, so the backward pass re-runs every segment but that one.
+            let tail =
+                if settings.checkpoint_every.is_some() { steps.saturating_sub(every) } else { 0 };
+            let mut sim = initial.clone();
+            let mut segments = Vec::new();
+            let mut done = 0;
+            while done < steps || segments.is_empty() {
+                let start = sim.replay_copy();
+                let (len, kept) = if done < tail {
+                    let len = match (tail - done) % every {
+                        0 => every,
+                        short => short,
+                    };
+                    let mut solves = (!settings.re_solve).then(Solves::default);
+                    for _ in 0..len {
+                        match solves.as_mut() {
+                            Some(solves) => sim.step_recording(solves)?,
+                            None => sim.step()?,
+                        };
+                    }
+                    (len, Kept::Rerun(solves))
+                } else {
+                    let mut tape = Tape::default();
+                    for _ in done..steps {
+                        sim.step_taped(&mut tape)?;
+                    }
+                    (steps - done, Kept::Tape(tape))
+                };
+                segments.push(Segment { start, steps: len, kept });
+                done += len;
+            }
+            Ok(Rollout { segments, last: sim })
+        })
+    }
+
+    /// The state the run started from (without the particles when the surface is frozen).
+    pub fn initial(&self) -> &Simulation {
+        &self.segments[0].start
+    }
+
+    /// The state at the end of the run.
+    pub fn final_state(&self) -> &Simulation {
+        &self.last
+    }
+
+    /// Steps run.
+    pub fn steps(&self) -> usize {
+        self.segments.iter().map(|s| s.steps).sum()
+    }
+
+    /// Whether the run can be differentiated with `options` (see [`check_settings`]): an
+    /// error at once instead of after a backward pass's re-runs.
+    pub fn check(&self, options: &GradientOptions) -> Result<()> {
+        for seg in &self.segments {
+            match &seg.kept {
+                Kept::Tape(tape) => check_differentiable(&seg.start, tape, options)?,
+                Kept::Rerun(Some(s)) => check_settings(&seg.start, s.contact, options)?,
+                // Contact is found when the segment is re-run.
+                Kept::Rerun(None) => check_settings(&seg.start, false, options)?,
+            }
+        }
+        Ok(())
+    }
+
+    /// The adjoint of the initial state from `adj`, the adjoint of the final one; the run is
+    /// kept, so it can go backward again.
+    pub fn backward(
+        &self,
+        adj: AdjointState,
+        options: &GradientOptions,
+    ) -> Result<(AdjointState, AdjointSeconds)> {
+        let mut out = (adj, AdjointSeconds::default(), 0);
+        for seg in self.segments.iter().rev() {
+            out = seg.backward(out, options)?;
+        }
+        Ok((out.0, out.1))
+    }
+
+    /// [`Rollout::backward`] that drops each segment once it is done (for memory), and
+    /// returns the final state and the largest tape held per step, in bytes.
+    fn into_backward(
+        mut self,
+        adj: AdjointState,
+        options: &GradientOptions,
+    ) -> Result<(AdjointState, AdjointSeconds, usize, Simulation)> {
+        let mut out = (adj, AdjointSeconds::default(), 0);
+        while let Some(seg) = self.segments.pop() {
+            out = seg.backward(out, options)?;
+        }
+        Ok((out.0, out.1, out.2, self.last))
+    }
+}
+
+impl Segment {
+    /// From the adjoint at the segment's end (with the time and the largest tape per step so
+    /// far), the adjoint at its start: re-runs the segment first when its tape is not kept.
+    fn backward(
+        &self,
+        (adj, mut seconds, bytes): (AdjointState, AdjointSeconds, usize),
+        options: &GradientOptions,
+    ) -> Result<(AdjointState, AdjointSeconds, usize)> {
+        let rerun;
+        let tape = match &self.kept {
+            Kept::Tape(tape) => tape,
+            Kept::Rerun(solves) => {
+                let mut sim = self.start.clone();
+                let mut tape = Tape::default();
+                let mut replay = solves.as_ref().map(Solves::replay);
+                for _ in 0..self.steps {
+                    match replay.as_mut() {
+                        Some(replay) => sim.step_replayed(&mut tape, replay)?,
+                        None => sim.step_taped(&mut tape)?,
+                    };
+                }
+                rerun = tape;
+                &rerun
+            }
+        };
+        let (adj, t) = backward_adjoint(&self.start, tape, adj, options)?;
+        seconds += t;
+        Ok((adj, seconds, bytes.max(tape.bytes_per_step())))
     }
 }
 
@@ -53,63 +222,21 @@ pub fn value_and_gradient(
     loss: &dyn Loss,
     settings: &GradientSettings,
 ) -> Result<GradientRun> {
-    on_pool(|| {
-        let clock = std::time::Instant::now();
-        let seg = settings.checkpoint_every.unwrap_or(steps).max(1);
-        // Segments end at the last step: the first is the short one, and the last is taped
-        // in the forward pass, so the backward pass re-runs every segment but that one.
-        let tail = if settings.checkpoint_every.is_some() { steps.saturating_sub(seg) } else { 0 };
-        let mut sim = initial.clone();
-        let mut snapshots = Vec::new();
-        let mut tail_start = None;
-        let mut tape = Tape::default();
-        for n in 0..steps {
-            if n < tail {
-                if n == 0 || (steps - n) % seg == 0 {
-                    snapshots.push((n, sim.replay_copy()));
-                }
-                sim.step()?;
-            } else {
-                if n == tail && tail > 0 {
-                    tail_start = Some(sim.replay_copy());
-                }
-                sim.step_taped(&mut tape)?;
-            }
-        }
-        let forward_seconds = clock.elapsed().as_secs_f64();
-        let clock = std::time::Instant::now();
-        let value = loss.value(&sim);
-        let adj = loss.gradient(&sim);
-        let mut bytes = tape.bytes_per_step();
-        let (mut adj, mut adjoint_seconds) = backward_adjoint(
-            tail_start.as_ref().unwrap_or(initial),
-            &tape,
-            adj,
-            &settings.options,
-        )?;
-        drop((tape, tail_start));
-        // Each snapshot goes once its segment is done.
-        let mut end = tail;
-        while let Some((start, snap)) = snapshots.pop() {
-            let mut s = snap.clone();
-            let mut tape = Tape::default();
-            for _ in start..end {
-                s.step_taped(&mut tape)?;
-            }
-            bytes = bytes.max(tape.bytes_per_step());
-            let (a, t) = backward_adjoint(&snap, &tape, adj, &settings.options)?;
-            adj = a;
-            adjoint_seconds += t;
-            end = start;
-        }
-        Ok(GradientRun {
-            loss: value,
-            gradient: to_gradient(initial, adj),
-            final_state: sim,
-            tape_bytes_per_step: bytes,
-            forward_seconds,
-            backward_seconds: clock.elapsed().as_secs_f64(),
-            adjoint_seconds,
-        })
+    let clock = std::time::Instant::now();
+    let rollout = Rollout::run(initial, steps, settings)?;
+    let forward_seconds = clock.elapsed().as_secs_f64();
+    let clock = std::time::Instant::now();
+    let value = loss.value(rollout.final_state());
+    let adj = loss.gradient(rollout.final_state());
+    let (adj, adjoint_seconds, tape_bytes_per_step, final_state) =
+        rollout.into_backward(adj, &settings.options)?;
+    Ok(GradientRun {
+        loss: value,
+        gradient: to_gradient(initial, adj),
+        final_state,
+        tape_bytes_per_step,
+        forward_seconds,
+        backward_seconds: clock.elapsed().as_secs_f64(),
+        adjoint_seconds,
     })
 }

@@ -6,7 +6,7 @@
 //! derivative is simple: the map is `W(u)·u`, and its adjoint is `(W + ∂W/∂u·u)ᵀ` (eq. 4).
 
 use crate::geometry::grid::{Grid, Mac};
-use crate::math::par::min_pieces;
+use crate::math::par::{min_pieces, MIN_LEN};
 use crate::math::Vec3;
 use rayon::prelude::*;
 
@@ -208,6 +208,22 @@ pub fn advect_tangent(u: &Mac, du: &Mac, grid: &Grid, dt: f64, mask: Option<&Fac
 /// depends on the field only, never on the thread count.
 pub fn advect_adjoint(u: &Mac, adj: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>) -> Mac {
     let mut out = Mac::zeros(grid);
+    advect_adjoint_into(u, adj, grid, dt, mask, &mut out);
+    out
+}
+
+/// [`advect_adjoint`] written over `out` (a field of the grid's size, whatever it holds).
+pub fn advect_adjoint_into(
+    u: &Mac,
+    adj: &Mac,
+    grid: &Grid,
+    dt: f64,
+    mask: Option<&FaceMask>,
+    out: &mut Mac,
+) {
+    for c in &mut out.c {
+        c.par_iter_mut().with_min_len(MIN_LEN).for_each(|x| *x = 0.0);
+    }
     let w_max = u.c[2].iter().fold(0.0f64, |m, w| m.max(w.abs()));
     let reach = (dt * w_max / grid.dx).ceil() as usize + 2;
     let block = 2 * reach;
@@ -265,7 +281,6 @@ pub fn advect_adjoint(u: &Mac, adj: &Mac, grid: &Grid, dt: f64, mask: Option<&Fa
             }
         });
     }
-    out
 }
 
 /// One block's share of the three components of the adjoint field: the samples of each

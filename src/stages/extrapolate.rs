@@ -281,11 +281,12 @@ pub struct BodyVelocityAdjoint {
     pub dbeta: Vec<(usize, usize, f64)>,
 }
 
-/// Adjoint of [`apply_body_velocities`], in place on `ubar`: `u_old` is the field before
-/// (needed for ∂/∂β). Closed faces pass nothing back to the fluid.
+/// Adjoint of [`apply_body_velocities`], in place on `ubar`: `u_old(axis, face)` is the
+/// field before (needed for ∂/∂β; read on the faces the bodies cover only). Closed faces pass
+/// nothing back to the fluid.
 pub fn apply_body_velocities_adjoint(
     ubar: &mut Mac,
-    u_old: &Mac,
+    u_old: impl Fn(usize, usize) -> f64,
     bodies: &[crate::geometry::body::RigidBody],
     faces: &[crate::geometry::fractions::BodyFaces],
     weights: &[Vec<f64>; 3],
@@ -294,18 +295,21 @@ pub fn apply_body_velocities_adjoint(
     let mut out = vec![BodyVelocityAdjoint::default(); bodies.len()];
     let mut claimed = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
     let mut scaled = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
-    let incoming = ubar.clone();
+    // What reaches each face a body covers, before any of them is written.
+    let incoming: Vec<[Vec<f64>; 3]> = faces
+        .iter()
+        .map(|bf| [0, 1, 2].map(|a| bf.faces[a].iter().map(|&(f, _)| ubar.c[a][f]).collect()))
+        .collect();
     for i in (0..bodies.len()).rev() {
         let b = &bodies[i];
         for a in 0..3 {
             let lat = grid.faces(a);
             let e = crate::math::unit(a);
-            for &(f, beta) in &faces[i].faces[a] {
+            for (&(f, beta), &g) in faces[i].faces[a].iter().zip(&incoming[i][a]) {
                 let closed = weights[a][f] <= 0.0;
                 if closed && claimed[a][f] {
                     continue;
                 }
-                let g = incoming.c[a][f];
                 let coef = if closed { 1.0 } else { beta };
                 let [ii, jj, kk] = lat.ijk(f);
                 let r = lat.position(ii, jj, kk) - b.x;
@@ -320,7 +324,7 @@ pub fn apply_body_velocities_adjoint(
                     ubar.c[a][f] = 0.0;
                 } else {
                     let ub = crate::math::comp(b.velocity_at(lat.position(ii, jj, kk)), a);
-                    out[i].dbeta.push((a, f, (ub - u_old.c[a][f]) * g));
+                    out[i].dbeta.push((a, f, (ub - u_old(a, f)) * g));
                     if !scaled[a][f] {
                         ubar.c[a][f] = weights[a][f] * g;
                         scaled[a][f] = true;

@@ -677,6 +677,16 @@ impl PressureSystem {
         valid
     }
 
+    /// What [`PressureSystem::update_velocity`] subtracts from face `f` of `axis` for the
+    /// pressure `p` (0 on a face it does not update).
+    pub fn velocity_update_at(&self, axis: usize, f: usize, p: &[f64]) -> f64 {
+        let k = self.params.dt / (self.params.density * self.grid.dx);
+        match self.faces[axis].binary_search_by_key(&(f as u32), |pf| pf.face) {
+            Ok(i) => k * self.faces[axis][i].gradient.apply(p),
+            Err(_) => 0.0,
+        }
+    }
+
     /// The pressure gradient across face `f` of `axis` as `cp·p[rp] − cm·p[rm]` (scaled by
     /// 1/dx elsewhere), when the velocity update acts on the face: an open face next to a
     /// liquid cell. A side in air has no row (p = 0 there) and the other side's coefficient
@@ -806,30 +816,59 @@ impl PressureSystem {
         out
     }
 
-    /// Transpose of [`PressureSystem::fluid_flux`]: the face adjoint `dx²·w_f·(s_m − s_p)`
-    /// from a row adjoint `s` (zero in air and solid), for the system's face weights
-    /// `weights`.
-    pub fn fluid_flux_adjoint(&self, s: &[f64], weights: &[Vec<f64>; 3]) -> Mac {
-        let grid = &self.grid;
-        let area = grid.dx * grid.dx;
-        let mut out = Mac::zeros(grid);
+    /// Subtracts from `adj` the transpose of [`PressureSystem::fluid_flux`] applied to a row
+    /// adjoint `s` (zero in air and solid): the face adjoint `dx²·w_f·(s_m − s_p)` on each
+    /// projected face, for the system's face weights `weights`.
+    pub fn subtract_fluid_flux_adjoint(&self, s: &[f64], weights: &[Vec<f64>; 3], adj: &mut Mac) {
+        let area = self.grid.dx * self.grid.dx;
         let sv = |r: u32| if r != NONE { s[r as usize] } else { 0.0 };
         for a in 0..3 {
-            for pf in &self.faces[a] {
+            let face = |pf: &ProjectedFace| pf.face as usize;
+            for_each_keyed_mut(&mut adj.c[a], &self.faces[a], face, |_, pf, x| {
                 let g = &pf.gradient;
-                let f = pf.face as usize;
-                out.c[a][f] = area * weights[a][f] * (sv(g.rm) - sv(g.rp));
-            }
+                *x -= area * weights[a][pf.face as usize] * (sv(g.rm) - sv(g.rp));
+            });
         }
-        out
+    }
+
+    /// The adjoint solve of the projection: from the adjoints of the projected face
+    /// velocities `adj_u` and of the bodies' `[v; ω]` after the solve, `s` with
+    /// `A s = ∂(velocity update)ᵀ·adj_u + Δt·J M_S⁻¹·adj_v` (one more solve with the same
+    /// operator).
+    pub fn adjoint_solve(
+        &self,
+        adj_u: &Mac,
+        adj_v: &[[f64; 6]],
+        how: &LinearSolve,
+    ) -> (Vec<f64>, CgStats) {
+        let mut pbar = self.update_velocity_adjoint(adj_u);
+        for (b, av) in self.bodies.iter().zip(adj_v) {
+            b.add_jt(&b.dt_minv_times(av), &mut pbar);
+        }
+        // No warm start here: the adjoint pressure of the step after this one saves half an
+        // iteration of 18 on block_drop, one of 9 on large_tank.
+        self.solve(&pbar, how)
+    }
+
+    /// The coupled bodies' `[v; ω]` adjoint before the projection, `adj_v − J s`.
+    pub fn body_velocity_adjoint(&self, adj_v: &[[f64; 6]], s: &[f64]) -> Vec<[f64; 6]> {
+        self.bodies
+            .iter()
+            .zip(adj_v)
+            .map(|(b, av)| {
+                let js = b.force(s);
+                std::array::from_fn(|d| av[d] - js[d])
+            })
+            .collect()
     }
 
     /// Adjoint of the whole projection (right-hand side, solve, velocity and body updates)
     /// for fixed geometry (paper, eqs. 8–9, in this code's terms): from the adjoints of the
     /// projected face velocities `adj_u` and of the bodies' `[v; ω]` after the solve, one more
-    /// solve with the same operator gives `s`, and the adjoints before the projection are
-    /// `adj_u − Fᵀ s` and `adj_v − J s`. Returns (adjoint of u, of each body's velocity, s).
-    /// `weights` are the face weights the system was built with.
+    /// solve with the same operator gives `s` ([`PressureSystem::adjoint_solve`]), and the
+    /// adjoints before the projection are `adj_u − Fᵀ s` and `adj_v − J s`. Returns (adjoint
+    /// of u, of each body's velocity, s). `weights` are the face weights the system was built
+    /// with. (The backward pass calls the three parts itself, to update its field in place.)
     pub fn projection_adjoint(
         &self,
         adj_u: &Mac,
@@ -837,29 +876,10 @@ impl PressureSystem {
         weights: &[Vec<f64>; 3],
         how: &LinearSolve,
     ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
-        let mut pbar = self.update_velocity_adjoint(adj_u);
-        for (b, av) in self.bodies.iter().zip(adj_v) {
-            b.add_jt(&b.dt_minv_times(av), &mut pbar);
-        }
-        // No warm start here: the adjoint pressure of the step after this one saves half an
-        // iteration of 18 on block_drop.
-        let (s, stats) = self.solve(&pbar, how);
-        let ft = self.fluid_flux_adjoint(&s, weights);
+        let (s, stats) = self.adjoint_solve(adj_u, adj_v, how);
         let mut u_hat = adj_u.clone();
-        for a in 0..3 {
-            for (x, y) in u_hat.c[a].iter_mut().zip(&ft.c[a]) {
-                *x -= y;
-            }
-        }
-        let v_hat = self
-            .bodies
-            .iter()
-            .zip(adj_v)
-            .map(|(b, av)| {
-                let js = b.force(&s);
-                std::array::from_fn(|d| av[d] - js[d])
-            })
-            .collect();
+        self.subtract_fluid_flux_adjoint(&s, weights, &mut u_hat);
+        let v_hat = self.body_velocity_adjoint(adj_v, &s);
         (u_hat, v_hat, s, stats)
     }
 

@@ -28,7 +28,7 @@ use super::step::{
     body_faces, generalized_velocity, kinetic_energy, predicted_velocity, BodyForce, Geometry,
     Spare, StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
 };
-use super::tape::{ParticleRecord, StepRecord, Tape};
+use super::tape::{ParticleRecord, Replay, Solves, StepRecord, Tape};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::fractions;
@@ -487,6 +487,16 @@ fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
 }
 
 /// What the projection (stage 4) leaves.
+/// Where a step's pressure solves come from.
+enum Pressures<'a, 'b> {
+    /// Solved.
+    Solve,
+    /// Solved, and kept in order (a checkpointed forward pass).
+    Record(&'a mut Solves),
+    /// Taken in order from the record of the same steps from the same state (their re-run).
+    Replay(&'a mut Replay<'b>),
+}
+
 struct Projection {
     p: Vec<f64>,
     stats: crate::solvers::cg::CgStats,
@@ -753,7 +763,7 @@ impl Simulation {
         while left > 1e-12 * frame_dt {
             let n = (left / self.stable_dt()).ceil().max(1.0);
             let h = left / n;
-            reports.push(on_pool(|| self.step_inner(h, None))?);
+            reports.push(on_pool(|| self.step_inner(h, None, Pressures::Solve))?);
             left -= h;
         }
         Ok(reports)
@@ -762,13 +772,30 @@ impl Simulation {
     /// Advances one step of the fixed Δt.
     pub fn step(&mut self) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool(|| self.step_inner(dt, None))
+        on_pool(|| self.step_inner(dt, None, Pressures::Solve))
     }
 
     /// Advances one step and records on `tape` what the backward pass needs.
     pub fn step_taped(&mut self, tape: &mut Tape) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool(|| self.step_inner(dt, Some(tape)))
+        on_pool(|| self.step_inner(dt, Some(tape), Pressures::Solve))
+    }
+
+    /// Advances one step and keeps its pressure solves in `solves` (see [`Solves`]).
+    pub(crate) fn step_recording(&mut self, solves: &mut Solves) -> Result<StepReport> {
+        let dt = self.settings.dt;
+        on_pool(|| self.step_inner(dt, None, Pressures::Record(solves)))
+    }
+
+    /// [`Simulation::step_taped`] that takes its pressures from `replay` instead of solving:
+    /// the re-run of a step [`Simulation::step_recording`] made from the same state.
+    pub(crate) fn step_replayed(
+        &mut self,
+        tape: &mut Tape,
+        replay: &mut Replay,
+    ) -> Result<StepReport> {
+        let dt = self.settings.dt;
+        on_pool(|| self.step_inner(dt, Some(tape), Pressures::Replay(replay)))
     }
 
     /// A copy to re-run steps from (a gradient's checkpoint snapshot): with the surface
@@ -846,7 +873,12 @@ impl Simulation {
         self.settings.contact.enabled && contact_possible(&self.bodies, self.grid.size(), dt)
     }
 
-    fn step_inner(&mut self, dt: f64, tape: Option<&mut Tape>) -> Result<StepReport> {
+    fn step_inner(
+        &mut self,
+        dt: f64,
+        tape: Option<&mut Tape>,
+        mut pressures: Pressures,
+    ) -> Result<StepReport> {
         let start = tape
             .as_ref()
             .map(|_| (self.u.clone(), self.bodies.iter().map(RigidBody::state).collect()));
@@ -943,7 +975,7 @@ impl Simulation {
             }
             contact_possible(&moving, grid.size(), dt)
         };
-        let (proj, u) = self.project(&sys, u_hat, &v_hat, dt, contact)?;
+        let (proj, u) = self.project(&sys, u_hat, &v_hat, dt, contact, &mut pressures)?;
         for ((&i, v), f) in sys.coupled.iter().zip(&proj.v_after).zip(&proj.forces) {
             let b = &mut self.bodies[i];
             b.v = Vec3::new(v[0], v[1], v[2]);
@@ -973,6 +1005,9 @@ impl Simulation {
 
         // Whether rapier integrates the bodies: contact possible at their new velocities.
         let contact_moves = self.contact_on(dt);
+        if let Pressures::Record(solves) = &mut pressures {
+            solves.contact |= contact || contact_moves;
+        }
         if let (Some(t), Some((u0, bodies))) = (tape, start) {
             t.steps.push(StepRecord {
                 u: u0,
@@ -1139,24 +1174,34 @@ impl Simulation {
         v_hat: &[[f64; 6]],
         dt: f64,
         contact: bool,
+        pressures: &mut Pressures,
     ) -> Result<(Projection, Mac)> {
         let how = self.settings.solver.linear();
         let mut last_p: Option<Vec<f64>> = None;
         let solve = |kick: &[[f64; 6]]| {
             let vel: Vec<[f64; 6]> =
                 v_hat.iter().zip(kick).map(|(v, k)| std::array::from_fn(|d| v[d] + k[d])).collect();
-            let b = sys.rhs(&u_hat, &vel);
-            // Warm start: the last solve's pressure (this step's previous contact iteration,
-            // or the last step's).
-            let guess = match last_p.take() {
-                Some(p) => p,
-                None => {
-                    let cells = &sys.pressure.cell_of_row;
-                    let min = crate::math::par::MIN_LEN;
-                    cells.par_iter().with_min_len(min).map(|&c| self.pressure[c as usize]).collect()
+            let (p, stats) = match pressures {
+                Pressures::Replay(replay) => replay.next(sys.pressure.len(), self.step + 1)?,
+                _ => {
+                    let b = sys.rhs(&u_hat, &vel);
+                    // Warm start: the last solve's pressure (this step's previous contact
+                    // iteration, or the last step's).
+                    let guess = match last_p.take() {
+                        Some(p) => p,
+                        None => {
+                            let cells = &sys.pressure.cell_of_row;
+                            let min = crate::math::par::MIN_LEN;
+                            let gather = |&c: &u32| self.pressure[c as usize];
+                            cells.par_iter().with_min_len(min).map(gather).collect()
+                        }
+                    };
+                    sys.pressure.solve_from(&b, guess, &how)
                 }
             };
-            let (p, stats) = sys.pressure.solve_from(&b, guess, &how);
+            if let Pressures::Record(solves) = pressures {
+                solves.push(p.clone(), stats);
+            }
             if !stats.converged {
                 return Err(Error::NotConverged {
                     step: self.step + 1,
