@@ -104,8 +104,9 @@ def rollout(
 
     `surface`, `mode` and `through_contact` are the backward pass's options, as in
     :func:`diffluid.value_and_grad`. With `checkpoint_every` = k the forward pass keeps the
-    state every k steps instead of the whole tape and the backward pass re-runs one segment
-    at a time (memory for k steps, one more forward pass, the same gradient bit for bit).
+    state every k steps (and each step's pressure) instead of the whole tape, and the
+    backward pass re-runs one segment at a time without solving the pressure again (memory
+    for k steps, about half a forward pass more, the same gradient bit for bit).
     The GIL is released in both passes.
     """
     v, w, x, q = (_check(n, t) for n, t in (("v", v), ("w", w), ("x", x), ("q", q)))

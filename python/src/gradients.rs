@@ -412,9 +412,10 @@ fn state_rows<'py>(py: Python<'py>, s: &[BodyState]) -> PyResult<Bound<'py, PyTu
 /// normalisation. `sim` itself is not changed. Raises GradientError at once
 /// if the run cannot be differentiated with these options.
 ///
-/// With `checkpoint_every` = k, only the state every k steps is kept, and the backward pass
-/// re-runs one segment at a time: memory for k steps' tape instead of all of them, for one
-/// more forward pass; the gradient is the same bit for bit.
+/// With `checkpoint_every` = k, only the state every k steps (and each step's pressure) is
+/// kept, and the backward pass re-runs one segment at a time without solving again: memory
+/// for k steps' tape instead of all of them, for about half a forward pass more; the
+/// gradient is the same bit for bit.
 #[pyfunction]
 #[pyo3(signature = (
     sim, v, w, x, q, u = None, *, steps = None, surface = "live", mode = "full",

@@ -268,11 +268,46 @@ pub fn correct(
         return Ok((DensityStats::default(), None));
     };
     let (q, stats) = proj.solve(g, step)?;
+    Ok(displaced(proj, particles, q, stats.iterations, g))
+}
+
+/// [`correct`] with the potential a recorded run of the same step solved for (`q`, None when
+/// it found no cell over full) and its iterations, instead of solving: a checkpointed
+/// segment's re-run. An error if the particles do not build the system the record says.
+pub fn correct_replayed(
+    particles: &mut [Vec3],
+    g: &DensityInputs<'_>,
+    (q, iterations): (Option<Vec<f64>>, usize),
+    step: usize,
+) -> Result<(DensityStats, Option<Vec<f64>>)> {
+    match (DensityProjection::build(particles, g), q) {
+        (None, None) => Ok((DensityStats::default(), None)),
+        (Some(proj), Some(q)) if q.len() == proj.sys.len() => {
+            Ok(displaced(proj, particles, q, iterations, g))
+        }
+        (proj, _) => {
+            g.give_back(proj.map(|p| p.sys), None);
+            Err(Error::Gradient(format!(
+                "re-running step {step} from its checkpoint built another density projection \
+                 than its forward pass: the forward map is not deterministic"
+            )))
+        }
+    }
+}
+
+/// The particles moved by the potential `q` of `proj` (found in `iterations`), and what the
+/// projection did.
+fn displaced(
+    proj: DensityProjection,
+    particles: &mut [Vec3],
+    q: Vec<f64>,
+    iterations: usize,
+    g: &DensityInputs<'_>,
+) -> (DensityStats, Option<Vec<f64>>) {
     proj.displace(particles, &q, g);
-    let stats =
-        DensityStats { excess_volume: proj.b.iter().sum(), cg_iterations: stats.iterations };
+    let stats = DensityStats { excess_volume: proj.b.iter().sum(), cg_iterations: iterations };
     g.give_back(Some(proj.sys), None);
-    Ok((stats, Some(q)))
+    (stats, Some(q))
 }
 
 #[cfg(test)]

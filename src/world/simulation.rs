@@ -487,7 +487,7 @@ fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
 }
 
 /// What the projection (stage 4) leaves.
-/// Where a step's pressure solves come from.
+/// Where a step's pressure solves (and density projection potentials) come from.
 enum Pressures<'a, 'b> {
     /// Solved.
     Solve,
@@ -922,7 +922,7 @@ impl Simulation {
 
         // 0. Marker particles ride the current (divergence-free, extrapolated) field.
         let (particle_record, density_stats) =
-            self.advect_particles(&geometry, dt, start.is_some(), &mut times)?;
+            self.advect_particles(&geometry, dt, start.is_some(), &mut times, &mut pressures)?;
         let density_cg_iterations = density_stats.cg_iterations;
         lap(&mut 0.0);
 
@@ -1081,6 +1081,7 @@ impl Simulation {
         dt: f64,
         taped: bool,
         times: &mut StageSeconds,
+        pressures: &mut Pressures,
     ) -> Result<(Option<ParticleRecord>, DensityStats)> {
         if self.frozen_phi.is_some() {
             return Ok((None, DensityStats::default()));
@@ -1112,7 +1113,16 @@ impl Simulation {
         let mut stats = DensityStats::default();
         let mut particles = std::mem::take(&mut self.particles);
         if let Some(inputs) = self.density_inputs(geometry) {
-            let corrected = density::correct(&mut particles, &inputs, self.step + 1);
+            let step = self.step + 1;
+            let corrected = match pressures {
+                Pressures::Replay(replay) => replay
+                    .next_density(step)
+                    .and_then(|q| density::correct_replayed(&mut particles, &inputs, q, step)),
+                _ => density::correct(&mut particles, &inputs, step),
+            };
+            if let (Pressures::Record(solves), Ok((s, q))) = (&mut *pressures, &corrected) {
+                solves.push_density(q.clone(), s.cg_iterations);
+            }
             match corrected {
                 Ok((s, q)) => (stats, density) = (s, q),
                 Err(e) => {

@@ -106,14 +106,19 @@ impl Tape {
     }
 }
 
-/// The pressures a run of untaped steps solved for, in order (each contact iteration's solve
-/// its own): what a checkpointed forward pass keeps of a segment besides its start state, so
-/// that re-running the segment in the backward pass takes them instead of solving again. The
+/// What a run of untaped steps solved for, in order: the pressures (each contact iteration's
+/// solve its own) and, with the surface moving, the density projections' potentials. A
+/// checkpointed forward pass keeps it for each segment besides its start state, so that
+/// re-running the segment in the backward pass takes them instead of solving again. The
 /// forward map is deterministic, so a re-run from the same state asks for the same solves and
-/// what it takes is what it would have solved, to the bit. 8 bytes a liquid cell a step.
+/// what it takes is what it would have solved, to the bit. 8 bytes a liquid cell a step (16
+/// with the surface moving).
 #[derive(Clone, Debug, Default)]
 pub struct Solves {
     solves: Vec<(Vec<f64>, CgStats)>,
+    /// Each density projection's potential (None when it found no cell over full) and
+    /// iterations.
+    density: Vec<(Option<Vec<f64>>, usize)>,
     /// Whether rapier contact acted in any of the steps.
     pub contact: bool,
 }
@@ -124,14 +129,20 @@ impl Solves {
         self.solves.push((p, stats));
     }
 
+    /// Keeps one density projection's potential and iterations.
+    pub(crate) fn push_density(&mut self, q: Option<Vec<f64>>, iterations: usize) {
+        self.density.push((q, iterations));
+    }
+
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        self.solves.iter().map(|(p, _)| 8 * p.len()).sum()
+        let density: usize = self.density.iter().map(|(q, _)| q.as_ref().map_or(0, Vec::len)).sum();
+        8 * (self.solves.iter().map(|(p, _)| p.len()).sum::<usize>() + density)
     }
 
     /// A cursor that hands the solves out in order, from the first.
     pub(crate) fn replay(&self) -> Replay<'_> {
-        Replay { solves: self, next: 0 }
+        Replay { solves: self, next: 0, next_density: 0 }
     }
 }
 
@@ -140,6 +151,7 @@ impl Solves {
 pub(crate) struct Replay<'a> {
     solves: &'a Solves,
     next: usize,
+    next_density: usize,
 }
 
 impl Replay<'_> {
@@ -162,5 +174,17 @@ impl Replay<'_> {
                 }
             ))),
         }
+    }
+
+    /// The next density projection's potential and iterations, for step `step`.
+    pub(crate) fn next_density(&mut self, step: usize) -> Result<(Option<Vec<f64>>, usize)> {
+        let found = self.solves.density.get(self.next_density).cloned().ok_or_else(|| {
+            Error::Gradient(format!(
+                "re-running step {step} from its checkpoint made a density projection its \
+                 forward pass did not: the forward map is not deterministic"
+            ))
+        })?;
+        self.next_density += 1;
+        Ok(found)
     }
 }
