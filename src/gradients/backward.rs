@@ -504,8 +504,10 @@ impl ParticleAdjoint<'_> {
                 }
             }
         };
-        // The positions after the step: the density projection's displacement and the second
-        // push-out replayed from the advected positions.
+        // The positions after the step, replayed from the advected ones: the first push-out,
+        // the density projection's displacement and the second push-out.
+        let mut advected = pr.moved.clone();
+        surface::push_out_of_bodies(&mut advected, self.bodies, margin);
         // The density projection read the band of its own step.
         let band = pr.deep.as_ref().map(|deep| {
             let m = surface::per_axis(sim.settings().solver.particles_per_cell);
@@ -516,10 +518,10 @@ impl ParticleAdjoint<'_> {
             g
         });
         let projection = match (&inputs, &pr.density) {
-            (Some(g), Some(q)) => DensityProjection::build(&pr.advected, g).map(|p| (p, q)),
+            (Some(g), Some(q)) => DensityProjection::build(&advected, g).map(|p| (p, q)),
             _ => None,
         };
-        let mut displaced = pr.advected.clone();
+        let mut displaced = advected.clone();
         if let (Some((proj, q)), Some(g)) = (&projection, &inputs) {
             proj.displace(&mut displaced, q, g);
         }
@@ -537,7 +539,7 @@ impl ParticleAdjoint<'_> {
                 surface::push_out_of_bodies_adjoint(&displaced, &mut pbar, self.bodies, margin, fd),
             );
             if let Some((proj, q)) = &projection {
-                let (s, stats) = proj.adjoint(&pr.advected, q, &mut pbar, g);
+                let (s, stats) = proj.adjoint(&advected, q, &mut pbar, g);
                 if !stats.converged {
                     return Err(Error::NotConverged {
                         step,
@@ -552,14 +554,12 @@ impl ParticleAdjoint<'_> {
         if let (Some((proj, _)), Some(g)) = (projection, &inputs) {
             g.give_back(Some(proj.sys), None);
         }
-        // The first push-out, from the advected positions before it (replayed), and the
-        // advection through the start velocity.
+        // The first push-out, from the advected positions before it, and the advection
+        // through the start velocity.
         let node_sdf = &sim.statics().node_sdf;
-        let mut moved = pr.start.clone();
-        surface::advect_substepped(&mut moved, self.u, &grid, dt, pr.substeps, node_sdf);
         add_pose(
             pose,
-            surface::push_out_of_bodies_adjoint(&moved, &mut pbar, self.bodies, margin, fd),
+            surface::push_out_of_bodies_adjoint(&pr.moved, &mut pbar, self.bodies, margin, fd),
         );
         surface::advect_adjoint(
             &pr.start,

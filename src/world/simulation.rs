@@ -1105,8 +1105,8 @@ impl Simulation {
             substeps,
             node_sdf,
         );
+        let moved = taped.then(|| self.particles.clone());
         surface::push_out_of_bodies(&mut self.particles, &self.bodies, margin);
-        let advected = taped.then(|| self.particles.clone());
         times.advect_particles = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
         let mut density = None;
@@ -1134,10 +1134,10 @@ impl Simulation {
         }
         self.particles = particles;
         times.density = clock.elapsed().as_secs_f64();
-        let record = start.zip(advected).map(|(start, advected)| ParticleRecord {
+        let record = start.zip(moved).map(|(start, moved)| ParticleRecord {
             start,
             substeps,
-            advected,
+            moved,
             density,
             nearest: Vec::new(),
             change,

@@ -42,15 +42,17 @@ pub struct StepRecord {
 
 /// What stage 0 (the marker particles) leaves for the backward pass: the positions it
 /// started from and after advection, its sub-steps and the density projection's potential;
-/// the rest (the density system, the displacement, the positions after it) is replayed.
+/// the rest (the push out of the bodies, the density system, the displacement, the positions
+/// after it) is replayed.
 #[derive(Clone, Debug)]
 pub struct ParticleRecord {
     /// Positions at the start of the step.
     pub start: Vec<Vec3>,
     /// Sub-steps of the advection.
     pub substeps: usize,
-    /// Positions after advection and the push out of the bodies.
-    pub advected: Vec<Vec3>,
+    /// Positions after advection, before the push out of the bodies (which the backward
+    /// pass replays: it is cheap, and its adjoint reads the positions before it).
+    pub moved: Vec<Vec3>,
     /// The density projection's potential q (None when no cell was over full or it is off).
     pub density: Option<Vec<f64>>,
     /// Per cell, the particle (at the end of the step) whose distance the step's φ_L is
@@ -89,7 +91,7 @@ impl Tape {
                         .map(|b| b.faces.iter().map(Vec::len).sum::<usize>() * 16)
                         .sum::<usize>()
                     + s.particles.as_ref().map_or(0, |r| {
-                        24 * (r.start.len() + r.advected.len())
+                        24 * (r.start.len() + r.moved.len())
                             + 8 * r.density.as_ref().map_or(0, Vec::len)
                             + 4 * r.nearest.len()
                             + r.change.as_ref().map_or(0, |c| 4 * c.kept.len())
