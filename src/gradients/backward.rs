@@ -518,12 +518,15 @@ impl ParticleAdjoint<'_> {
             g
         });
         let projection = match (&inputs, &pr.density) {
-            (Some(g), Some(q)) => DensityProjection::build(&advected, g).map(|p| (p, q)),
+            (Some(g), Some(q)) => DensityProjection::build(&advected, g).map(|p| {
+                let disp = p.displacement(q, g);
+                (p, q, disp)
+            }),
             _ => None,
         };
         let mut displaced = advected.clone();
-        if let (Some((proj, q)), Some(g)) = (&projection, &inputs) {
-            proj.displace(&mut displaced, q, g);
+        if let (Some((proj, _, disp)), Some(g)) = (&projection, &inputs) {
+            proj.displace_by(&mut displaced, disp, g);
         }
         let mut end = displaced.clone();
         if inputs.is_some() {
@@ -538,8 +541,8 @@ impl ParticleAdjoint<'_> {
                 pose,
                 surface::push_out_of_bodies_adjoint(&displaced, &mut pbar, self.bodies, margin, fd),
             );
-            if let Some((proj, q)) = &projection {
-                let (s, stats) = proj.adjoint(&advected, q, &mut pbar, g);
+            if let Some((proj, q, disp)) = &projection {
+                let (s, stats) = proj.adjoint_with(&advected, q, disp, &mut pbar, g);
                 if !stats.converged {
                     return Err(Error::NotConverged {
                         step,
@@ -551,8 +554,8 @@ impl ParticleAdjoint<'_> {
                 self.density_weight_pose(proj, q, &s, g, pose);
             }
         }
-        if let (Some((proj, _)), Some(g)) = (projection, &inputs) {
-            g.give_back(Some(proj.sys), None);
+        if let (Some((proj, _, disp)), Some(g)) = (projection, &inputs) {
+            g.give_back(Some(proj.sys), Some(disp.d));
         }
         // The first push-out, from the advected positions before it, and the advection
         // through the start velocity.

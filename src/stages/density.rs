@@ -162,23 +162,29 @@ impl DensityProjection {
     }
 
     /// The displacement field of potential `q` and the faces it was projected on.
-    fn displacement(&self, q: &[f64], g: &DensityInputs<'_>) -> (Mac, [Vec<u8>; 3]) {
+    pub fn displacement(&self, q: &[f64], g: &DensityInputs<'_>) -> Displacement {
         let mut d = g.zero_field();
         let valid0 = self.sys.update_velocity(q, &mut d);
         let mut valid = valid0.clone();
         correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
-        (d, valid0)
+        Displacement { d, valid0 }
     }
 
     /// Moves the particles by the displacement of potential `q` (capped at half a cell),
     /// keeping them out of the static solids.
     pub fn displace(&self, particles: &mut [Vec3], q: &[f64], g: &DensityInputs<'_>) {
-        let (d, _) = self.displacement(q, g);
+        let disp = self.displacement(q, g);
+        self.displace_by(particles, &disp, g);
+        g.give_back(None, Some(disp.d));
+    }
+
+    /// [`DensityProjection::displace`] by a displacement already computed.
+    pub fn displace_by(&self, particles: &mut [Vec3], disp: &Displacement, g: &DensityInputs<'_>) {
         let walls = Walls::new(g.grid, g.node_sdf);
+        let d = &disp.d;
         particles
             .par_iter_mut()
             .for_each(|x| *x = walls.keep(*x + capped(d.velocity(g.grid, *x), g.grid)));
-        g.give_back(None, Some(d));
     }
 
     /// Adjoint of [`DensityProjection::displace`] composed with the system's dependence on
@@ -193,26 +199,63 @@ impl DensityProjection {
         pbar: &mut [Vec3],
         g: &DensityInputs<'_>,
     ) -> (Vec<f64>, CgStats) {
+        let disp = self.displacement(q, g);
+        let out = self.adjoint_with(particles, q, &disp, pbar, g);
+        g.give_back(None, Some(disp.d));
+        out
+    }
+
+    /// [`DensityProjection::adjoint`] with the displacement of `q` already computed (the
+    /// backward pass has it from replaying the displacement).
+    pub fn adjoint_with(
+        &self,
+        particles: &[Vec3],
+        q: &[f64],
+        disp: &Displacement,
+        pbar: &mut [Vec3],
+        g: &DensityInputs<'_>,
+    ) -> (Vec<f64>, CgStats) {
         let grid = g.grid;
-        let (d, valid0) = self.displacement(q, g);
+        let Displacement { d, valid0 } = disp;
         let walls = Walls::new(grid, g.node_sdf);
         let step = jacobian_step(grid);
-        // y = x + cap(d(x)), x' = keep(y).
+        // y = x + cap(d(x)), x' = keep(y). Each particle's own part in parallel, a chunk at a
+        // time; the chunk's scatter into d̄ in particle order (the same sums on any thread
+        // count).
         let mut dbar = Mac::zeros(grid);
-        for (x, xb) in particles.iter().zip(pbar.iter_mut()) {
-            if *xb == Vec3::ZERO {
-                continue;
+        let chunk = PARTICLE_CHUNK.min(particles.len().max(1));
+        let mut vbars = vec![Vec3::ZERO; chunk];
+        for (xs, xbs) in particles.chunks(chunk).zip(pbar.chunks_mut(chunk)) {
+            let vbars = &mut vbars[..xs.len()];
+            xs.par_iter()
+                .zip(xbs.par_iter_mut())
+                .zip(vbars.par_iter_mut())
+                .with_min_len(1024)
+                .for_each(|((x, xb), vb)| {
+                    if *xb == Vec3::ZERO {
+                        *vb = Vec3::ZERO;
+                        return;
+                    }
+                    let (v, jd) = d.velocity_jacobian(grid, *x);
+                    let y = *x + capped(v, grid);
+                    let ybar = if walls.keep(y) == y {
+                        *xb
+                    } else {
+                        jacobian_t(|p| walls.keep(p), y, step, *xb)
+                    };
+                    let vbar = capped_adjoint(v, grid, ybar);
+                    *xb = ybar + vbar.x * jd[0] + vbar.y * jd[1] + vbar.z * jd[2];
+                    *vb = vbar;
+                });
+            for (x, vb) in xs.iter().zip(vbars.iter()) {
+                // A zero adds nothing (the sums start at +0 and the weights are ≥ 0).
+                if *vb != Vec3::ZERO {
+                    dbar.scatter_velocity(grid, *x, *vb);
+                }
             }
-            let (v, jd) = d.velocity_jacobian(grid, *x);
-            let y = *x + capped(v, grid);
-            let ybar =
-                if walls.keep(y) == y { *xb } else { jacobian_t(|p| walls.keep(p), y, step, *xb) };
-            let vbar = capped_adjoint(v, grid, ybar);
-            *xb = ybar + vbar.x * jd[0] + vbar.y * jd[1] + vbar.z * jd[2];
-            dbar.scatter_velocity(grid, *x, vbar);
         }
         // d = C(−k·G·q).
-        correct_velocity_adjoint(&mut dbar, &valid0, g.weights, grid, 1);
+        correct_velocity_adjoint(&mut dbar, valid0, g.weights, grid, 1);
         let qbar = self.sys.update_velocity_adjoint(&dbar);
         let (s, stats) = self.sys.solve(&qbar, &g.solve);
         // b = max(dens − FULL, 0)·dx³ on the rows (0 on a band's deep cells).
@@ -227,9 +270,21 @@ impl DensityProjection {
         // The operator and the update read φ through the ghost-fluid θ.
         let phi_bar = self.sys.phi_adjoint(&self.phi, g.weights, &s, q, &dbar);
         surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &phi_bar, pbar);
-        g.give_back(None, Some(d));
         (s, stats)
     }
+}
+
+/// Particles whose adjoint is taken at once before their scatter (a few MB of [`Vec3`]).
+const PARTICLE_CHUNK: usize = 1 << 16;
+
+/// The displacement field of a density potential and the faces it was projected on: what
+/// [`DensityProjection::displace`] moves the particles by, and what its adjoint reads.
+#[derive(Debug)]
+pub struct Displacement {
+    /// The displacement on the faces (extrapolated one layer).
+    pub d: Mac,
+    /// The faces the potential's gradient set, before the extrapolation.
+    pub valid0: [Vec<u8>; 3],
 }
 
 /// The displacement `v` capped at half a cell.
