@@ -23,9 +23,10 @@ pub struct GradientSettings {
     /// last is taped in the forward pass, so it is not re-run. The forward map is
     /// deterministic, so the gradient is bit-identical to the one without.
     pub checkpoint_every: Option<usize>,
-    /// With checkpointing, solve the pressure again when a segment is re-run, instead of
-    /// taking the pressures the forward pass kept (see [`Solves`]: 8 bytes a liquid cell a
-    /// step, 4 MB a step on `large_tank`, for a re-run without its solves). For long runs on
+    /// With checkpointing, solve again when a segment is re-run (the pressure, and with the
+    /// surface moving the density projection), instead of taking what the forward pass kept
+    /// (see [`Solves`]: 8 bytes a liquid cell a step, 4 MB a step on `large_tank`, for a
+    /// re-run without its solves). For long runs on
     /// large grids, where N pressures outweigh √N snapshots. The gradient is the same bits.
     pub re_solve: bool,
 }

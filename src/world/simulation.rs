@@ -486,7 +486,6 @@ fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
     1e-3 * v3(gravity).length().max(1.0) * dt
 }
 
-/// What the projection (stage 4) leaves.
 /// Where a step's pressure solves (and density projection potentials) come from.
 enum Pressures<'a, 'b> {
     /// Solved.
@@ -497,6 +496,7 @@ enum Pressures<'a, 'b> {
     Replay(&'a mut Replay<'b>),
 }
 
+/// What the projection (stage 4) leaves.
 struct Projection {
     p: Vec<f64>,
     stats: crate::solvers::cg::CgStats,

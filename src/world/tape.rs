@@ -136,12 +136,6 @@ impl Solves {
         self.density.push((q, iterations));
     }
 
-    /// Bytes held.
-    pub fn bytes(&self) -> usize {
-        let density: usize = self.density.iter().map(|(q, _)| q.as_ref().map_or(0, Vec::len)).sum();
-        8 * (self.solves.iter().map(|(p, _)| p.len()).sum::<usize>() + density)
-    }
-
     /// A cursor that hands the solves out in order, from the first.
     pub(crate) fn replay(&self) -> Replay<'_> {
         Replay { solves: self, next: 0, next_density: 0 }
