@@ -201,8 +201,14 @@ impl Lattice {
     /// Lower corner index and fraction along `axis` for coordinate `x` (clamped).
     #[inline]
     fn locate(&self, axis: usize, x: f64) -> (usize, usize, f64) {
+        self.locate_scaled(axis, x / self.dx)
+    }
+
+    /// [`Lattice::locate`] for the coordinate already divided by the spacing, `t = x/dx`.
+    #[inline]
+    fn locate_scaled(&self, axis: usize, t: f64) -> (usize, usize, f64) {
         let top = (self.n[axis] - 1) as f64;
-        let g = (x / self.dx - self.off[axis]).clamp(0.0, top);
+        let g = (t - self.off[axis]).clamp(0.0, top);
         let i0 = (g as usize).min(self.n[axis].saturating_sub(2));
         let i1 = (i0 + 1).min(self.n[axis] - 1);
         (i0, i1, g - i0 as f64)
@@ -212,9 +218,16 @@ impl Lattice {
     /// gives, without the derivative: this is the hot path of advection).
     #[inline]
     pub fn sample(&self, field: &[f64], x: Vec3) -> f64 {
-        let (i0, i1, tx) = self.locate(0, x.x);
-        let (j0, j1, ty) = self.locate(1, x.y);
-        let (k0, k1, tz) = self.locate(2, x.z);
+        self.sample_scaled(field, [x.x / self.dx, x.y / self.dx, x.z / self.dx])
+    }
+
+    /// [`Lattice::sample`] at the point whose coordinates divided by the spacing are `t`
+    /// (the same bits: the three face lattices of a velocity share one division).
+    #[inline]
+    pub fn sample_scaled(&self, field: &[f64], t: [f64; 3]) -> f64 {
+        let (i0, i1, tx) = self.locate_scaled(0, t[0]);
+        let (j0, j1, ty) = self.locate_scaled(1, t[1]);
+        let (k0, k1, tz) = self.locate_scaled(2, t[2]);
         let (n0, n01) = (self.n[0], self.n[0] * self.n[1]);
         let row = |j: usize, k: usize| {
             let b = j * n0 + k * n01;
@@ -271,7 +284,8 @@ impl Mac {
     /// Velocity at `x`, each component interpolated on its own face lattice.
     #[inline]
     pub fn velocity(&self, grid: &Grid, x: Vec3) -> Vec3 {
-        v3([0, 1, 2].map(|a| grid.faces(a).sample(&self.c[a], x)))
+        let t = [x.x / grid.dx, x.y / grid.dx, x.z / grid.dx];
+        v3([0, 1, 2].map(|a| grid.faces(a).sample_scaled(&self.c[a], t)))
     }
 
     /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`.
