@@ -198,13 +198,8 @@ impl Lattice {
         st
     }
 
-    /// Lower corner index and fraction along `axis` for coordinate `x` (clamped).
-    #[inline]
-    fn locate(&self, axis: usize, x: f64) -> (usize, usize, f64) {
-        self.locate_scaled(axis, x / self.dx)
-    }
-
-    /// [`Lattice::locate`] for the coordinate already divided by the spacing, `t = x/dx`.
+    /// Lower corner index and fraction along `axis` (clamped) for the coordinate divided by
+    /// the spacing, `t = x/dx`.
     #[inline]
     fn locate_scaled(&self, axis: usize, t: f64) -> (usize, usize, f64) {
         let top = (self.n[axis] - 1) as f64;

@@ -183,8 +183,8 @@ impl Segment {
                 for _ in 0..self.steps {
                     match replay.as_mut() {
                         Some(replay) => sim.step_replayed(&mut tape, replay)?,
-                        None => sim.step_taped(&mut tape)?,
-                    };
+                        None => sim.step_taped(&mut tape).map(drop)?,
+                    }
                 }
                 rerun = tape;
                 &rerun
