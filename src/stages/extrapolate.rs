@@ -42,10 +42,10 @@ fn neighbours(
 /// Marks "never valid" in [`Layers::level`].
 const NEVER: u8 = u8::MAX;
 
-/// Which faces each extrapolation layer sets, found by growing a front from the valid faces:
-/// a face set in layer l has a neighbour set in layer l − 1 (or valid, for l = 0), so only
-/// the faces next to the last front are candidates. The work is proportional to the faces
-/// near the liquid, not to the grid.
+/// Which faces each extrapolation layer sets: a face set in layer l is a never-set face with
+/// a neighbour set in layer l − 1 (or valid, for l = 0). Each front is found by one pass over
+/// the lattice's levels, a z-slab at a time (whole-row tests the compiler vectorises), in
+/// increasing index order.
 struct Layers {
     /// 0 for a valid face, l + 1 for a face set in layer l, [`NEVER`] otherwise.
     level: Vec<u8>,
@@ -61,33 +61,10 @@ impl Layers {
             .with_min_len(MIN_LEN)
             .map(|&v| if v != 0 { 0 } else { NEVER })
             .collect();
-        let mut last: Vec<usize> = (0..valid0.len())
-            .into_par_iter()
-            .with_min_len(MIN_LEN)
-            .filter(|&i| valid0[i] != 0)
-            .collect();
         let mut fronts = Vec::with_capacity(layers);
         for l in 0..layers {
-            // The never-set neighbours of the last front, found in parallel, then sorted
-            // (a face next to two of the front is found twice).
-            let level_now = &level;
-            let mut front: Vec<usize> = last
-                .par_chunks(CHUNK)
-                .with_min_len(min_pieces(CHUNK))
-                .flat_map_iter(|chunk| {
-                    let mut found = Vec::new();
-                    let mut nb = [0usize; 6];
-                    for &idx in chunk {
-                        let n = neighbours(lat, idx, |m| level_now[m] == NEVER, &mut nb);
-                        found.extend_from_slice(&nb[..n]);
-                    }
-                    found
-                })
-                .collect();
-            front.par_sort_unstable();
-            front.dedup();
+            let front = next_front(&level, lat, l as u8);
             for_each_keyed_mut(&mut level, &front, |&m| m, |_, _, x| *x = l as u8 + 1);
-            last = front.clone();
             fronts.push(front);
         }
         Layers { level, fronts }
@@ -98,6 +75,41 @@ impl Layers {
     fn known_before(&self, idx: usize, l: usize) -> bool {
         (self.level[idx] as usize) <= l
     }
+}
+
+/// The never-set samples ([`NEVER`]) with a lattice neighbour at level `at`, in increasing
+/// index order.
+fn next_front(level: &[u8], lat: &Lattice, at: u8) -> Vec<usize> {
+    let [n0, n1, n2] = lat.n;
+    let slab = lat.slab();
+    let mark = |hit: &mut [bool], src: &[u8]| {
+        hit.iter_mut().zip(src).for_each(|(h, &v)| *h |= v == at);
+    };
+    level
+        .par_chunks(slab)
+        .enumerate()
+        .flat_map_iter(|(k, lv)| {
+            let mut hit = vec![false; slab];
+            for j in 0..n1 {
+                let (row, h) = (&lv[j * n0..][..n0], &mut hit[j * n0..][..n0]);
+                if n0 > 1 {
+                    mark(&mut h[1..], &row[..n0 - 1]);
+                    mark(&mut h[..n0 - 1], &row[1..]);
+                }
+            }
+            if n1 > 1 {
+                mark(&mut hit[n0..], &lv[..slab - n0]);
+                mark(&mut hit[..slab - n0], &lv[n0..]);
+            }
+            if k > 0 {
+                mark(&mut hit, &level[(k - 1) * slab..][..slab]);
+            }
+            if k + 1 < n2 {
+                mark(&mut hit, &level[(k + 1) * slab..][..slab]);
+            }
+            (0..slab).filter(move |&i| hit[i] && lv[i] == NEVER).map(move |i| k * slab + i)
+        })
+        .collect()
 }
 
 /// Extrapolates one component over `layers` layers and zeroes what stays invalid.
@@ -367,6 +379,36 @@ mod tests {
         correct_velocity_adjoint(&mut cty, &valid, &weights, &grid, 3);
         let (l, r) = (cx.dot(&y), x.dot(&cty));
         assert!((l - r).abs() <= 1e-12 * l.abs().max(r.abs()), "{l} vs {r}");
+    }
+
+    /// Each layer's front is every never-set face with a lattice neighbour known just before
+    /// it, found by brute force over the lattice's (i, j, k), on lattices with a side of 1.
+    #[test]
+    fn fronts_are_the_faces_next_to_the_last_layer() {
+        for n in [[7, 5, 4], [1, 6, 3], [5, 1, 1], [3, 4, 1]] {
+            let lat = Lattice { n, off: [0.0; 3], dx: 1.0 };
+            let valid: Vec<u8> = (0..lat.len()).map(|f| u8::from((f * 37) % 11 == 0)).collect();
+            let lay = Layers::new(&valid, &lat, 4);
+            let mut known: Vec<bool> = valid.iter().map(|&v| v != 0).collect();
+            for front in &lay.fronts {
+                let expect: Vec<usize> = (0..lat.len())
+                    .filter(|&f| !known[f])
+                    .filter(|&f| {
+                        let p = lat.ijk(f);
+                        (0..3).any(|a| {
+                            [-1i64, 1].into_iter().any(|d| {
+                                let q = p[a] as i64 + d;
+                                let mut r = p;
+                                r[a] = q.max(0) as usize;
+                                (0..n[a] as i64).contains(&q) && known[lat.index(r[0], r[1], r[2])]
+                            })
+                        })
+                    })
+                    .collect();
+                assert_eq!(front, &expect, "lattice {n:?}");
+                expect.iter().for_each(|&f| known[f] = true);
+            }
+        }
     }
 
     #[test]
