@@ -168,7 +168,8 @@ impl Lattice {
             } else {
                 (g, true)
             };
-            let i0 = (gc.floor() as usize).min(self.n[a].saturating_sub(2));
+            // gc ≥ 0: truncation is the floor.
+            let i0 = (gc as usize).min(self.n[a].saturating_sub(2));
             lo[a] = i0;
             hi[a] = (i0 + 1).min(self.n[a] - 1);
             t[a] = gc - i0 as f64;

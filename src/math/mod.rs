@@ -28,10 +28,41 @@ pub fn comp(v: Vec3, axis: usize) -> f64 {
     v.to_array()[axis]
 }
 
+/// ⌊x⌋ without a library call, for the per-particle hot paths: the baseline x86-64 target
+/// has no rounding instruction, so `f64::floor` is a call into libm (1.2% of a `large_tank`
+/// step in a profile). Truncate, then step down where truncation rounded a negative value
+/// up. The same value as `x.floor()` for |x| < 2⁶³, except −0 (gives +0); NaN gives 0.
+#[inline]
+pub fn floor(x: f64) -> f64 {
+    let t = x as i64 as f64;
+    if t > x {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
 /// The unit vector along `axis`.
 #[inline]
 pub fn unit(axis: usize) -> Vec3 {
     let mut a = [0.0; 3];
     a[axis] = 1.0;
     v3(a)
+}
+
+#[cfg(test)]
+mod tests {
+    /// The same as `f64::floor` on integers, values just off them on either side, halves,
+    /// negatives and large magnitudes.
+    #[test]
+    fn floor_is_the_floor() {
+        let mut xs = vec![0.0, 1.0, -1.0, 0.5, -0.5, 1e15 + 0.5, -1e15 - 0.5, 4e18, -4e18];
+        for i in -300..300 {
+            let x = i as f64 * 0.37;
+            xs.extend([x, x.next_up(), x.next_down(), i as f64, (i as f64).next_down()]);
+        }
+        for x in xs {
+            assert_eq!(super::floor(x), x.floor(), "{x}");
+        }
+    }
 }

@@ -469,7 +469,8 @@ impl SlabBuckets {
 #[inline]
 pub fn cell_of(grid: &Grid, x: Vec3) -> usize {
     let a = x.to_array();
-    let ijk = [0, 1, 2].map(|d| ((a[d] / grid.dx).floor().max(0.0) as usize).min(grid.n[d] - 1));
+    // Truncation is the floor here: a negative coordinate saturates to cell 0 either way.
+    let ijk = [0, 1, 2].map(|d| ((a[d] / grid.dx) as usize).min(grid.n[d] - 1));
     grid.cell(ijk[0], ijk[1], ijk[2])
 }
 
@@ -791,7 +792,7 @@ fn deposit_weights(grid: &Grid, x: Vec3) -> Deposit {
     let mut dw = [[0.0f64; 2]; 3];
     for d in 0..3 {
         let g = a[d] / grid.dx - 0.5;
-        let i0 = g.floor();
+        let i0 = crate::math::floor(g);
         let t = g - i0;
         let n = grid.n[d] as i64;
         let fold = |i: i64| -> usize {
