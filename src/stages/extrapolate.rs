@@ -8,7 +8,7 @@
 //! backward pass (paper, eq. 10).
 
 use crate::geometry::grid::{Grid, Lattice, Mac};
-use crate::math::par::{for_each_keyed_mut, min_pieces, MIN_LEN};
+use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use rayon::prelude::*;
 
 /// Smallest piece of a face list handed to rayon.
@@ -63,7 +63,7 @@ impl Layers {
             .collect();
         let mut fronts = Vec::with_capacity(layers);
         for l in 0..layers {
-            let front = next_front(&level, lat, l as u8);
+            let front = next_to(&level, lat, l as u8, |v| v == NEVER);
             for_each_keyed_mut(&mut level, &front, |&m| m, |_, _, x| *x = l as u8 + 1);
             fronts.push(front);
         }
@@ -77,9 +77,9 @@ impl Layers {
     }
 }
 
-/// The never-set samples ([`NEVER`]) with a lattice neighbour at level `at`, in increasing
-/// index order.
-fn next_front(level: &[u8], lat: &Lattice, at: u8) -> Vec<usize> {
+/// The samples whose own level `own` accepts with a lattice neighbour at level `at`, in
+/// increasing index order.
+fn next_to(level: &[u8], lat: &Lattice, at: u8, own: impl Fn(u8) -> bool + Sync) -> Vec<usize> {
     let [n0, n1, n2] = lat.n;
     let slab = lat.slab();
     let mark = |hit: &mut [bool], src: &[u8]| {
@@ -107,7 +107,8 @@ fn next_front(level: &[u8], lat: &Lattice, at: u8) -> Vec<usize> {
             if k + 1 < n2 {
                 mark(&mut hit, &level[(k + 1) * slab..][..slab]);
             }
-            (0..slab).filter(move |&i| hit[i] && lv[i] == NEVER).map(move |i| k * slab + i)
+            let own = &own;
+            (0..slab).filter(move |&i| hit[i] && own(lv[i])).map(move |i| k * slab + i)
         })
         .collect()
 }
@@ -184,21 +185,8 @@ pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers
             let mut nb = [0usize; 6];
             adj[idx] / neighbours(lat, idx, known, &mut nb) as f64
         };
-        let mut targets: Vec<usize> = front
-            .par_chunks(CHUNK)
-            .with_min_len(min_pieces(CHUNK))
-            .flat_map_iter(|chunk| {
-                let mut found = Vec::new();
-                let mut nb = [0usize; 6];
-                for &idx in chunk {
-                    let n = neighbours(lat, idx, known, &mut nb);
-                    found.extend_from_slice(&nb[..n]);
-                }
-                found
-            })
-            .collect();
-        targets.par_sort_unstable();
-        targets.dedup();
+        // The faces known before the layer next to one set in it, in index order.
+        let targets = next_to(&lay.level, lat, l as u8 + 1, |v| v as usize <= l);
         let set_in_layer = |m: usize| lay.level[m] as usize == l + 1;
         let adds: Vec<(usize, f64)> = targets
             .par_iter()
