@@ -55,6 +55,9 @@ pub const COARSEST_SWEEPS: usize = 30;
 const MIN_PAR: usize = 1024;
 /// Marks a slot of the black colour in a packed (colour, index) slot.
 const BLACK_BIT: u32 = 1 << 31;
+/// Marks, in an entry's first neighbour index, an entry whose diagonal and six couplings are
+/// its half's [`Half::uniform`] ones: the sweep then reads no coefficient of it.
+const UNIFORM: u32 = 1 << 31;
 
 #[inline]
 fn pack(colour: usize, i: usize) -> u32 {
@@ -236,6 +239,9 @@ struct Half {
     nbr: Vec<[u32; 6]>,
     /// Their couplings (A_ij = −coef; rounded toward zero to f32).
     coef: Vec<[f32; 6]>,
+    /// The diagonal and the coupling of the entries flagged [`UNIFORM`] (all six couplings
+    /// equal): most of a deep pool's cells, whose coefficients the sweep then does not stream.
+    uniform: (f32, f32),
     /// Packed slot of the block on the next coarser level ([`NONE`] on the coarsest).
     parent: Vec<u32>,
     /// Red entries of the finer level in this block (coarse levels only; [`NONE`]-padded).
@@ -253,6 +259,25 @@ impl Half {
         clear_for(&mut self.diag, n);
         clear_for(&mut self.nbr, n);
         clear_for(&mut self.coef, n);
+    }
+
+    /// Picks [`Half::uniform`] (the first entry with six equal positive couplings) and flags
+    /// every entry that has exactly its coefficients.
+    fn mark_uniform(&mut self) {
+        let same = |c: &[f32; 6]| c[0] > 0.0 && c.iter().all(|x| x.to_bits() == c[0].to_bits());
+        let Some((c, &d)) = self.coef.iter().zip(&self.diag).find(|(c, _)| same(c)) else {
+            self.uniform = (0.0, 0.0);
+            return;
+        };
+        let (d, c) = (d, c[0]);
+        self.uniform = (d, c);
+        self.nbr.par_iter_mut().with_min_len(MIN_PAR).zip(&self.coef).zip(&self.diag).for_each(
+            |((n, cf), dg)| {
+                if dg.to_bits() == d.to_bits() && cf.iter().all(|x| x.to_bits() == c.to_bits()) {
+                    n[0] |= UNIFORM;
+                }
+            },
+        );
     }
 }
 
@@ -343,6 +368,7 @@ fn split(lat: &LatticeStencil, level: &mut Level) -> Vec<u32> {
             })
             .unzip_into_vecs(&mut h.nbr, &mut h.coef);
         h.cell.par_iter().map(|&c| diag32(lat.diag[c as usize])).collect_into_vec(&mut h.diag);
+        h.mark_uniform();
     }
     slot
 }
@@ -417,6 +443,7 @@ fn split_rows(
             })
             .unzip_into_vecs(&mut h.nbr, &mut h.coef);
         rows.par_iter().map(|&r| diag32(a.diag[r as usize])).collect_into_vec(&mut h.diag);
+        h.mark_uniform();
     }
 }
 
@@ -574,7 +601,8 @@ impl Multigrid {
             let [xr, xb] = &w.x;
             let b = &w.b[0];
             w.r.par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, ri)| {
-                *ri = b[i] - red.diag[i] as f64 * xr[i] + neighbours(red, i, xb);
+                let (s, d) = neighbours(red, i, xb);
+                *ri = b[i] - d * xr[i] + s;
             });
         }
         let c = &mut coarser[0];
@@ -611,12 +639,20 @@ impl Multigrid {
 }
 
 /// `Σ coef·x_other` over the neighbours of entry `i` (absent ones read the padding slot, 0,
-/// with coupling 0), summed in pairs.
+/// with coupling 0), summed in pairs, and the entry's diagonal. A [`UNIFORM`] entry takes its
+/// coefficients from the half (the same values, so the same bits) and reads none of its own.
 #[inline(always)]
-fn neighbours(h: &Half, i: usize, other: &[f64]) -> f64 {
-    let (n, c) = (&h.nbr[i], &h.coef[i]);
-    let t = |d: usize| c[d] as f64 * other[n[d] as usize];
-    (t(0) + t(1)) + (t(2) + t(3)) + (t(4) + t(5))
+fn neighbours(h: &Half, i: usize, other: &[f64]) -> (f64, f64) {
+    let n = &h.nbr[i];
+    if n[0] & UNIFORM != 0 {
+        let (d, c) = (h.uniform.0 as f64, h.uniform.1 as f64);
+        let t = |k: usize| c * other[(n[k] & !UNIFORM) as usize];
+        ((t(0) + t(1)) + (t(2) + t(3)) + (t(4) + t(5)), d)
+    } else {
+        let c = &h.coef[i];
+        let t = |k: usize| c[k] as f64 * other[n[k] as usize];
+        ((t(0) + t(1)) + (t(2) + t(3)) + (t(4) + t(5)), h.diag[i] as f64)
+    }
 }
 
 /// Gauss–Seidel half-sweep over one colour: each of its cells solved for with the other
@@ -627,7 +663,8 @@ fn relax(level: &Level, colour: usize, w: &mut Work) {
     let (x, other) = if colour == 0 { (x0, &*x1) } else { (x1, &*x0) };
     let b = &w.b[colour];
     x[..h.len()].par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, xi)| {
-        *xi = (b[i] + neighbours(h, i, other)) / h.diag[i] as f64;
+        let (s, d) = neighbours(h, i, other);
+        *xi = (b[i] + s) / d;
     });
 }
 
