@@ -341,6 +341,40 @@ pub fn ghost_theta(phi_liquid: f64, phi_air: f64, theta_min: f64) -> f64 {
     (phi_liquid / (phi_liquid - phi_air)).max(theta_min)
 }
 
+/// Calls `visit(face, − cell, + cell)` for the open faces (weight > 0) of `axis` in slab k of
+/// its face lattice that have a cell on both sides, in face order, without a division per
+/// face: f runs over the face lattice, c over the cell on each face's + side.
+#[inline]
+fn open_faces(
+    grid: &Grid,
+    axis: usize,
+    k: usize,
+    w: &[f64],
+    mut visit: impl FnMut(usize, usize, usize),
+) {
+    let [nx, ny, _] = grid.faces(axis).n;
+    let n = grid.n;
+    // The cell on the − side of a face is this far below the one on its + side.
+    let below = [1, n[0], n[0] * n[1]][axis];
+    if axis == 2 && (k == 0 || k == n[2]) {
+        return;
+    }
+    for j in 0..ny {
+        if axis == 1 && (j == 0 || j == n[1]) {
+            continue;
+        }
+        let (f0, c0) = (nx * (j + ny * k), n[0] * (j + n[1] * k));
+        let (lo, hi) = if axis == 0 { (1, n[0]) } else { (0, nx) };
+        for i in lo..hi {
+            let f = f0 + i;
+            if w[f] > 0.0 {
+                let c = c0 + i;
+                visit(f, c - below, c);
+            }
+        }
+    }
+}
+
 /// The face index of the −side (`side = 0`) or +side (`side = 1`) face of cell `ijk` along `axis`.
 #[inline]
 fn cell_face(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> usize {
@@ -513,40 +547,18 @@ impl PressureSystem {
         out: &mut Vec<ProjectedFace>,
     ) {
         let lat = self.grid.faces(axis);
-        let [nx, ny, nz] = lat.n;
-        let n = self.grid.n;
-        // The cell on the − side of a face is this far below the one on its + side.
-        let below = [1, n[0], n[0] * n[1]][axis];
+        let nz = lat.n[2];
         let w = &weights[axis];
-        // Visits the faces of slab k that have a gradient, in order, without a division per
-        // face: f runs over the face lattice, c over the cell on each face's + side.
-        let visit = |k: usize, emit: &mut dyn FnMut(ProjectedFace)| {
-            if axis == 2 && (k == 0 || k == n[2]) {
-                return;
-            }
-            for j in 0..ny {
-                if axis == 1 && (j == 0 || j == n[1]) {
-                    continue;
-                }
-                let (f0, c0) = (nx * (j + ny * k), n[0] * (j + n[1] * k));
-                let (lo, hi) = if axis == 0 { (1, n[0]) } else { (0, nx) };
-                for i in lo..hi {
-                    let f = f0 + i;
-                    if w[f] <= 0.0 {
-                        continue;
-                    }
-                    let c = c0 + i;
-                    if let Some(gradient) = self.gradient_between(c - below, c, phi) {
-                        emit(ProjectedFace { face: f as u32, gradient });
-                    }
-                }
-            }
-        };
+        let rows = &self.row_of_cell;
+        // A face has a gradient when a cell on either side is an unknown: counted without
+        // computing it.
         let counts: Vec<usize> = (0..nz)
             .into_par_iter()
             .map(|k| {
                 let mut count = 0;
-                visit(k, &mut |_| count += 1);
+                open_faces(&self.grid, axis, k, w, |_, m, pl| {
+                    count += usize::from(rows[m] != NONE || rows[pl] != NONE);
+                });
                 count
             })
             .collect();
@@ -561,7 +573,11 @@ impl PressureSystem {
         }
         slabs.into_par_iter().enumerate().for_each(|(k, part)| {
             let mut next = part.iter_mut();
-            visit(k, &mut |pf| *next.next().expect("counted") = pf);
+            open_faces(&self.grid, axis, k, w, |f, m, pl| {
+                if let Some(gradient) = self.gradient_between(m, pl, phi) {
+                    *next.next().expect("counted") = ProjectedFace { face: f as u32, gradient };
+                }
+            });
         });
     }
 
