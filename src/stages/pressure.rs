@@ -724,7 +724,8 @@ impl PressureSystem {
     }
 
     /// [`PressureSystem::face_gradient`] of an open face between cells `m` (its − side) and
-    /// `pl`.
+    /// `pl`: Some exactly when either is an unknown (the condition `projected_faces` counts
+    /// by, without computing the coefficient: measured 3–5 ms a system build faster).
     #[inline]
     fn gradient_between(&self, m: usize, pl: usize, phi: &[f64]) -> Option<FaceGradient> {
         let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[pl]);
