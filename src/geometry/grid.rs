@@ -106,6 +106,35 @@ pub struct Stencil {
     pub dw: [Vec3; 8],
 }
 
+/// A sample point's place along one axis of a lattice: the lower and upper sample indices
+/// and the fraction between them.
+type Located = (usize, usize, f64);
+
+/// [`Located`] for the coordinate divided by the spacing `t`, on an axis of `n` samples at
+/// `(i + off)·dx`, clamped to its ends.
+#[inline]
+fn locate(t: f64, off: f64, n: usize) -> Located {
+    let top = (n - 1) as f64;
+    let g = (t - off).clamp(0.0, top);
+    let i0 = (g as usize).min(n.saturating_sub(2));
+    let i1 = (i0 + 1).min(n - 1);
+    (i0, i1, g - i0 as f64)
+}
+
+/// Trilinear interpolation of `field` on a lattice of `n` samples at the place `at` along
+/// each axis.
+#[inline]
+fn trilinear(field: &[f64], n: [usize; 3], at: [Located; 3]) -> f64 {
+    let [(i0, i1, tx), (j0, j1, ty), (k0, k1, tz)] = at;
+    let (n0, n01) = (n[0], n[0] * n[1]);
+    let row = |j: usize, k: usize| {
+        let b = j * n0 + k * n01;
+        field[b + i0] * (1.0 - tx) + field[b + i1] * tx
+    };
+    let plane = |k: usize| row(j0, k) * (1.0 - ty) + row(j1, k) * ty;
+    plane(k0) * (1.0 - tz) + plane(k1) * tz
+}
+
 impl Lattice {
     /// Total number of samples.
     #[inline]
@@ -202,12 +231,8 @@ impl Lattice {
     /// Lower corner index and fraction along `axis` (clamped) for the coordinate divided by
     /// the spacing, `t = x/dx`.
     #[inline]
-    fn locate_scaled(&self, axis: usize, t: f64) -> (usize, usize, f64) {
-        let top = (self.n[axis] - 1) as f64;
-        let g = (t - self.off[axis]).clamp(0.0, top);
-        let i0 = (g as usize).min(self.n[axis].saturating_sub(2));
-        let i1 = (i0 + 1).min(self.n[axis] - 1);
-        (i0, i1, g - i0 as f64)
+    fn locate_scaled(&self, axis: usize, t: f64) -> Located {
+        locate(t, self.off[axis], self.n[axis])
     }
 
     /// Trilinear interpolation of `field` at `x` (the same value as [`Lattice::stencil`]
@@ -221,16 +246,8 @@ impl Lattice {
     /// (the same bits: the three face lattices of a velocity share one division).
     #[inline]
     pub fn sample_scaled(&self, field: &[f64], t: [f64; 3]) -> f64 {
-        let (i0, i1, tx) = self.locate_scaled(0, t[0]);
-        let (j0, j1, ty) = self.locate_scaled(1, t[1]);
-        let (k0, k1, tz) = self.locate_scaled(2, t[2]);
-        let (n0, n01) = (self.n[0], self.n[0] * self.n[1]);
-        let row = |j: usize, k: usize| {
-            let b = j * n0 + k * n01;
-            field[b + i0] * (1.0 - tx) + field[b + i1] * tx
-        };
-        let plane = |k: usize| row(j0, k) * (1.0 - ty) + row(j1, k) * ty;
-        plane(k0) * (1.0 - tz) + plane(k1) * tz
+        let at = [0, 1, 2].map(|a| self.locate_scaled(a, t[a]));
+        trilinear(field, self.n, at)
     }
 
     /// Trilinear interpolation and its gradient with respect to `x`.
@@ -281,7 +298,17 @@ impl Mac {
     #[inline]
     pub fn velocity(&self, grid: &Grid, x: Vec3) -> Vec3 {
         let t = [x.x / grid.dx, x.y / grid.dx, x.z / grid.dx];
-        v3([0, 1, 2].map(|a| grid.faces(a).sample_scaled(&self.c[a], t)))
+        // Along axis b the faces normal to b sit on the cell faces (offset 0, n + 1 of them)
+        // and the other two lattices on the centres (offset ½, n): two places an axis, not
+        // three (the same values as each lattice's own `sample_scaled`).
+        let on_faces = [0, 1, 2].map(|b| locate(t[b], 0.0, grid.n[b] + 1));
+        let on_centres = [0, 1, 2].map(|b| locate(t[b], 0.5, grid.n[b]));
+        v3([0, 1, 2].map(|a| {
+            let at = [0, 1, 2].map(|b| if b == a { on_faces[b] } else { on_centres[b] });
+            let mut n = grid.n;
+            n[a] += 1;
+            trilinear(&self.c[a], n, at)
+        }))
     }
 
     /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`.
@@ -389,6 +416,32 @@ mod tests {
         {
             let (v, _) = lat.sample_grad(&f, x);
             assert!((lat.sample(&f, x) - v).abs() < 1e-13);
+        }
+    }
+
+    #[test]
+    fn velocity_is_each_lattice_sampled() {
+        // The velocity's shared places along each axis give the bits of each face lattice's
+        // own sample, inside, on the ends and beyond them (clamped).
+        let g = grid();
+        let u = Mac {
+            c: [0, 1, 2].map(|a| {
+                (0..g.faces(a).len()).map(|i| ((i * 29 + 7 * a) % 13) as f64 * 0.37).collect()
+            }),
+        };
+        let points = (0..400).map(|i| {
+            let h = |s: u64| ((i as u64 ^ s).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40) as f64;
+            let size = g.size();
+            Vec3::new(h(1) / (1u64 << 24) as f64 * 1.4 - 0.2, h(2) / (1u64 << 24) as f64, 0.0)
+                * Vec3::new(size.x, size.y, 0.0)
+                + Vec3::new(0.0, 0.0, (i % 7) as f64 * size.z / 5.0 - 0.1)
+        });
+        for x in points.chain([Vec3::ZERO, g.size(), Vec3::new(0.125, 0.25, 0.375)]) {
+            let v = u.velocity(&g, x);
+            for a in 0..3 {
+                let own = g.faces(a).sample(&u.c[a], x);
+                assert_eq!(crate::math::comp(v, a).to_bits(), own.to_bits(), "{x:?} axis {a}");
+            }
         }
     }
 
