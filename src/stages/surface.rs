@@ -230,48 +230,66 @@ pub fn advect_adjoint(
     let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
     let fd = jacobian_step(grid);
-    // Per particle, in parallel: its start adjoint, and the points and coefficients at which
-    // its path read the field; then the field's adjoint, scattered in particle order.
-    let reads: Vec<Vec<(Vec3, Vec3)>> = pos0
-        .par_iter()
-        .zip(pbar.par_iter_mut())
-        .map(|(x0, xb)| {
-            if *xb == Vec3::ZERO {
-                return Vec::new();
+    // A chunk of particles at a time: per particle, in parallel, its start adjoint and the
+    // points and coefficients at which its path read the field (2 a sub-step, a fixed
+    // stride; zero for a particle with no adjoint, which scatters nothing); then the field's
+    // adjoint, scattered in particle order (the same sums on any thread count).
+    let stride = 2 * subs;
+    let chunk = PARTICLE_CHUNK.min(pos0.len().max(1));
+    let mut reads = vec![(Vec3::ZERO, Vec3::ZERO); chunk * stride];
+    for (xs, xbs) in pos0.chunks(chunk).zip(pbar.chunks_mut(chunk)) {
+        let reads = &mut reads[..xs.len() * stride];
+        xs.par_iter()
+            .zip(xbs.par_iter_mut())
+            .zip(reads.par_chunks_mut(stride.max(1)))
+            .with_min_len(1024)
+            .for_each_init(
+                || Vec::with_capacity(subs),
+                |path, ((x0, xb), out)| {
+                    if *xb == Vec3::ZERO {
+                        out.fill((Vec3::ZERO, Vec3::ZERO));
+                        return;
+                    }
+                    path.clear();
+                    let mut x = *x0;
+                    for _ in 0..subs {
+                        let mid = x + 0.5 * h * u.velocity(grid, x);
+                        let y = x + h * u.velocity(grid, mid);
+                        path.push((x, mid, y));
+                        x = walls.keep(y);
+                    }
+                    let mut bar = *xb;
+                    for (n, &(x, mid, y)) in path.iter().rev().enumerate() {
+                        // x' = keep(y): the identity unless the push or the clamp acted.
+                        let ybar = if walls.keep(y) == y {
+                            bar
+                        } else {
+                            jacobian_t(|p| walls.keep(p), y, fd, bar)
+                        };
+                        // y = x + h·U(mid), mid = x + h/2·U(x).
+                        let (_, jm) = u.velocity_jacobian(grid, mid);
+                        let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
+                        out[2 * n] = (mid, h * ybar);
+                        let (_, jx) = u.velocity_jacobian(grid, x);
+                        bar = ybar
+                            + mbar
+                            + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2]);
+                        out[2 * n + 1] = (x, 0.5 * h * mbar);
+                    }
+                    *xb = bar;
+                },
+            );
+        for &(x, coef) in reads.iter() {
+            // A zero adds nothing (scatter_velocity skips zero components).
+            if coef != Vec3::ZERO {
+                ubar.scatter_velocity(grid, x, coef);
             }
-            let mut path = Vec::with_capacity(subs);
-            let mut x = *x0;
-            for _ in 0..subs {
-                let mid = x + 0.5 * h * u.velocity(grid, x);
-                let y = x + h * u.velocity(grid, mid);
-                path.push((x, mid, y));
-                x = walls.keep(y);
-            }
-            let mut reads = Vec::with_capacity(2 * subs);
-            let mut bar = *xb;
-            for &(x, mid, y) in path.iter().rev() {
-                // x' = keep(y): the identity unless the push or the clamp acted.
-                let ybar = if walls.keep(y) == y {
-                    bar
-                } else {
-                    jacobian_t(|p| walls.keep(p), y, fd, bar)
-                };
-                // y = x + h·U(mid), mid = x + h/2·U(x).
-                let (_, jm) = u.velocity_jacobian(grid, mid);
-                let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
-                reads.push((mid, h * ybar));
-                let (_, jx) = u.velocity_jacobian(grid, x);
-                bar = ybar + mbar + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2]);
-                reads.push((x, 0.5 * h * mbar));
-            }
-            *xb = bar;
-            reads
-        })
-        .collect();
-    for (x, coef) in reads.iter().flatten() {
-        ubar.scatter_velocity(grid, *x, *coef);
+        }
     }
 }
+
+/// Particles whose adjoint is taken at once before their scatter (a few MB of reads).
+const PARTICLE_CHUNK: usize = 1 << 16;
 
 /// One point pushed out of a body's shape at `pose` (bounds `lo`..`hi`): a point inside goes
 /// to the closest surface point and `margin` beyond it, a point outside but nearer than
