@@ -135,6 +135,80 @@ fn trilinear(field: &[f64], n: [usize; 3], at: [Located; 3]) -> f64 {
     plane(k0) * (1.0 - tz) + plane(k1) * tz
 }
 
+/// A sample point's place along one axis with the derivative of its fraction: the lower
+/// and upper sample indices, the fraction between them, and d(fraction)/dx (0 where the
+/// point is clamped to an end).
+#[derive(Clone, Copy)]
+struct Place {
+    lo: usize,
+    hi: usize,
+    t: f64,
+    live: f64,
+}
+
+/// [`Place`] of the point at `g` sample spacings from the first of `n` samples `dx` apart.
+#[inline]
+fn place(g: f64, n: usize, dx: f64) -> Place {
+    let top = (n - 1) as f64;
+    let (gc, inside) = if g <= 0.0 {
+        (0.0, false)
+    } else if g >= top {
+        (top, false)
+    } else {
+        (g, true)
+    };
+    // gc ≥ 0: truncation is the floor.
+    let lo = (gc as usize).min(n.saturating_sub(2));
+    Place {
+        lo,
+        hi: (lo + 1).min(n - 1),
+        t: gc - lo as f64,
+        live: if inside { 1.0 / dx } else { 0.0 },
+    }
+}
+
+/// The trilinear stencil on a lattice of `n` samples at the places `p` along its axes.
+#[inline]
+fn stencil_at(n: [usize; 3], p: [Place; 3]) -> Stencil {
+    let mut st = Stencil { idx: [0; 8], w: [0.0; 8], dw: [Vec3::ZERO; 8] };
+    for c in 0..8 {
+        let bit = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
+        let mut f = [0.0; 3];
+        let mut df = [0.0; 3];
+        let mut ii = [0usize; 3];
+        for a in 0..3 {
+            if bit[a] == 1 {
+                f[a] = p[a].t;
+                df[a] = p[a].live;
+                ii[a] = p[a].hi;
+            } else {
+                f[a] = 1.0 - p[a].t;
+                df[a] = -p[a].live;
+                ii[a] = p[a].lo;
+            }
+        }
+        st.idx[c] = ii[0] + n[0] * (ii[1] + n[1] * ii[2]);
+        st.w[c] = f[0] * f[1] * f[2];
+        st.dw[c] = Vec3::new(df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]);
+    }
+    st
+}
+
+impl Stencil {
+    /// The interpolated value of `field` and its gradient with respect to the point.
+    #[inline]
+    pub fn value_and_gradient(&self, field: &[f64]) -> (f64, Vec3) {
+        let mut v = 0.0;
+        let mut g = Vec3::ZERO;
+        for c in 0..8 {
+            let f = field[self.idx[c]];
+            v += self.w[c] * f;
+            g += self.dw[c] * f;
+        }
+        (v, g)
+    }
+}
+
 impl Lattice {
     /// Total number of samples.
     #[inline]
@@ -183,49 +257,10 @@ impl Lattice {
     #[inline]
     pub fn stencil(&self, x: Vec3) -> Stencil {
         let xa = x.to_array();
-        let mut lo = [0usize; 3];
-        let mut hi = [0usize; 3];
-        let mut t = [0.0f64; 3];
-        let mut live = [0.0f64; 3];
-        for a in 0..3 {
-            let g = xa[a] / self.dx - self.off[a];
-            let top = (self.n[a] - 1) as f64;
-            let (gc, inside) = if g <= 0.0 {
-                (0.0, false)
-            } else if g >= top {
-                (top, false)
-            } else {
-                (g, true)
-            };
-            // gc ≥ 0: truncation is the floor.
-            let i0 = (gc as usize).min(self.n[a].saturating_sub(2));
-            lo[a] = i0;
-            hi[a] = (i0 + 1).min(self.n[a] - 1);
-            t[a] = gc - i0 as f64;
-            live[a] = if inside { 1.0 / self.dx } else { 0.0 };
-        }
-        let mut st = Stencil { idx: [0; 8], w: [0.0; 8], dw: [Vec3::ZERO; 8] };
-        for c in 0..8 {
-            let bit = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
-            let mut f = [0.0; 3];
-            let mut df = [0.0; 3];
-            let mut ii = [0usize; 3];
-            for a in 0..3 {
-                if bit[a] == 1 {
-                    f[a] = t[a];
-                    df[a] = live[a];
-                    ii[a] = hi[a];
-                } else {
-                    f[a] = 1.0 - t[a];
-                    df[a] = -live[a];
-                    ii[a] = lo[a];
-                }
-            }
-            st.idx[c] = self.index(ii[0], ii[1], ii[2]);
-            st.w[c] = f[0] * f[1] * f[2];
-            st.dw[c] = Vec3::new(df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]);
-        }
-        st
+        stencil_at(
+            self.n,
+            [0, 1, 2].map(|a| place(xa[a] / self.dx - self.off[a], self.n[a], self.dx)),
+        )
     }
 
     /// Lower corner index and fraction along `axis` (clamped) for the coordinate divided by
@@ -253,15 +288,7 @@ impl Lattice {
     /// Trilinear interpolation and its gradient with respect to `x`.
     #[inline]
     pub fn sample_grad(&self, field: &[f64], x: Vec3) -> (f64, Vec3) {
-        let s = self.stencil(x);
-        let mut v = 0.0;
-        let mut g = Vec3::ZERO;
-        for c in 0..8 {
-            let f = field[s.idx[c]];
-            v += s.w[c] * f;
-            g += s.dw[c] * f;
-        }
-        (v, g)
+        self.stencil(x).value_and_gradient(field)
     }
 
     /// Fills `out` (one value per sample) in parallel over z-slabs.
@@ -288,6 +315,33 @@ pub struct Mac {
     pub c: [Vec<f64>; 3],
 }
 
+/// The samples along each axis of the lattice of faces normal to `a`.
+#[inline]
+fn face_lattice_n(grid: &Grid, a: usize) -> [usize; 3] {
+    let mut n = grid.n;
+    n[a] += 1;
+    n
+}
+
+/// The places of `x` along each axis of each face lattice, `places(a)` for the faces normal
+/// to `a`: along axis b those sit on the cell faces (offset 0, n + 1 samples) when b = a and
+/// on the centres (offset ½, n) otherwise, so two places an axis serve all three lattices
+/// (the same values as each lattice's own [`Lattice::stencil`]).
+#[inline]
+fn face_places(grid: &Grid, x: Vec3) -> impl Fn(usize) -> [Place; 3] {
+    let xa = x.to_array();
+    let on_faces = [0, 1, 2].map(|b| place(xa[b] / grid.dx, grid.n[b] + 1, grid.dx));
+    let on_centres = [0, 1, 2].map(|b| place(xa[b] / grid.dx - 0.5, grid.n[b], grid.dx));
+    move |a| [0, 1, 2].map(|b| if b == a { on_faces[b] } else { on_centres[b] })
+}
+
+/// The trilinear stencils of `x` on the three face lattices.
+#[inline]
+fn face_stencils(grid: &Grid, x: Vec3) -> [Stencil; 3] {
+    let places = face_places(grid, x);
+    [0, 1, 2].map(|a| stencil_at(face_lattice_n(grid, a), places(a)))
+}
+
 impl Mac {
     /// The zero field on `grid`.
     pub fn zeros(grid: &Grid) -> Self {
@@ -305,21 +359,18 @@ impl Mac {
         let on_centres = [0, 1, 2].map(|b| locate(t[b], 0.5, grid.n[b]));
         v3([0, 1, 2].map(|a| {
             let at = [0, 1, 2].map(|b| if b == a { on_faces[b] } else { on_centres[b] });
-            let mut n = grid.n;
-            n[a] += 1;
-            trilinear(&self.c[a], n, at)
+            trilinear(&self.c[a], face_lattice_n(grid, a), at)
         }))
     }
 
     /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`.
     #[inline]
     pub fn velocity_jacobian(&self, grid: &Grid, x: Vec3) -> (Vec3, [Vec3; 3]) {
+        let st = face_stencils(grid, x);
         let mut v = [0.0; 3];
         let mut j = [Vec3::ZERO; 3];
         for a in 0..3 {
-            let (s, g) = grid.faces(a).sample_grad(&self.c[a], x);
-            v[a] = s;
-            j[a] = g;
+            (v[a], j[a]) = st[a].value_and_gradient(&self.c[a]);
         }
         (v3(v), j)
     }
@@ -328,11 +379,12 @@ impl Mac {
     /// (component a's trilinear weights at `x`, times `coef_a`).
     #[inline]
     pub fn scatter_velocity(&mut self, grid: &Grid, x: Vec3, coef: Vec3) {
+        let places = face_places(grid, x);
         for (a, c) in coef.to_array().into_iter().enumerate() {
             if c == 0.0 {
                 continue;
             }
-            let s = grid.faces(a).stencil(x);
+            let s = stencil_at(face_lattice_n(grid, a), places(a));
             for k in 0..8 {
                 self.c[a][s.idx[k]] += c * s.w[k];
             }
@@ -422,7 +474,8 @@ mod tests {
     #[test]
     fn velocity_is_each_lattice_sampled() {
         // The velocity's shared places along each axis give the bits of each face lattice's
-        // own sample, inside, on the ends and beyond them (clamped).
+        // own sample, inside, on the ends and beyond them (clamped); so do the Jacobian and
+        // the transpose.
         let g = grid();
         let u = Mac {
             c: [0, 1, 2].map(|a| {
@@ -438,9 +491,23 @@ mod tests {
         });
         for x in points.chain([Vec3::ZERO, g.size(), Vec3::new(0.125, 0.25, 0.375)]) {
             let v = u.velocity(&g, x);
+            let (vj, j) = u.velocity_jacobian(&g, x);
+            let coef = Vec3::new(0.3, -1.7, 2.9);
+            let mut scattered = Mac::zeros(&g);
+            scattered.scatter_velocity(&g, x, coef);
             for a in 0..3 {
-                let own = g.faces(a).sample(&u.c[a], x);
+                let lat = g.faces(a);
+                let own = lat.sample(&u.c[a], x);
                 assert_eq!(crate::math::comp(v, a).to_bits(), own.to_bits(), "{x:?} axis {a}");
+                let (own, grad) = lat.sample_grad(&u.c[a], x);
+                assert_eq!(crate::math::comp(vj, a).to_bits(), own.to_bits(), "{x:?} axis {a}");
+                assert_eq!(j[a].to_array().map(f64::to_bits), grad.to_array().map(f64::to_bits));
+                let s = lat.stencil(x);
+                let mut own = vec![0.0; lat.len()];
+                for k in 0..8 {
+                    own[s.idx[k]] += crate::math::comp(coef, a) * s.w[k];
+                }
+                assert!(own.iter().zip(&scattered.c[a]).all(|(p, q)| p.to_bits() == q.to_bits()));
             }
         }
     }
