@@ -130,7 +130,8 @@ impl DensityProjection {
         let vol = grid.dx.powi(3);
         let b: Vec<f64> = sys
             .cell_of_row
-            .iter()
+            .par_iter()
+            .with_min_len(crate::math::par::MIN_LEN)
             .map(|&c| {
                 let c = c as usize;
                 if g.counts_excess(c) {
@@ -140,7 +141,7 @@ impl DensityProjection {
                 }
             })
             .collect();
-        if b.iter().all(|&x| x == 0.0) {
+        if b.par_iter().all(|&x| x == 0.0) {
             g.give_back(Some(sys), None);
             return None;
         }
