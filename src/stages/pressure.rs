@@ -500,6 +500,7 @@ impl PressureSystem {
                 air
             })
             .reduce(|| false, |a, b| a || b);
+        stencil.find_runs();
         let preconditioner = PreconditionerCache::default();
         if let Ok(mut spare) = preconditioner.spare.lock() {
             *spare = multigrid;
