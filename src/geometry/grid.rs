@@ -123,7 +123,7 @@ fn locate(t: f64, off: f64, n: usize) -> Located {
 
 /// Trilinear interpolation of `field` on a lattice of `n` samples at the place `at` along
 /// each axis.
-#[inline]
+#[inline(always)]
 fn trilinear(field: &[f64], n: [usize; 3], at: [Located; 3]) -> f64 {
     let [(i0, i1, tx), (j0, j1, ty), (k0, k1, tz)] = at;
     let (n0, n01) = (n[0], n[0] * n[1]);
