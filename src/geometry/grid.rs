@@ -393,7 +393,7 @@ impl Mac {
 
     /// Largest |component| over all faces (a cheap bound used in reports).
     pub fn max_abs(&self) -> f64 {
-        self.c.iter().flat_map(|c| c.iter()).fold(0.0f64, |m, &x| m.max(x.abs()))
+        self.c.iter().map(|c| max_abs(c)).fold(0.0f64, f64::max)
     }
 
     /// True when every component is finite.
@@ -405,6 +405,12 @@ impl Mac {
     pub fn dot(&self, other: &Mac) -> f64 {
         (0..3).map(|a| dot(&self.c[a], &other.c[a])).sum()
     }
+}
+
+/// Largest |x| over `v` (0 when empty; NaN ignored, as `f64::max` ignores it), on two
+/// threads when long: a maximum does not depend on the order it is taken in.
+pub fn max_abs(v: &[f64]) -> f64 {
+    v.par_iter().with_min_len(crate::math::par::MIN_LEN).map(|x| x.abs()).reduce(|| 0.0, f64::max)
 }
 
 /// Deterministic parallel dot product: fixed chunks, partial sums added in order.
@@ -510,6 +516,17 @@ mod tests {
                 assert!(own.iter().zip(&scattered.c[a]).all(|(p, q)| p.to_bits() == q.to_bits()));
             }
         }
+    }
+
+    #[test]
+    fn max_abs_is_the_serial_maximum() {
+        // Long enough to split; the largest magnitude negative, a NaN ignored.
+        let mut v: Vec<f64> = (0..100_000).map(|i| ((i * 7919) % 1000) as f64 * 1e-3).collect();
+        v[73_001] = -3.5;
+        v[12] = f64::NAN;
+        assert_eq!(max_abs(&v), 3.5);
+        assert_eq!(max_abs(&v), v.iter().fold(0.0f64, |m, x| m.max(x.abs())));
+        assert_eq!(max_abs(&[]), 0.0);
     }
 
     #[test]

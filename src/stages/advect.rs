@@ -221,7 +221,7 @@ pub fn advect_adjoint_into(
     for c in &mut out.c {
         c.par_iter_mut().with_min_len(MIN_LEN).for_each(|x| *x = 0.0);
     }
-    let w_max = u.c[2].iter().fold(0.0f64, |m, w| m.max(w.abs()));
+    let w_max = crate::geometry::grid::max_abs(&u.c[2]);
     let reach = (dt * w_max / grid.dx).ceil() as usize + 2;
     let block = 2 * reach;
     // Slabs of each lattice along z (the z faces have one more).
