@@ -7,6 +7,7 @@
 pub mod buffer;
 pub mod dual;
 pub mod par;
+pub mod runs;
 pub mod so3;
 
 pub use parry3d_f64::math::{Pose, Rotation, Vector as Vec3};

@@ -34,6 +34,7 @@
 
 use crate::geometry::grid::NONE;
 use crate::math::buffer::{clear_for, refill};
+use crate::math::runs;
 use crate::solvers::stencil::Stencil;
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -297,27 +298,9 @@ impl Half {
         let nbr = &self.nbr;
         let uniform = |i: usize| nbr[i][0] & UNIFORM != 0;
         let index = |i: usize, k: usize| nbr[i][k] & !UNIFORM;
-        // Whether entry i continues a run ending at i − 1.
-        let follows: Vec<bool> = (0..nbr.len())
-            .into_par_iter()
-            .with_min_len(MIN_PAR)
-            .map(|i| {
-                i > 0
-                    && uniform(i)
-                    && uniform(i - 1)
-                    && (0..6).all(|k| index(i, k) == index(i - 1, k) + 1)
-            })
-            .collect();
-        self.runs.clear();
-        let mut start = 0;
-        for i in 1..=follows.len() {
-            if i == follows.len() || !follows[i] {
-                if i - start >= MIN_RUN && uniform(start) {
-                    self.runs.push((start as u32, (i - start) as u32));
-                }
-                start = i;
-            }
-        }
+        self.runs = runs::find(nbr.len(), MIN_RUN, |i| {
+            uniform(i) && uniform(i - 1) && (0..6).all(|k| index(i, k) == index(i - 1, k) + 1)
+        });
     }
 
     /// `out[t] = f(i, s, d)` for the entries `i = first + t` of a chunk, with `(s, d)` what
@@ -331,22 +314,14 @@ impl Half {
         other: &[f64],
         f: impl Fn(usize, f64, f64) -> f64,
     ) {
-        let end = first + out.len();
-        let mut i = first;
-        let mut run = self.runs.partition_point(|&(s, l)| (s + l) as usize <= first);
-        while i < end {
-            let (rs, re) = match self.runs.get(run) {
-                Some(&(s, l)) if (s as usize) < end => (s as usize, (s + l) as usize),
-                _ => (end, end),
+        runs::walk(&self.runs, first, first + out.len(), |run, a, b| {
+            let Some(rs) = run else {
+                for j in a..b {
+                    let (s, d) = neighbours(self, j, other);
+                    out[j - first] = f(j, s, d);
+                }
+                return;
             };
-            for j in i..rs.max(i) {
-                let (s, d) = neighbours(self, j, other);
-                out[j - first] = f(j, s, d);
-            }
-            if rs >= end {
-                break;
-            }
-            let (a, b) = (rs.max(i), re.min(end));
             let n = b - a;
             let at = |k: usize| {
                 let o = ((self.nbr[rs][k] & !UNIFORM) as usize) + (a - rs);
@@ -359,9 +334,7 @@ impl Half {
                 let s = (c * o0[t] + c * o1[t]) + (c * o2[t] + c * o3[t]) + (c * o4[t] + c * o5[t]);
                 dst[t] = f(a + t, s, d);
             }
-            i = b;
-            run += 1;
-        }
+        });
     }
 }
 

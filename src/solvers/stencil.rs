@@ -2,6 +2,7 @@
 //! builds it, MIC(0) factors it, multigrid coarsens it.
 
 use crate::geometry::grid::NONE;
+use crate::math::runs;
 use rayon::prelude::*;
 
 /// Rows the product hands to rayon as one piece.
@@ -31,23 +32,9 @@ impl Stencil {
     pub fn find_runs(&mut self) {
         let nbr = &self.nbr;
         let full = |r: usize| nbr[r].iter().all(|&n| n != NONE);
-        let follows: Vec<bool> = (0..nbr.len())
-            .into_par_iter()
-            .with_min_len(crate::math::par::MIN_LEN)
-            .map(|r| {
-                r > 0 && full(r) && full(r - 1) && (0..6).all(|k| nbr[r][k] == nbr[r - 1][k] + 1)
-            })
-            .collect();
-        self.runs.clear();
-        let mut start = 0;
-        for r in 1..=follows.len() {
-            if r == follows.len() || !follows[r] {
-                if r - start >= MIN_RUN {
-                    self.runs.push((start as u32, (r - start) as u32));
-                }
-                start = r;
-            }
-        }
+        self.runs = runs::find(nbr.len(), MIN_RUN, |r| {
+            full(r) && full(r - 1) && (0..6).all(|k| nbr[r][k] == nbr[r - 1][k] + 1)
+        });
     }
 
     /// y = A x.
@@ -59,21 +46,13 @@ impl Stencil {
     /// contiguous slices inside them (the same expression, so the same bits).
     #[inline]
     fn apply_rows(&self, first: usize, x: &[f64], y: &mut [f64]) {
-        let end = first + y.len();
-        let mut r = first;
-        let mut run = self.runs.partition_point(|&(s, l)| (s + l) as usize <= first);
-        while r < end {
-            let (rs, re) = match self.runs.get(run) {
-                Some(&(s, l)) if (s as usize) < end => (s as usize, (s + l) as usize),
-                _ => (end, end),
+        runs::walk(&self.runs, first, first + y.len(), |run, a, b| {
+            let Some(rs) = run else {
+                for i in a..b {
+                    y[i - first] = self.row(i, x);
+                }
+                return;
             };
-            for i in r..rs.max(r) {
-                y[i - first] = self.row(i, x);
-            }
-            if rs >= end {
-                break;
-            }
-            let (a, b) = (rs.max(r), re.min(end));
             let n = b - a;
             let at = |k: usize| self.nbr[rs][k] as usize + (a - rs);
             let (xm, xp, ym, yp, zm, zp) = (at(0), at(1), at(2), at(3), at(4), at(5));
@@ -94,9 +73,7 @@ impl Stencil {
                 v -= pl[t][2] * x_zp[t];
                 dst[t] = v;
             }
-            r = b;
-            run += 1;
-        }
+        });
     }
 
     /// Row `r` of `A x` from its neighbour indices.
