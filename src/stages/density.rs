@@ -220,21 +220,18 @@ impl DensityProjection {
         let Displacement { d, valid0 } = disp;
         let walls = Walls::new(grid, g.node_sdf);
         let step = jacobian_step(grid);
-        // y = x + cap(d(x)), x' = keep(y). Each particle's own part in parallel, a chunk at a
-        // time; the chunk's scatter into d̄ in particle order (the same sums on any thread
-        // count).
+        // y = x + cap(d(x)), x' = keep(y): each particle's own part in parallel, its read of d
+        // at x scattered into d̄ in particle order.
         let mut dbar = Mac::zeros(grid);
-        let chunk = PARTICLE_CHUNK.min(particles.len().max(1));
-        let mut vbars = vec![Vec3::ZERO; chunk];
-        for (xs, xbs) in particles.chunks(chunk).zip(pbar.chunks_mut(chunk)) {
-            let vbars = &mut vbars[..xs.len()];
+        surface::scatter_reads_in_chunks(pbar, 1, grid, &mut dbar, |first, xbs, reads| {
+            let xs = &particles[first..first + xbs.len()];
             xs.par_iter()
                 .zip(xbs.par_iter_mut())
-                .zip(vbars.par_iter_mut())
+                .zip(reads.par_iter_mut())
                 .with_min_len(1024)
-                .for_each(|((x, xb), vb)| {
+                .for_each(|((x, xb), read)| {
                     if *xb == Vec3::ZERO {
-                        *vb = Vec3::ZERO;
+                        *read = (*x, Vec3::ZERO);
                         return;
                     }
                     let (v, jd) = d.velocity_jacobian(grid, *x);
@@ -246,15 +243,9 @@ impl DensityProjection {
                     };
                     let vbar = capped_adjoint(v, grid, ybar);
                     *xb = ybar + vbar.x * jd[0] + vbar.y * jd[1] + vbar.z * jd[2];
-                    *vb = vbar;
+                    *read = (*x, vbar);
                 });
-            for (x, vb) in xs.iter().zip(vbars.iter()) {
-                // A zero adds nothing (the sums start at +0 and the weights are ≥ 0).
-                if *vb != Vec3::ZERO {
-                    dbar.scatter_velocity(grid, *x, *vb);
-                }
-            }
-        }
+        });
         // d = C(−k·G·q).
         correct_velocity_adjoint(&mut dbar, valid0, g.weights, grid, 1);
         let qbar = self.sys.update_velocity_adjoint(&dbar);
@@ -274,9 +265,6 @@ impl DensityProjection {
         (s, stats)
     }
 }
-
-/// Particles whose adjoint is taken at once before their scatter (a few MB of [`Vec3`]).
-const PARTICLE_CHUNK: usize = 1 << 16;
 
 /// The displacement field of a density potential and the faces it was projected on: what
 /// [`DensityProjection::displace`] moves the particles by, and what its adjoint reads.

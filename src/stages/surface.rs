@@ -230,15 +230,11 @@ pub fn advect_adjoint(
     let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
     let fd = jacobian_step(grid);
-    // A chunk of particles at a time: per particle, in parallel, its start adjoint and the
-    // points and coefficients at which its path read the field (2 a sub-step, a fixed
-    // stride; zero for a particle with no adjoint, which scatters nothing); then the field's
-    // adjoint, scattered in particle order (the same sums on any thread count).
+    // Per particle, in parallel: its start adjoint and the points and coefficients at which
+    // its path read the field (2 a sub-step).
     let stride = 2 * subs;
-    let chunk = PARTICLE_CHUNK.min(pos0.len().max(1));
-    let mut reads = vec![(Vec3::ZERO, Vec3::ZERO); chunk * stride];
-    for (xs, xbs) in pos0.chunks(chunk).zip(pbar.chunks_mut(chunk)) {
-        let reads = &mut reads[..xs.len() * stride];
+    scatter_reads_in_chunks(pbar, stride, grid, ubar, |first, xbs, reads| {
+        let xs = &pos0[first..first + xbs.len()];
         xs.par_iter()
             .zip(xbs.par_iter_mut())
             .zip(reads.par_chunks_mut(stride.max(1)))
@@ -279,10 +275,31 @@ pub fn advect_adjoint(
                     *xb = bar;
                 },
             );
+    });
+}
+
+/// The particles' reads of a velocity field in an adjoint pass, scattered into its adjoint
+/// `field` a chunk of [`PARTICLE_CHUNK`] particles at a time: `fill(first, pbar, reads)`
+/// sets, in parallel, the `stride` reads (a point, and the coefficient of the velocity
+/// there; zero for none) of the particles `first..first + pbar.len()`, whose adjoints
+/// `pbar` it may update; then the chunk's reads are scattered in particle order (the same
+/// sums on any thread count). One buffer of a chunk's reads, not one per particle.
+pub fn scatter_reads_in_chunks(
+    pbar: &mut [Vec3],
+    stride: usize,
+    grid: &Grid,
+    field: &mut Mac,
+    mut fill: impl FnMut(usize, &mut [Vec3], &mut [(Vec3, Vec3)]),
+) {
+    let chunk = PARTICLE_CHUNK.min(pbar.len().max(1));
+    let mut reads = vec![(Vec3::ZERO, Vec3::ZERO); chunk * stride];
+    for (c, xbs) in pbar.chunks_mut(chunk).enumerate() {
+        let reads = &mut reads[..xbs.len() * stride];
+        fill(c * chunk, xbs, reads);
         for &(x, coef) in reads.iter() {
             // A zero adds nothing (scatter_velocity skips zero components).
             if coef != Vec3::ZERO {
-                ubar.scatter_velocity(grid, x, coef);
+                field.scatter_velocity(grid, x, coef);
             }
         }
     }
