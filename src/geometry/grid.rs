@@ -42,11 +42,17 @@ impl Grid {
 
     /// Lattice of the faces normal to `axis` (velocity component `axis`).
     pub fn faces(&self, axis: usize) -> Lattice {
-        let mut n = self.n;
-        n[axis] += 1;
         let mut off = [0.5; 3];
         off[axis] = 0.0;
-        Lattice { n, off, dx: self.dx }
+        Lattice { n: self.face_dims(axis), off, dx: self.dx }
+    }
+
+    /// Samples along each axis of the lattice of faces normal to `axis` (one more along it).
+    #[inline]
+    pub fn face_dims(&self, axis: usize) -> [usize; 3] {
+        let mut n = self.n;
+        n[axis] += 1;
+        n
     }
 
     /// Lattice of cell corners (solid signed distance samples).
@@ -315,31 +321,30 @@ pub struct Mac {
     pub c: [Vec<f64>; 3],
 }
 
-/// The samples along each axis of the lattice of faces normal to `a`.
-#[inline]
-fn face_lattice_n(grid: &Grid, a: usize) -> [usize; 3] {
-    let mut n = grid.n;
-    n[a] += 1;
-    n
+/// The places of a point on the three face lattices, `[a][b]` along axis b of the faces
+/// normal to `a`, for the point's coordinates over the spacing `t`: along axis b the faces
+/// normal to b sit on the cell faces (offset 0, n + 1 samples) and the other two lattices on
+/// the centres (offset ½, n), so two places an axis, `at(g, n)` for the point `g` spacings
+/// from the first of `n` samples, serve all three (the same values as each lattice's own).
+#[inline(always)]
+fn face_places<T: Copy>(grid: &Grid, t: [f64; 3], at: impl Fn(f64, usize) -> T) -> [[T; 3]; 3] {
+    let on_faces = [0, 1, 2].map(|b| at(t[b], grid.n[b] + 1));
+    let on_centres = [0, 1, 2].map(|b| at(t[b] - 0.5, grid.n[b]));
+    [0, 1, 2].map(|a| [0, 1, 2].map(|b| if b == a { on_faces[b] } else { on_centres[b] }))
 }
 
-/// The places of `x` along each axis of each face lattice, `places(a)` for the faces normal
-/// to `a`: along axis b those sit on the cell faces (offset 0, n + 1 samples) when b = a and
-/// on the centres (offset ½, n) otherwise, so two places an axis serve all three lattices
-/// (the same values as each lattice's own [`Lattice::stencil`]).
+/// [`face_places`] with the derivative, for the stencils of the Jacobian and the transpose.
 #[inline]
-fn face_places(grid: &Grid, x: Vec3) -> impl Fn(usize) -> [Place; 3] {
-    let xa = x.to_array();
-    let on_faces = [0, 1, 2].map(|b| place(xa[b] / grid.dx, grid.n[b] + 1, grid.dx));
-    let on_centres = [0, 1, 2].map(|b| place(xa[b] / grid.dx - 0.5, grid.n[b], grid.dx));
-    move |a| [0, 1, 2].map(|b| if b == a { on_faces[b] } else { on_centres[b] })
+fn face_stencil_places(grid: &Grid, x: Vec3) -> [[Place; 3]; 3] {
+    let t = [x.x / grid.dx, x.y / grid.dx, x.z / grid.dx];
+    face_places(grid, t, |g, n| place(g, n, grid.dx))
 }
 
 /// The trilinear stencils of `x` on the three face lattices.
 #[inline]
 fn face_stencils(grid: &Grid, x: Vec3) -> [Stencil; 3] {
-    let places = face_places(grid, x);
-    [0, 1, 2].map(|a| stencil_at(face_lattice_n(grid, a), places(a)))
+    let places = face_stencil_places(grid, x);
+    [0, 1, 2].map(|a| stencil_at(grid.face_dims(a), places[a]))
 }
 
 impl Mac {
@@ -352,15 +357,8 @@ impl Mac {
     #[inline]
     pub fn velocity(&self, grid: &Grid, x: Vec3) -> Vec3 {
         let t = [x.x / grid.dx, x.y / grid.dx, x.z / grid.dx];
-        // Along axis b the faces normal to b sit on the cell faces (offset 0, n + 1 of them)
-        // and the other two lattices on the centres (offset ½, n): two places an axis, not
-        // three (the same values as each lattice's own `sample_scaled`).
-        let on_faces = [0, 1, 2].map(|b| locate(t[b], 0.0, grid.n[b] + 1));
-        let on_centres = [0, 1, 2].map(|b| locate(t[b], 0.5, grid.n[b]));
-        v3([0, 1, 2].map(|a| {
-            let at = [0, 1, 2].map(|b| if b == a { on_faces[b] } else { on_centres[b] });
-            trilinear(&self.c[a], face_lattice_n(grid, a), at)
-        }))
+        let at = face_places(grid, t, |g, n| locate(g, 0.0, n));
+        v3([0, 1, 2].map(|a| trilinear(&self.c[a], grid.face_dims(a), at[a])))
     }
 
     /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`.
@@ -379,12 +377,12 @@ impl Mac {
     /// (component a's trilinear weights at `x`, times `coef_a`).
     #[inline]
     pub fn scatter_velocity(&mut self, grid: &Grid, x: Vec3, coef: Vec3) {
-        let places = face_places(grid, x);
+        let places = face_stencil_places(grid, x);
         for (a, c) in coef.to_array().into_iter().enumerate() {
             if c == 0.0 {
                 continue;
             }
-            let s = stencil_at(face_lattice_n(grid, a), places(a));
+            let s = stencil_at(grid.face_dims(a), places[a]);
             for k in 0..8 {
                 self.c[a][s.idx[k]] += c * s.w[k];
             }

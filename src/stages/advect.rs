@@ -65,7 +65,7 @@ fn cross_faces(grid: &Grid, axis: usize, ijk: [usize; 3], b: usize) -> [usize; 4
         i => (i - 1, i),
     };
     // On the lattice of the component-b faces (one more sample along b).
-    let (n0, n1) = (grid.n[0] + usize::from(b == 0), grid.n[1] + usize::from(b == 1));
+    let [n0, n1, _] = grid.face_dims(b);
     let stride = [1, n0, n0 * n1];
     let mut q = ijk;
     q[axis] = a0;
