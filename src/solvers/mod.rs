@@ -7,6 +7,46 @@ pub mod mic0;
 pub mod multigrid;
 pub mod stencil;
 
+/// Systems the solvers' tests share.
+#[cfg(test)]
+pub(crate) mod testing {
+    use crate::geometry::grid::Grid;
+    use crate::stages::pressure::{PressureParams, PressureSystem};
+
+    /// A tank of `n` cells filled to `level` (a sloped surface; above 1 it is full and
+    /// closed), with a blob of fractional face weights standing in for a body.
+    pub(crate) fn tank(n: [usize; 3], level: f64) -> PressureSystem {
+        let grid = Grid { n, dx: 1.0 / n[0] as f64 };
+        let cells = grid.cells();
+        let mut phi = vec![0.0; cells.len()];
+        cells.fill_par(&mut phi, |i, j, k| {
+            let p = cells.position(i, j, k);
+            p.y - level - 0.1 * p.x + 0.05 * p.z
+        });
+        let weights = [0, 1, 2].map(|a| {
+            let lat = grid.faces(a);
+            let mut w = vec![0.0; lat.len()];
+            lat.fill_par(&mut w, |i, j, k| {
+                let f = [i, j, k];
+                if f[a] == 0 || f[a] == grid.n[a] {
+                    return 0.0;
+                }
+                let p = lat.position(i, j, k);
+                let r = (p - crate::math::v3([0.5, 0.2, 0.3])).length();
+                // Solid inside r < 0.1, fractional over the next 0.05.
+                ((r - 0.1) / 0.05).clamp(0.0, 1.0)
+            });
+            w
+        });
+        PressureSystem::build(
+            &grid,
+            &phi,
+            &weights,
+            PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
+        )
+    }
+}
+
 use serde::{Deserialize, Serialize};
 
 /// Preconditioner for the pressure CG.

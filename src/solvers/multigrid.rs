@@ -56,8 +56,6 @@ pub const COARSEST_SWEEPS: usize = 30;
 const MIN_PAR: usize = 1024;
 /// Entries a sweep hands to rayon as one piece.
 const CHUNK: usize = 2048;
-/// The shortest run of uniform entries the sweep reads as slices (see [`Half::runs`]).
-const MIN_RUN: usize = 4;
 /// Marks a slot of the black colour in a packed (colour, index) slot.
 const BLACK_BIT: u32 = 1 << 31;
 /// Marks, in an entry's first neighbour index, an entry whose diagonal and six couplings are
@@ -292,13 +290,13 @@ impl Half {
         self.find_runs();
     }
 
-    /// Fills [`Half::runs`]: the maximal runs of at least [`MIN_RUN`] uniform entries, each
+    /// Fills [`Half::runs`]: the maximal runs of at least [`runs::SHORTEST`] uniform entries, each
     /// of whose neighbour indices is the one before's plus one.
     fn find_runs(&mut self) {
         let nbr = &self.nbr;
         let uniform = |i: usize| nbr[i][0] & UNIFORM != 0;
         let index = |i: usize, k: usize| nbr[i][k] & !UNIFORM;
-        self.runs = runs::find(nbr.len(), MIN_RUN, |i| {
+        self.runs = runs::find(nbr.len(), |i| {
             uniform(i) && uniform(i - 1) && (0..6).all(|k| index(i, k) == index(i - 1, k) + 1)
         });
     }
@@ -726,41 +724,9 @@ fn relax(level: &Level, colour: usize, w: &mut Work) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::grid::{dot, Grid};
-    use crate::stages::pressure::{PressureParams, PressureSystem};
-
-    /// A tank of `n` cells filled to `level` (a sloped surface; above 1 it is full and
-    /// closed), with a blob of fractional face weights standing in for a body.
-    fn system(n: [usize; 3], level: f64) -> PressureSystem {
-        let grid = Grid { n, dx: 1.0 / n[0] as f64 };
-        let cells = grid.cells();
-        let mut phi = vec![0.0; cells.len()];
-        cells.fill_par(&mut phi, |i, j, k| {
-            let p = cells.position(i, j, k);
-            p.y - level - 0.1 * p.x + 0.05 * p.z
-        });
-        let weights = [0, 1, 2].map(|a| {
-            let lat = grid.faces(a);
-            let mut w = vec![0.0; lat.len()];
-            lat.fill_par(&mut w, |i, j, k| {
-                let f = [i, j, k];
-                if f[a] == 0 || f[a] == grid.n[a] {
-                    return 0.0;
-                }
-                let p = lat.position(i, j, k);
-                let r = (p - crate::math::v3([0.5, 0.2, 0.3])).length();
-                // Solid inside r < 0.1, fractional over the next 0.05.
-                ((r - 0.1) / 0.05).clamp(0.0, 1.0)
-            });
-            w
-        });
-        PressureSystem::build(
-            &grid,
-            &phi,
-            &weights,
-            PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
-        )
-    }
+    use crate::geometry::grid::dot;
+    use crate::solvers::testing::tank as system;
+    use crate::stages::pressure::PressureSystem;
 
     fn field(n: usize, seed: u64) -> Vec<f64> {
         (0..n as u64)

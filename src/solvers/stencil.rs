@@ -7,8 +7,6 @@ use rayon::prelude::*;
 
 /// Rows the product hands to rayon as one piece.
 const CHUNK: usize = 4096;
-/// The shortest run of rows the product reads as slices (see [`Stencil::runs`]).
-const MIN_RUN: usize = 4;
 
 /// The symmetric 7-point stencil over the unknowns.
 #[derive(Clone, Debug, Default)]
@@ -32,7 +30,7 @@ impl Stencil {
     pub fn find_runs(&mut self) {
         let nbr = &self.nbr;
         let full = |r: usize| nbr[r].iter().all(|&n| n != NONE);
-        self.runs = runs::find(nbr.len(), MIN_RUN, |r| {
+        self.runs = runs::find(nbr.len(), |r| {
             full(r) && full(r - 1) && (0..6).all(|k| nbr[r][k] == nbr[r - 1][k] + 1)
         });
     }
@@ -96,35 +94,14 @@ impl Stencil {
 
 #[cfg(test)]
 mod tests {
-    use crate::geometry::grid::Grid;
-    use crate::stages::pressure::{PressureParams, PressureSystem};
+    use crate::solvers::testing::tank;
 
     /// The product over the runs (neighbours read as slices) gives the bits of the product
     /// row by row, on a pool with a sloped surface and a solid blob of fractional faces,
     /// whose runs hold most of its rows (so the comparison covers them).
     #[test]
     fn runs_multiply_as_rows_do() {
-        let grid = Grid { n: [40, 24, 30], dx: 1.0 / 40.0 };
-        let cells = grid.cells();
-        let mut phi = vec![0.0; cells.len()];
-        cells.fill_par(&mut phi, |i, j, k| {
-            let p = cells.position(i, j, k);
-            p.y - 0.45 - 0.1 * p.x + 0.05 * p.z
-        });
-        let weights = [0, 1, 2].map(|a| {
-            let lat = grid.faces(a);
-            let mut w = vec![0.0; lat.len()];
-            lat.fill_par(&mut w, |i, j, k| {
-                if [i, j, k][a] == 0 || [i, j, k][a] == grid.n[a] {
-                    return 0.0;
-                }
-                let r = (lat.position(i, j, k) - crate::math::v3([0.5, 0.2, 0.3])).length();
-                ((r - 0.1) / 0.05).clamp(0.0, 1.0)
-            });
-            w
-        });
-        let params = PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 };
-        let sys = PressureSystem::build(&grid, &phi, &weights, params);
+        let sys = tank([40, 24, 30], 0.45);
         let a = &sys.stencil;
         let in_runs: usize = a.runs.iter().map(|&(_, l)| l as usize).sum();
         assert!(2 * in_runs > a.diag.len(), "{in_runs} of {} rows in runs", a.diag.len());
