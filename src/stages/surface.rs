@@ -279,7 +279,7 @@ pub fn advect_adjoint(
 }
 
 /// The particles' reads of a velocity field in an adjoint pass, scattered into its adjoint
-/// `field` a chunk of [`PARTICLE_CHUNK`] particles at a time: `fill(first, pbar, reads)`
+/// `field` a chunk of `PARTICLE_CHUNK` (65,536) particles at a time: `fill(first, pbar, reads)`
 /// sets, in parallel, the `stride` reads (a point, and the coefficient of the velocity
 /// there; zero for none) of the particles `first..first + pbar.len()`, whose adjoints
 /// `pbar` it may update; then the chunk's reads are scattered in particle order (the same
