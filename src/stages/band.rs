@@ -235,7 +235,9 @@ pub fn update(
     }
     let kept: Vec<u32> =
         (0..before as u32).into_par_iter().filter(|&p| !gone[p as usize]).collect();
-    let mut next: Vec<Vec3> = kept.par_iter().map(|&p| particles[p as usize]).collect();
+    // Sized once: a collect then an extend would double the particles' memory.
+    let mut next: Vec<Vec3> = Vec::with_capacity(kept.len() + seeded.len());
+    next.par_extend(kept.par_iter().map(|&p| particles[p as usize]));
     next.extend(seeded);
     *particles = next;
     band.density = full_density(grid, &deep, m);

@@ -148,6 +148,13 @@ impl DensityProjection {
         Some(DensityProjection { phi, nearest, dens, sys, b })
     }
 
+    /// The projection with only what a forward step reads after the build (the system and
+    /// the right-hand side): φ, the nearest particles and the density, which only the
+    /// adjoint reads, freed before the solve (21 MB at a million cells).
+    fn without_adjoint_inputs(self) -> DensityProjection {
+        DensityProjection { phi: Vec::new(), nearest: Vec::new(), dens: Vec::new(), ..self }
+    }
+
     /// Solves for the potential q. `step` names the step in errors.
     pub fn solve(&self, g: &DensityInputs<'_>, step: usize) -> Result<(Vec<f64>, CgStats)> {
         let (q, stats) = self.sys.solve(&self.b, &g.solve);
@@ -311,6 +318,7 @@ pub fn correct(
     let Some(proj) = DensityProjection::build(particles, g) else {
         return Ok((DensityStats::default(), None));
     };
+    let proj = proj.without_adjoint_inputs();
     let (q, stats) = proj.solve(g, step)?;
     Ok(displaced(proj, particles, q, stats.iterations, g))
 }
@@ -327,7 +335,7 @@ pub fn correct_replayed(
     match (DensityProjection::build(particles, g), q) {
         (None, None) => Ok((DensityStats::default(), None)),
         (Some(proj), Some(q)) if q.len() == proj.sys.len() => {
-            Ok(displaced(proj, particles, q, iterations, g))
+            Ok(displaced(proj.without_adjoint_inputs(), particles, q, iterations, g))
         }
         (proj, _) => {
             g.give_back(proj.map(|p| p.sys), None);
