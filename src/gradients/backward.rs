@@ -555,7 +555,8 @@ impl ParticleAdjoint<'_> {
             }
         }
         if let (Some((proj, _, disp)), Some(g)) = (projection, &inputs) {
-            g.give_back(Some(proj.sys), Some(disp.d));
+            g.give_back(None, Some(disp.d));
+            proj.give_back(g);
         }
         // The first push-out, from the advected positions before it, and the advection
         // through the start velocity.
@@ -593,14 +594,16 @@ impl ParticleAdjoint<'_> {
         pose: &mut [[f64; 6]],
     ) {
         let statics = &self.initial.statics().weights;
+        // A face the projection closed at a deep cell does not see the body.
+        let weights = proj.weights(g);
         for (i, faces) in self.dual_faces.iter().enumerate() {
             for (axis, list) in faces.iter().enumerate() {
                 for (f, beta) in list {
                     let raw = statics[axis][*f] - beta.v;
-                    if !(raw > 0.0 && raw < 1.0 && g.weights[axis][*f] > 0.0) {
+                    if !(raw > 0.0 && raw < 1.0 && weights[axis][*f] > 0.0) {
                         continue;
                     }
-                    let w = proj.sys.weight_adjoint(axis, *f, g.weights, &proj.phi, s, q);
+                    let w = proj.sys.weight_adjoint(axis, *f, weights, &proj.phi, s, q);
                     for k in 0..6 {
                         pose[i][k] += beta.d[k] * w;
                     }

@@ -383,6 +383,12 @@ fn cell_face(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> usize {
     grid.faces(axis).index(f[0], f[1], f[2])
 }
 
+/// Whether cell `c` has a face of positive weight (a liquid cell is an unknown when it has).
+pub fn has_open_face(grid: &Grid, weights: &[Vec<f64>; 3], c: usize) -> bool {
+    let ijk = grid.cells().ijk(c);
+    (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0))
+}
+
 /// The neighbouring cell across the −side or +side face, if inside the grid.
 #[inline]
 fn neighbour(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> Option<usize> {
@@ -434,9 +440,7 @@ impl PressureSystem {
                 if phi[c] >= 0.0 {
                     return 0;
                 }
-                let ijk = cells.ijk(c);
-                let open =
-                    (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0));
+                let open = has_open_face(grid, weights, c);
                 if open {
                     *r = 0;
                 }
@@ -522,6 +526,41 @@ impl PressureSystem {
         sys.projected_faces(2, weights, phi, &mut fz);
         sys.faces = [fx, fy, fz];
         sys
+    }
+
+    /// Per row, whether it reaches a row next to air through the stencil's couplings
+    /// (`weights`: the face weights the system was built with). The potential of the rows
+    /// that do is held by the air; a group of rows closed on every side by faces of zero
+    /// weight makes A singular, and only a right-hand side that sums to zero over it can be
+    /// solved for.
+    pub fn rows_reaching_air(&self, weights: &[Vec<f64>; 3]) -> Vec<bool> {
+        let (grid, cells) = (&self.grid, self.grid.cells());
+        let mut reached: Vec<bool> = self
+            .cell_of_row
+            .par_iter()
+            .with_min_len(MIN_LEN)
+            .map(|&c| {
+                let ijk = cells.ijk(c as usize);
+                (0..3).any(|a| {
+                    (0..2).any(|s| {
+                        weights[a][cell_face(grid, a, ijk, s)] > 0.0
+                            && neighbour(grid, a, ijk, s)
+                                .is_some_and(|n| self.row_of_cell[n] == NONE)
+                    })
+                })
+            })
+            .collect();
+        let mut stack: Vec<u32> =
+            (0..reached.len() as u32).filter(|&r| reached[r as usize]).collect();
+        while let Some(r) = stack.pop() {
+            for &n in &self.stencil.nbr[r as usize] {
+                if n != NONE && !reached[n as usize] {
+                    reached[n as usize] = true;
+                    stack.push(n);
+                }
+            }
+        }
+        reached
     }
 
     /// The system's vectors and factored multigrid, for the next system to be built into.
