@@ -119,7 +119,7 @@ pub struct DensityProjection {
     /// The right-hand side, the excess volume per row.
     pub b: Vec<f64>,
     /// The face weights the operator was built with when the liquid has deep cells: the
-    /// inputs' weights, with every face of a deep cell closed (see [`closed_at_deep`]).
+    /// inputs' weights, with every face of a deep cell closed (see the module's notes).
     /// None: the inputs' weights.
     pub closed: Option<Mac>,
 }
