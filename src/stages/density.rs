@@ -456,59 +456,64 @@ mod tests {
 
     /// A pool of 8×4×6 cells in a tank of 8×8×6 with its bottom layers over full: particles
     /// squeezed toward the floor, and jittered off the seeding lattice, whose symmetry makes
-    /// the nearest particle of a cell centre a tie (a kink of φ_L). Without the particles
-    /// of the `deep` cells, when given.
-    fn squeezed_pool(deep: Option<&[bool]>) -> (Grid, Vec<Vec3>, [Vec<f64>; 3]) {
-        let grid = Grid { n: [8, 8, 6], dx: 0.1 };
-        let node_sdf = vec![1e3; grid.nodes().len()];
-        let pool = Solid::aabb(Vec3::ZERO, Vec3::new(0.8, 0.4, 0.6));
-        let mut p0 = surface::seed(&grid, &[pool], 8, &node_sdf, None);
-        for (i, x) in p0.iter_mut().enumerate() {
-            let r = |k: usize| ((i * 7919 + k * 104729) % 1009) as f64 / 1009.0 - 0.5;
-            x.y *= 0.8;
-            *x += 4e-3 * Vec3::new(r(1), r(2), r(3));
-        }
-        if let Some(deep) = deep {
-            p0.retain(|x| !deep[surface::cell_of(&grid, *x)]);
-        }
-        let weights = [0, 1, 2].map(|a| {
-            let lat = grid.faces(a);
-            let mut w = vec![1.0; lat.len()];
-            lat.fill_par(&mut w, |i, j, k| {
-                let f = [i, j, k];
-                if f[a] == 0 || f[a] == grid.n[a] {
-                    0.0
-                } else {
-                    1.0
-                }
-            });
-            w
-        });
-        (grid, p0, weights)
+    /// the nearest particle of a cell centre a tie (a kink of φ_L). With a band, when `deep`
+    /// picks cells: their particles taken out.
+    struct SqueezedPool {
+        grid: Grid,
+        particles: Vec<Vec3>,
+        weights: [Vec<f64>; 3],
+        node_sdf: Vec<f64>,
+        centre_in_solid: Vec<bool>,
+        deep: Vec<bool>,
+        band: Option<Band>,
     }
 
-    /// What the projection of [`squeezed_pool`] reads: exact solves, and `band`.
-    fn inputs<'a>(
-        grid: &'a Grid,
-        weights: &'a [Vec<f64>; 3],
-        node_sdf: &'a [f64],
-        centre_in_solid: &'a [bool],
-        band: Option<&'a Band>,
-    ) -> DensityInputs<'a> {
-        DensityInputs {
-            grid,
-            weights,
-            node_sdf,
-            centre_in_solid,
-            surface: surface::SurfaceModel {
-                radius: surface::particle_radius(grid.dx, 2),
-                sparse_cells: true,
-            },
-            particles_per_cell: 8,
-            theta_min: 0.01,
-            solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),
-            band,
-            systems: None,
+    impl SqueezedPool {
+        fn new(deep: Option<fn([usize; 3]) -> bool>) -> SqueezedPool {
+            let grid = Grid { n: [8, 8, 6], dx: 0.1 };
+            let node_sdf = vec![1e3; grid.nodes().len()];
+            let pool = Solid::aabb(Vec3::ZERO, Vec3::new(0.8, 0.4, 0.6));
+            let mut particles = surface::seed(&grid, &[pool], 8, &node_sdf, None);
+            for (i, x) in particles.iter_mut().enumerate() {
+                let r = |k: usize| ((i * 7919 + k * 104729) % 1009) as f64 / 1009.0 - 0.5;
+                x.y *= 0.8;
+                *x += 4e-3 * Vec3::new(r(1), r(2), r(3));
+            }
+            let cells = grid.cells();
+            let deep: Vec<bool> =
+                (0..cells.len()).map(|c| deep.is_some_and(|d| d(cells.ijk(c)))).collect();
+            particles.retain(|x| !deep[surface::cell_of(&grid, *x)]);
+            let radius = surface::particle_radius(grid.dx, 2);
+            let band =
+                deep.contains(&true).then(|| Band::with_deep(&grid, deep.clone(), radius, 2));
+            SqueezedPool {
+                grid,
+                particles,
+                weights: crate::geometry::fractions::face_weights(&grid, &[]),
+                node_sdf,
+                centre_in_solid: vec![false; grid.num_cells()],
+                deep,
+                band,
+            }
+        }
+
+        /// What the projection reads: exact solves, and the band if there is one.
+        fn inputs(&self) -> DensityInputs<'_> {
+            DensityInputs {
+                grid: &self.grid,
+                weights: &self.weights,
+                node_sdf: &self.node_sdf,
+                centre_in_solid: &self.centre_in_solid,
+                surface: surface::SurfaceModel {
+                    radius: surface::particle_radius(self.grid.dx, 2),
+                    sparse_cells: true,
+                },
+                particles_per_cell: 8,
+                theta_min: 0.01,
+                solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),
+                band: self.band.as_ref(),
+                systems: None,
+            }
         }
     }
 
@@ -517,13 +522,11 @@ mod tests {
     /// for the squeezed pool.
     #[test]
     fn adjoint_matches_central_differences() {
-        let (grid, p0, weights) = squeezed_pool(None);
-        let node_sdf = vec![1e3; grid.nodes().len()];
-        let centre_in_solid = vec![false; grid.num_cells()];
-        let inputs = inputs(&grid, &weights, &node_sdf, &centre_in_solid, None);
-        let proj = DensityProjection::build(&p0, &inputs).expect("over-full cells");
+        let pool = SqueezedPool::new(None);
+        let inputs = pool.inputs();
+        let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
         assert!(proj.closed.is_none());
-        assert_adjoint_is_central_difference(&p0, &inputs);
+        assert_adjoint_is_central_difference(&pool.particles, &inputs);
     }
 
     /// With deep cells under the over-full ones, the operator has the band's cells only
@@ -531,43 +534,32 @@ mod tests {
     /// and the adjoint still matches central differences.
     #[test]
     fn band_projection_is_closed_at_the_deep_cells() {
-        let grid = Grid { n: [8, 8, 6], dx: 0.1 };
         // The bottom layer's inner cells.
-        let deep: Vec<bool> = (0..grid.num_cells())
-            .map(|c| {
-                let [i, j, k] = grid.cells().ijk(c);
-                j == 0 && (1..7).contains(&i) && (1..5).contains(&k)
-            })
-            .collect();
-        let (grid, p0, weights) = squeezed_pool(Some(&deep));
-        let band = Band::with_deep(&grid, deep.clone(), surface::particle_radius(grid.dx, 2), 2);
-        let node_sdf = vec![1e3; grid.nodes().len()];
-        let centre_in_solid = vec![false; grid.num_cells()];
-        let inputs = inputs(&grid, &weights, &node_sdf, &centre_in_solid, Some(&band));
-        let proj = DensityProjection::build(&p0, &inputs).expect("over-full cells");
+        let pool = SqueezedPool::new(Some(|[i, j, k]| {
+            j == 0 && (1..7).contains(&i) && (1..5).contains(&k)
+        }));
+        let (grid, deep, inputs) = (&pool.grid, &pool.deep, pool.inputs());
+        let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
         assert!(proj.closed.is_some(), "the band's excess reaches the air");
         assert!(proj.sys.cell_of_row.iter().all(|&c| !deep[c as usize]));
         let (q, _) = proj.solve(&inputs, 1).unwrap();
-        let disp = proj.displacement(&q, &inputs);
-        let mut moved = 0;
-        for a in 0..3 {
-            let lat = grid.faces(a);
-            for f in 0..lat.len() {
-                let mut ijk = lat.ijk(f);
-                let above = ijk[a] < grid.n[a] && deep[grid.cell(ijk[0], ijk[1], ijk[2])];
-                let below = ijk[a] > 0 && {
-                    ijk[a] -= 1;
-                    deep[grid.cell(ijk[0], ijk[1], ijk[2])]
-                };
-                if above || below {
-                    assert_eq!(disp.d.c[a][f], 0.0, "axis {a} face {f} of a deep cell");
-                } else if disp.d.c[a][f] != 0.0 {
-                    moved += 1;
+        let d = proj.displacement(&q, &inputs).d;
+        // The six faces of each deep cell: the lower and upper face along each axis.
+        for c in (0..deep.len()).filter(|&c| deep[c]) {
+            let ijk = grid.cells().ijk(c);
+            for a in 0..3 {
+                let lat = grid.faces(a);
+                let mut up = ijk;
+                up[a] += 1;
+                for f in [ijk, up] {
+                    let f = lat.index(f[0], f[1], f[2]);
+                    assert_eq!(d.c[a][f], 0.0, "axis {a} face {f} of deep cell {c}");
                 }
             }
         }
+        let moved: usize = d.c.iter().map(|c| c.iter().filter(|&&x| x != 0.0).count()).sum();
         assert!(moved > 100, "the band's excess moved ({moved} faces)");
-        assert_adjoint_is_central_difference(&p0, &inputs);
+        assert_adjoint_is_central_difference(&pool.particles, &inputs);
     }
 
     /// Deep cells that seal over-full band cells off from the air (a whole layer of them
@@ -575,22 +567,17 @@ mod tests {
     /// liquid's, as without a band.
     #[test]
     fn band_projection_sealed_from_the_air_is_the_whole_liquids() {
-        let grid = Grid { n: [8, 8, 6], dx: 0.1 };
-        let deep: Vec<bool> = (0..grid.num_cells()).map(|c| grid.cells().ijk(c)[1] == 1).collect();
-        let (grid, p0, weights) = squeezed_pool(Some(&deep));
-        let band = Band::with_deep(&grid, deep.clone(), surface::particle_radius(grid.dx, 2), 2);
-        let node_sdf = vec![1e3; grid.nodes().len()];
-        let centre_in_solid = vec![false; grid.num_cells()];
-        let inputs = inputs(&grid, &weights, &node_sdf, &centre_in_solid, Some(&band));
-        let proj = DensityProjection::build(&p0, &inputs).expect("over-full cells");
+        let pool = SqueezedPool::new(Some(|[_, j, _]| j == 1));
+        let inputs = pool.inputs();
+        let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
         assert!(proj.closed.is_none());
-        assert!(proj.sys.cell_of_row.iter().any(|&c| deep[c as usize]));
+        assert!(proj.sys.cell_of_row.iter().any(|&c| pool.deep[c as usize]));
         let excess_below = proj
             .sys
             .cell_of_row
             .iter()
             .zip(&proj.b)
-            .any(|(&c, &b)| grid.cells().ijk(c as usize)[1] == 0 && b > 0.0);
+            .any(|(&c, &b)| pool.grid.cells().ijk(c as usize)[1] == 0 && b > 0.0);
         assert!(excess_below, "the sealed layer is over full");
         let (_, stats) = proj.solve(&inputs, 1).unwrap();
         assert!(stats.converged);
