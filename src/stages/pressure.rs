@@ -389,6 +389,24 @@ pub fn has_open_face(grid: &Grid, weights: &[Vec<f64>; 3], c: usize) -> bool {
     (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0))
 }
 
+/// The neighbouring cell across the −side or +side face of axis `axis` and the face's
+/// weight, when the face is open (weight > 0) and the neighbour inside the grid: a liquid
+/// neighbour is coupled to the cell, any other is air (a ghost-fluid face).
+#[inline]
+fn open_neighbour(
+    grid: &Grid,
+    weights: &[Vec<f64>; 3],
+    ijk: [usize; 3],
+    axis: usize,
+    side: usize,
+) -> Option<(usize, f64)> {
+    let w = weights[axis][cell_face(grid, axis, ijk, side)];
+    if w <= 0.0 {
+        return None;
+    }
+    neighbour(grid, axis, ijk, side).map(|n| (n, w))
+}
+
 /// The neighbouring cell across the −side or +side face, if inside the grid.
 #[inline]
 fn neighbour(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> Option<usize> {
@@ -480,11 +498,7 @@ impl PressureSystem {
                 let mut air = false;
                 for a in 0..3 {
                     for side in 0..2 {
-                        let w = weights[a][cell_face(grid, a, ijk, side)];
-                        if w <= 0.0 {
-                            continue;
-                        }
-                        let Some(n) = neighbour(grid, a, ijk, side) else {
+                        let Some((n, w)) = open_neighbour(grid, weights, ijk, a, side) else {
                             continue;
                         };
                         let rn = row_of_cell[n];
@@ -543,9 +557,8 @@ impl PressureSystem {
                 let ijk = cells.ijk(c as usize);
                 (0..3).any(|a| {
                     (0..2).any(|s| {
-                        weights[a][cell_face(grid, a, ijk, s)] > 0.0
-                            && neighbour(grid, a, ijk, s)
-                                .is_some_and(|n| self.row_of_cell[n] == NONE)
+                        open_neighbour(grid, weights, ijk, a, s)
+                            .is_some_and(|(n, _)| self.row_of_cell[n] == NONE)
                     })
                 })
             })
