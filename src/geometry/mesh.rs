@@ -11,8 +11,9 @@
 
 use crate::math::{Pose, SharedShape, Vec3};
 use parry3d_f64::shape::{TriMeshFlags, TypedShape};
+use std::borrow::Cow;
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Component, Path, PathBuf};
 
 /// Subdivisions around the axis of round shapes in [`surface_mesh`] (22.5° steps); the
 /// meridians of balls and capsule caps use the same angular step.
@@ -58,11 +59,40 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
         .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))
 }
 
-/// An OBJ file's vertices and triangles (faces triangulated, points and lines dropped).
+/// The meshes of `assets/meshes/`, built into the library: the built-in scenes name them by
+/// their path in the source tree, which an installed or moved binary no longer has.
+const SHIPPED_MESHES: &[(&str, &[u8])] =
+    &[("cube.obj", include_bytes!("../../assets/meshes/cube.obj"))];
+
+/// The built-in copy of the mesh at `path`, if `path` (with its `.` and `..` resolved
+/// lexically) is one of [`SHIPPED_MESHES`] in the source tree's `assets/meshes/`.
+fn shipped_mesh(path: &Path) -> Option<&'static [u8]> {
+    let mut resolved = PathBuf::new();
+    for part in path.components() {
+        match part {
+            Component::CurDir => {}
+            Component::ParentDir => {
+                resolved.pop();
+            }
+            other => resolved.push(other),
+        }
+    }
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/meshes");
+    let name = resolved.strip_prefix(dir).ok()?.to_str()?;
+    SHIPPED_MESHES.iter().find(|(n, _)| *n == name).map(|(_, bytes)| *bytes)
+}
+
+/// An OBJ file's vertices and triangles (faces triangulated, points and lines dropped). A
+/// shipped mesh whose file is gone is read from its built-in copy ([`SHIPPED_MESHES`]).
 fn read_obj(path: &Path) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
     let name = path.display();
     // Read the file ourselves: tobj only says "open file failed", not why.
-    let bytes = std::fs::read(path).map_err(|e| format!("cannot read mesh {name}: {e}"))?;
+    let bytes = match std::fs::read(path) {
+        Ok(bytes) => Cow::Owned(bytes),
+        Err(e) => Cow::Borrowed(
+            shipped_mesh(path).ok_or_else(|| format!("cannot read mesh {name}: {e}"))?,
+        ),
+    };
     let options = tobj::LoadOptions {
         triangulate: true,
         ignore_points: true,
@@ -70,10 +100,9 @@ fn read_obj(path: &Path) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
         ..Default::default()
     };
     // Materials are not needed: a referenced .mtl file is not opened.
-    let (models, _materials) = tobj::load_obj_buf(&mut bytes.as_slice(), &options, |_| {
-        Err(tobj::LoadError::OpenFileFailed)
-    })
-    .map_err(|e| format!("mesh {name} is not a valid OBJ file: {e}"))?;
+    let (models, _materials) =
+        tobj::load_obj_buf(&mut &*bytes, &options, |_| Err(tobj::LoadError::OpenFileFailed))
+            .map_err(|e| format!("mesh {name} is not a valid OBJ file: {e}"))?;
 
     let mut positions = Vec::new();
     let mut triangles = Vec::new();
@@ -795,6 +824,28 @@ mod tests {
         let err = load_obj(&path, 1.0).unwrap_err();
         assert!(err.contains(&path.display().to_string()), "{err}");
         assert!(err.starts_with("cannot read mesh"), "{err}");
+    }
+
+    /// A shipped mesh loads where the source tree's file cannot be read: a path through a
+    /// folder that does not exist cannot be opened, but resolves (lexically) to `cube.obj`,
+    /// and gives the same shape as the file. Other missing files are still errors.
+    #[test]
+    fn shipped_mesh_loads_without_its_file() {
+        let meshes = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/meshes");
+        let detour = meshes.join("no-such-dir/../cube.obj");
+        assert!(std::fs::read(&detour).is_err(), "the detour must not be readable");
+        assert_eq!(shipped_mesh(&detour), Some(std::fs::read(cube_path()).unwrap().as_slice()));
+        let from_file = load_obj(&cube_path(), 1.0).unwrap();
+        let shipped = load_obj(&detour, 1.0).unwrap();
+        let (a, b) = (from_file.as_trimesh().unwrap(), shipped.as_trimesh().unwrap());
+        assert_eq!((a.vertices(), a.indices()), (b.vertices(), b.indices()));
+        // The scenes' own way of naming it.
+        let from_scenes = meshes.join("../scenes/../meshes/./cube.obj");
+        assert!(shipped_mesh(&from_scenes).is_some());
+        for other in [meshes.join("no-such-dir/../other.obj"), "/x/assets/meshes/cube.obj".into()] {
+            assert_eq!(shipped_mesh(&other), None, "{}", other.display());
+            assert!(load_obj(&other, 1.0).unwrap_err().starts_with("cannot read mesh"));
+        }
     }
 
     #[test]
