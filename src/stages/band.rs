@@ -30,6 +30,7 @@
 //! sites, so their gradients end there.
 
 use crate::geometry::grid::{Grid, Mac};
+use crate::math::buffer::refill;
 use crate::math::Vec3;
 use crate::stages::surface;
 use rayon::prelude::*;
@@ -131,41 +132,61 @@ fn stencil(m: usize) -> [f64; 3] {
 /// What `deep` cells deposit on the cell centres (see [`Band::density`]), with a weight that
 /// would land past a tank wall folded back onto its mirror cell, as for the particles.
 pub fn full_density(grid: &Grid, deep: &[bool], m: usize) -> Vec<f64> {
+    let mut out = Vec::new();
+    full_density_into(grid, deep, m, &mut out);
+    out
+}
+
+/// [`full_density`] into `out`, its memory kept (see [`crate::math::buffer::clear_for`]):
+/// the deposit is separable, one pass an axis, and the passes take turns between `out` and
+/// one scratch array.
+fn full_density_into(grid: &Grid, deep: &[bool], m: usize, out: &mut Vec<f64>) {
     let w = stencil(m);
+    let len = grid.num_cells();
+    let mut scratch = vec![0.0; len];
+    refill(out, len, 0.0);
+    let indicator = |c: usize| if deep[c] { 1.0 } else { 0.0 };
+    deposit_along(grid, &w, 0, indicator, out);
+    let along_x = &*out;
+    deposit_along(grid, &w, 1, |c| along_x[c], &mut scratch);
+    deposit_along(grid, &w, 2, |c| scratch[c], out);
+}
+
+/// One axis of [`full_density`]: each cell's share of `src` along `axis`, own and the two
+/// neighbours', into `out`.
+fn deposit_along(
+    grid: &Grid,
+    w: &[f64; 3],
+    axis: usize,
+    src: impl Fn(usize) -> f64 + Sync,
+    out: &mut [f64],
+) {
     let n = grid.n;
-    let mut f: Vec<f64> = deep.par_iter().map(|&d| if d { 1.0 } else { 0.0 }).collect();
-    for axis in 0..3 {
-        let stride = [1, n[0], n[0] * n[1]][axis];
-        let len = n[axis];
-        let slab = n[0] * n[1];
-        let src = f;
-        let mut out = vec![0.0; src.len()];
-        out.par_chunks_mut(slab).enumerate().for_each(|(k, o)| {
-            for j in 0..n[1] {
-                for i in 0..n[0] {
-                    let c = grid.cell(i, j, k);
-                    let at = [i, j, k][axis];
-                    // Own share, the share of the cell below (its upper weight) and of the
-                    // cell above (its lower weight); at a wall the cell's own outer share
-                    // folds back onto it.
-                    let mut v = w[1] * src[c];
-                    if at > 0 {
-                        v += w[2] * src[c - stride];
-                    } else {
-                        v += w[0] * src[c];
-                    }
-                    if at + 1 < len {
-                        v += w[0] * src[c + stride];
-                    } else {
-                        v += w[2] * src[c];
-                    }
-                    o[i + n[0] * j] = v;
+    let stride = [1, n[0], n[0] * n[1]][axis];
+    let len = n[axis];
+    out.par_chunks_mut(n[0] * n[1]).enumerate().for_each(|(k, o)| {
+        for j in 0..n[1] {
+            for i in 0..n[0] {
+                let c = grid.cell(i, j, k);
+                let at = [i, j, k][axis];
+                // Own share, the share of the cell below (its upper weight) and of the
+                // cell above (its lower weight); at a wall the cell's own outer share
+                // folds back onto it.
+                let mut v = w[1] * src(c);
+                if at > 0 {
+                    v += w[2] * src(c - stride);
+                } else {
+                    v += w[0] * src(c);
                 }
+                if at + 1 < len {
+                    v += w[0] * src(c + stride);
+                } else {
+                    v += w[2] * src(c);
+                }
+                o[i + n[0] * j] = v;
             }
-        });
-        f = out;
-    }
-    f
+        }
+    });
 }
 
 /// The deep cells for a band `width` cells wide around the `outside` cells: more than
@@ -203,9 +224,26 @@ pub fn update(
     let off = surface::sub_offsets(m);
     let dx = grid.dx;
     let unit = dx.powi(3) / (m * m * m) as f64;
-    // Only deep cells and those that just left the deep set trade.
-    let trading: Vec<usize> =
-        (0..deep.len()).into_par_iter().filter(|&c| deep[c] || band.deep[c]).collect();
+    // Only deep cells and those that just left the deep set trade, and of the deep cells
+    // only those that were deep before, next to the band or with particles in them: one amid
+    // deep cells with none in it keeps what it owes and has sent (no face to the band, no
+    // particle to take out), so it is skipped, not traded to the same state.
+    let cells = grid.cells();
+    let quiet = |c: usize| {
+        band.deep[c] && bins.cell(c).is_empty() && {
+            let ijk = cells.ijk(c);
+            let stride = [1, grid.n[0], grid.n[0] * grid.n[1]];
+            (0..3).all(|a| {
+                (ijk[a] == 0 || deep[c - stride[a]])
+                    && (ijk[a] + 1 == grid.n[a] || deep[c + stride[a]])
+            })
+        }
+    };
+    let trading: Vec<usize> = (0..deep.len())
+        .into_par_iter()
+        .with_min_len(crate::math::par::MIN_LEN)
+        .filter(|&c| if deep[c] { !quiet(c) } else { band.deep[c] })
+        .collect();
     let work: Vec<Trade> = trading
         .par_iter()
         .map(|&c| trade(c, band, &deep, &bins, particles, u, dt, grid, &off, unit, &admit))
@@ -240,7 +278,7 @@ pub fn update(
     next.par_extend(kept.par_iter().map(|&p| particles[p as usize]));
     next.extend(seeded);
     *particles = next;
-    band.density = full_density(grid, &deep, m);
+    full_density_into(grid, &deep, m, &mut band.density);
     band.deep = deep;
     BandChange { before, kept, added }
 }
