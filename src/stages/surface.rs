@@ -663,22 +663,25 @@ pub fn liquid_sdf_nearest(
     let occupied: Vec<bool> =
         (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty()).collect();
     let reach = linf_distance(grid, &occupied, 3);
-    let rows: Vec<(Vec<f64>, Vec<u32>)> = (0..grid.n[2])
-        .into_par_iter()
-        .map(|k| {
-            let mut phi = Vec::with_capacity(slab);
-            let mut who = Vec::with_capacity(slab);
+    // Filled in place, a slab a task (not built a slab at a time and copied together).
+    let mut phi = vec![0.0; cells.len()];
+    let mut who = vec![NONE; cells.len()];
+    phi.par_chunks_mut(slab).zip(who.par_chunks_mut(slab)).enumerate().for_each(
+        |(k, (phi_k, who_k))| {
+            let mut at = 0;
+            let mut push = |value: f64, particle: u32| {
+                (phi_k[at], who_k[at]) = (value, particle);
+                at += 1;
+            };
             for j in 0..grid.n[1] {
                 for i in 0..grid.n[0] {
                     if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
-                        phi.push(d.phi);
-                        who.push(NONE);
+                        push(d.phi, NONE);
                         continue;
                     }
                     let empty = reach[grid.cell(i, j, k)];
                     if empty > 2 {
-                        phi.push(2.0 * dx - radius);
-                        who.push(NONE);
+                        push(2.0 * dx - radius, NONE);
                         continue;
                     }
                     let x = cells.position(i, j, k);
@@ -714,23 +717,14 @@ pub fn liquid_sdf_nearest(
                         && value >= 0.0
                         && !bins.cell(grid.cell(i, j, k)).is_empty()
                     {
-                        phi.push(-1e-3 * dx);
-                        who.push(NONE);
+                        push(-1e-3 * dx, NONE);
                     } else {
-                        phi.push(value);
-                        who.push(d.1);
+                        push(value, d.1);
                     }
                 }
             }
-            (phi, who)
-        })
-        .collect();
-    let mut phi = Vec::with_capacity(cells.len());
-    let mut who = Vec::with_capacity(cells.len());
-    for (p, w) in rows {
-        phi.extend(p);
-        who.extend(w);
-    }
+        },
+    );
     (phi, who)
 }
 
