@@ -118,9 +118,11 @@ pub struct DensityProjection {
     pub sys: PressureSystem,
     /// The right-hand side, the excess volume per row.
     pub b: Vec<f64>,
-    /// The face weights the operator was built with when the liquid has deep cells: the
-    /// inputs' weights, with every face of a deep cell closed (see the module's notes).
-    /// None: the inputs' weights.
+    /// Whether the operator was built closed at the band's deep cells (see the module's
+    /// notes): with the inputs' weights, every face of a deep cell closed.
+    pub deep_closed: bool,
+    /// Those weights, when [`DensityProjection::deep_closed`], for the adjoint (a forward
+    /// projection hands them back before its solve).
     pub closed: Option<Mac>,
 }
 
@@ -167,7 +169,8 @@ impl DensityProjection {
                 }
             })
             .collect();
-        let proj = DensityProjection { phi, nearest, dens, sys, b, closed };
+        let deep_closed = closed.is_some();
+        let proj = DensityProjection { phi, nearest, dens, sys, b, deep_closed, closed };
         if proj.b.par_iter().all(|&x| x == 0.0) {
             proj.give_back(g);
             return None;
@@ -176,7 +179,12 @@ impl DensityProjection {
     }
 
     /// The face weights the operator was built with (see [`DensityProjection::closed`]).
+    ///
+    /// # Panics
+    /// When the projection was closed at the deep cells and its closed weights were handed
+    /// back (a forward projection's, which no adjoint reads).
     pub fn weights<'w>(&'w self, g: &'w DensityInputs<'_>) -> &'w [Vec<f64>; 3] {
+        assert_eq!(self.closed.is_some(), self.deep_closed, "the closed weights were handed back");
         self.closed.as_ref().map_or(g.weights, |w| &w.c)
     }
 
@@ -187,9 +195,13 @@ impl DensityProjection {
 
     /// The projection with only what a forward step reads after the build (the system and
     /// the right-hand side): φ, the nearest particles and the density, which only the
-    /// adjoint reads, freed before the solve (21 MB at a million cells).
-    fn without_adjoint_inputs(self) -> DensityProjection {
-        DensityProjection { phi: Vec::new(), nearest: Vec::new(), dens: Vec::new(), ..self }
+    /// adjoint reads, freed before the solve (21 MB at a million cells), and the closed
+    /// weights handed back to the inputs' pool (the displacement is built in that memory).
+    fn without_adjoint_inputs(self, g: &DensityInputs<'_>) -> DensityProjection {
+        g.give_back(None, self.closed);
+        let none = (Vec::new(), Vec::new(), Vec::new(), None);
+        let (phi, nearest, dens, closed) = none;
+        DensityProjection { phi, nearest, dens, closed, ..self }
     }
 
     /// Solves for the potential q. `step` names the step in errors.
@@ -211,7 +223,24 @@ impl DensityProjection {
         let mut d = g.zero_field();
         let valid0 = self.sys.update_velocity(q, &mut d);
         let mut valid = valid0.clone();
-        correct_velocity(&mut d, &mut valid, self.weights(g), g.grid, 1);
+        // Zero on the faces the operator is closed at: the inputs' closed faces here, and
+        // every face of a deep cell next (the closed weights' zeros, without reading them).
+        correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
+        if self.deep_closed {
+            let deep = &g.band.expect("a projection closed at deep cells has a band").deep;
+            for (a, c) in d.c.iter_mut().enumerate() {
+                let lat = g.grid.faces(a);
+                c.par_chunks_mut(lat.slab().max(1)).enumerate().for_each(|(k, chunk)| {
+                    for j in 0..lat.n[1] {
+                        for i in 0..lat.n[0] {
+                            if next_to_deep(g.grid, deep, a, [i, j, k]) {
+                                chunk[i + lat.n[0] * j] = 0.0;
+                            }
+                        }
+                    }
+                });
+            }
+        }
         Displacement { d, valid0 }
     }
 
@@ -318,18 +347,22 @@ fn closed_at_deep(grid: &Grid, weights: &[Vec<f64>; 3], deep: &[bool], out: &mut
     for (a, w) in out.c.iter_mut().enumerate() {
         let lat = grid.faces(a);
         lat.fill_par(w, |i, j, k| {
-            let mut ijk = [i, j, k];
-            let above = ijk[a] < grid.n[a] && deep[grid.cell(ijk[0], ijk[1], ijk[2])];
-            let below = ijk[a] > 0 && {
-                ijk[a] -= 1;
-                deep[grid.cell(ijk[0], ijk[1], ijk[2])]
-            };
-            if above || below {
+            if next_to_deep(grid, deep, a, [i, j, k]) {
                 0.0
             } else {
                 weights[a][lat.index(i, j, k)]
             }
         });
+    }
+}
+
+/// Whether the face `ijk` normal to `axis` is a face of a `deep` cell.
+#[inline]
+fn next_to_deep(grid: &Grid, deep: &[bool], axis: usize, mut ijk: [usize; 3]) -> bool {
+    let above = ijk[axis] < grid.n[axis] && deep[grid.cell(ijk[0], ijk[1], ijk[2])];
+    above || ijk[axis] > 0 && {
+        ijk[axis] -= 1;
+        deep[grid.cell(ijk[0], ijk[1], ijk[2])]
     }
 }
 
@@ -402,7 +435,7 @@ pub fn correct(
     let Some(proj) = DensityProjection::build(particles, g) else {
         return Ok((DensityStats::default(), None));
     };
-    let proj = proj.without_adjoint_inputs();
+    let proj = proj.without_adjoint_inputs(g);
     let (q, stats) = proj.solve(g, step)?;
     Ok(displaced(proj, particles, q, stats.iterations, g))
 }
@@ -419,7 +452,7 @@ pub fn correct_replayed(
     match (DensityProjection::build(particles, g), q) {
         (None, None) => Ok((DensityStats::default(), None)),
         (Some(proj), Some(q)) if q.len() == proj.sys.len() => {
-            Ok(displaced(proj.without_adjoint_inputs(), particles, q, iterations, g))
+            Ok(displaced(proj.without_adjoint_inputs(g), particles, q, iterations, g))
         }
         (proj, _) => {
             if let Some(p) = proj {
@@ -525,7 +558,7 @@ mod tests {
         let pool = SqueezedPool::new(None);
         let inputs = pool.inputs();
         let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
-        assert!(proj.closed.is_none());
+        assert!(!proj.deep_closed);
         assert_adjoint_is_central_difference(&pool.particles, &inputs);
     }
 
@@ -540,7 +573,7 @@ mod tests {
         }));
         let (grid, deep, inputs) = (&pool.grid, &pool.deep, pool.inputs());
         let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
-        assert!(proj.closed.is_some(), "the band's excess reaches the air");
+        assert!(proj.deep_closed, "the band's excess reaches the air");
         assert!(proj.sys.cell_of_row.iter().all(|&c| !deep[c as usize]));
         let (q, _) = proj.solve(&inputs, 1).unwrap();
         let d = proj.displacement(&q, &inputs).d;
@@ -559,6 +592,10 @@ mod tests {
         }
         let moved: usize = d.c.iter().map(|c| c.iter().filter(|&&x| x != 0.0).count()).sum();
         assert!(moved > 100, "the band's excess moved ({moved} faces)");
+        // A forward step's projection, its closed weights handed back, displaces the same.
+        let forward = proj.without_adjoint_inputs(&inputs);
+        assert!(forward.closed.is_none());
+        assert_eq!(forward.displacement(&q, &inputs).d, d);
         assert_adjoint_is_central_difference(&pool.particles, &inputs);
     }
 
@@ -570,7 +607,7 @@ mod tests {
         let pool = SqueezedPool::new(Some(|[_, j, _]| j == 1));
         let inputs = pool.inputs();
         let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
-        assert!(proj.closed.is_none());
+        assert!(!proj.deep_closed);
         assert!(proj.sys.cell_of_row.iter().any(|&c| pool.deep[c as usize]));
         let excess_below = proj
             .sys
