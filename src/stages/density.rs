@@ -359,8 +359,10 @@ fn closed_at_deep(grid: &Grid, weights: &[Vec<f64>; 3], deep: &[bool], out: &mut
 /// Whether the face `ijk` normal to `axis` is a face of a `deep` cell.
 #[inline]
 fn next_to_deep(grid: &Grid, deep: &[bool], axis: usize, mut ijk: [usize; 3]) -> bool {
-    let above = ijk[axis] < grid.n[axis] && deep[grid.cell(ijk[0], ijk[1], ijk[2])];
-    above || ijk[axis] > 0 && {
+    if ijk[axis] < grid.n[axis] && deep[grid.cell(ijk[0], ijk[1], ijk[2])] {
+        return true;
+    }
+    ijk[axis] > 0 && {
         ijk[axis] -= 1;
         deep[grid.cell(ijk[0], ijk[1], ijk[2])]
     }
