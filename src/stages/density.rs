@@ -144,7 +144,7 @@ impl DensityProjection {
         let memory = g.systems.map(SystemPool::take).unwrap_or_default();
         let mut closed = g.band.filter(|b| b.deep.par_iter().any(|&d| d)).map(|b| {
             let mut w = g.field();
-            closed_at_deep(grid, g.weights, &b.deep, &mut w);
+            closed_at_deep(grid, Some(g.weights), &b.deep, &mut w);
             w
         });
         let weights = closed.as_ref().map_or(g.weights, |w| &w.c);
@@ -199,9 +199,8 @@ impl DensityProjection {
     /// weights handed back to the inputs' pool (the displacement is built in that memory).
     fn without_adjoint_inputs(self, g: &DensityInputs<'_>) -> DensityProjection {
         g.give_back(None, self.closed);
-        let none = (Vec::new(), Vec::new(), Vec::new(), None);
-        let (phi, nearest, dens, closed) = none;
-        DensityProjection { phi, nearest, dens, closed, ..self }
+        let (phi, nearest, dens) = (Vec::new(), Vec::new(), Vec::new());
+        DensityProjection { phi, nearest, dens, closed: None, ..self }
     }
 
     /// Solves for the potential q. `step` names the step in errors.
@@ -228,18 +227,7 @@ impl DensityProjection {
         correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
         if self.deep_closed {
             let deep = &g.band.expect("a projection closed at deep cells has a band").deep;
-            for (a, c) in d.c.iter_mut().enumerate() {
-                let lat = g.grid.faces(a);
-                c.par_chunks_mut(lat.slab().max(1)).enumerate().for_each(|(k, chunk)| {
-                    for j in 0..lat.n[1] {
-                        for i in 0..lat.n[0] {
-                            if next_to_deep(g.grid, deep, a, [i, j, k]) {
-                                chunk[i + lat.n[0] * j] = 0.0;
-                            }
-                        }
-                    }
-                });
-            }
+            closed_at_deep(g.grid, None, deep, &mut d);
         }
         Displacement { d, valid0 }
     }
@@ -339,18 +327,25 @@ impl DensityProjection {
     }
 }
 
-/// `weights` with every face of a `deep` cell closed, into `out`. A deep cell is full by
-/// construction (the narrow band carries no particles there), so the band's excess is not
-/// pushed into it, where it would only be owed back to the band, but along the band to the
-/// air: the projection's operator has the band's cells only, a few times fewer rows.
-fn closed_at_deep(grid: &Grid, weights: &[Vec<f64>; 3], deep: &[bool], out: &mut Mac) {
-    for (a, w) in out.c.iter_mut().enumerate() {
+/// `out` with every face of a `deep` cell closed (zero), its other faces copied from
+/// `weights` when given and left as they are otherwise. A deep cell is full by construction
+/// (the narrow band carries no particles there), so the band's excess is not pushed into it,
+/// where it would only be owed back to the band, but along the band to the air: the
+/// projection's operator has the band's cells only, a few times fewer rows.
+fn closed_at_deep(grid: &Grid, weights: Option<&[Vec<f64>; 3]>, deep: &[bool], out: &mut Mac) {
+    for (a, field) in out.c.iter_mut().enumerate() {
         let lat = grid.faces(a);
-        lat.fill_par(w, |i, j, k| {
-            if next_to_deep(grid, deep, a, [i, j, k]) {
-                0.0
-            } else {
-                weights[a][lat.index(i, j, k)]
+        let slab = lat.slab().max(1);
+        field.par_chunks_mut(slab).enumerate().for_each(|(k, chunk)| {
+            for j in 0..lat.n[1] {
+                for i in 0..lat.n[0] {
+                    let o = i + lat.n[0] * j;
+                    if next_to_deep(grid, deep, a, [i, j, k]) {
+                        chunk[o] = 0.0;
+                    } else if let Some(w) = weights {
+                        chunk[o] = w[a][k * slab + o];
+                    }
+                }
             }
         });
     }
