@@ -666,61 +666,54 @@ pub fn liquid_sdf_nearest(
     // Filled in place, a slab a task (not built a slab at a time and copied together).
     let mut phi = vec![0.0; cells.len()];
     let mut who = vec![NONE; cells.len()];
+    // φ of cell (i, j, k) and the particle it is the distance to.
+    let cell_phi = |i: usize, j: usize, k: usize| -> (f64, u32) {
+        if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
+            return (d.phi, NONE);
+        }
+        if reach[grid.cell(i, j, k)] > 2 {
+            return (2.0 * dx - radius, NONE);
+        }
+        let x = cells.position(i, j, k);
+        let nearest = |reach: usize| {
+            let mut best = (f64::MAX, NONE);
+            for_neighbour_cells(grid, [i, j, k], reach, |c| {
+                for &p in bins.cell(c) {
+                    let d = (pos[p as usize] - x).length_squared();
+                    if d < best.0 {
+                        best = (d, p);
+                    }
+                }
+            });
+            (best.0.sqrt(), best.1)
+        };
+        // A particle outside the cell is at least dx/2 from its centre, so one nearer inside
+        // it is the nearest (deep in the liquid, most cells: 8 distances instead of 216). A
+        // particle outside the 3³ block is at least dx away, so a nearer one found inside it
+        // is the true nearest; otherwise look one ring further (exact up to 2·dx).
+        let mut d = nearest(0);
+        if d.0 >= 0.5 * dx {
+            d = nearest(1);
+        }
+        if d.0 > dx {
+            d = nearest(2);
+            if d.0 > 2.0 * dx {
+                d = (2.0 * dx, NONE);
+            }
+        }
+        let value = d.0 - radius;
+        if model.sparse_cells && value >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {
+            (-1e-3 * dx, NONE)
+        } else {
+            (value, d.1)
+        }
+    };
     phi.par_chunks_mut(slab).zip(who.par_chunks_mut(slab)).enumerate().for_each(
         |(k, (phi_k, who_k))| {
-            let mut at = 0;
-            let mut push = |value: f64, particle: u32| {
-                (phi_k[at], who_k[at]) = (value, particle);
-                at += 1;
-            };
             for j in 0..grid.n[1] {
                 for i in 0..grid.n[0] {
-                    if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
-                        push(d.phi, NONE);
-                        continue;
-                    }
-                    let empty = reach[grid.cell(i, j, k)];
-                    if empty > 2 {
-                        push(2.0 * dx - radius, NONE);
-                        continue;
-                    }
-                    let x = cells.position(i, j, k);
-                    let nearest = |reach: usize| {
-                        let mut best = (f64::MAX, NONE);
-                        for_neighbour_cells(grid, [i, j, k], reach, |c| {
-                            for &p in bins.cell(c) {
-                                let d = (pos[p as usize] - x).length_squared();
-                                if d < best.0 {
-                                    best = (d, p);
-                                }
-                            }
-                        });
-                        (best.0.sqrt(), best.1)
-                    };
-                    // A particle outside the cell is at least dx/2 from its centre, so one
-                    // nearer inside it is the nearest (deep in the liquid, most cells: 8
-                    // distances instead of 216). A particle outside the 3³ block is at least
-                    // dx away, so a nearer one found inside it is the true nearest; otherwise
-                    // look one ring further (exact up to 2·dx).
-                    let mut d = nearest(0);
-                    if d.0 >= 0.5 * dx {
-                        d = nearest(1);
-                    }
-                    if d.0 > dx {
-                        d = nearest(2);
-                        if d.0 > 2.0 * dx {
-                            d = (2.0 * dx, NONE);
-                        }
-                    }
-                    let value = d.0 - radius;
-                    if model.sparse_cells
-                        && value >= 0.0
-                        && !bins.cell(grid.cell(i, j, k)).is_empty()
-                    {
-                        push(-1e-3 * dx, NONE);
-                    } else {
-                        push(value, d.1);
-                    }
+                    let o = i + grid.n[0] * j;
+                    (phi_k[o], who_k[o]) = cell_phi(i, j, k);
                 }
             }
         },
