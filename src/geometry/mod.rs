@@ -5,3 +5,4 @@ pub mod fractions;
 pub mod grid;
 pub mod mesh;
 pub mod shape;
+pub mod weights;

@@ -599,7 +599,7 @@ impl ParticleAdjoint<'_> {
         for (i, faces) in self.dual_faces.iter().enumerate() {
             for (axis, list) in faces.iter().enumerate() {
                 for (f, beta) in list {
-                    let raw = statics[axis][*f] - beta.v;
+                    let raw = statics.weight(axis, *f) - beta.v;
                     if !(raw > 0.0 && raw < 1.0 && weights[axis][*f] > 0.0) {
                         continue;
                     }

@@ -8,6 +8,7 @@
 //! backward pass (paper, eq. 10).
 
 use crate::geometry::grid::{Grid, Lattice, Mac};
+use crate::geometry::weights::ClosedFaces;
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use rayon::prelude::*;
 
@@ -150,20 +151,23 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
 pub fn correct_velocity(
     u: &mut Mac,
     valid: &mut [Vec<u8>; 3],
-    weights: &[Vec<f64>; 3],
+    weights: &(impl ClosedFaces + ?Sized),
     grid: &Grid,
     layers: usize,
 ) {
     for a in 0..3 {
         extrapolate(&mut u.c[a], &mut valid[a], &grid.faces(a), layers);
-        u.c[a].par_iter_mut().zip(weights[a].par_iter()).with_min_len(MIN_LEN).for_each(
-            |(x, w)| {
-                if *w <= 0.0 {
-                    *x = 0.0;
-                }
-            },
-        );
+        zero_closed(&mut u.c[a], weights, a);
     }
+}
+
+/// Zeroes the values of the faces normal to `axis` that `weights` closes.
+fn zero_closed(field: &mut [f64], weights: &(impl ClosedFaces + ?Sized), axis: usize) {
+    field.par_iter_mut().enumerate().with_min_len(MIN_LEN).for_each(|(f, x)| {
+        if weights.closed(axis, f) {
+            *x = 0.0;
+        }
+    });
 }
 
 /// Transpose of [`extrapolate`] for the projection's mask `valid0`: takes the adjoint of
@@ -207,18 +211,12 @@ pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers
 pub fn correct_velocity_adjoint(
     adj: &mut Mac,
     valid0: &[Vec<u8>; 3],
-    weights: &[Vec<f64>; 3],
+    weights: &(impl ClosedFaces + ?Sized),
     grid: &Grid,
     layers: usize,
 ) {
     for a in 0..3 {
-        adj.c[a].par_iter_mut().zip(weights[a].par_iter()).with_min_len(MIN_LEN).for_each(
-            |(x, w)| {
-                if *w <= 0.0 {
-                    *x = 0.0;
-                }
-            },
-        );
+        zero_closed(&mut adj.c[a], weights, a);
         extrapolate_adjoint(&mut adj.c[a], &valid0[a], &grid.faces(a), layers);
     }
 }

@@ -15,6 +15,7 @@
 //! matrix-free from a stored 7-point stencil; rigid bodies add a rank-6 term per body.
 
 use crate::geometry::grid::{Grid, Mac, NONE};
+use crate::geometry::weights::StaticWeights;
 use crate::math::buffer::{clear_for, refill};
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use crate::math::Vec3;
@@ -978,7 +979,7 @@ pub struct PoseAdjointInputs<'a> {
     /// φ_L (extended into the solids).
     pub phi: &'a [f64],
     /// The static solids' weights.
-    pub static_weights: &'a [Vec<f64>; 3],
+    pub static_weights: &'a StaticWeights,
     /// The fluid velocity before the projection.
     pub u_hat: &'a Mac,
     /// The step's pressure.
@@ -1025,7 +1026,7 @@ pub fn projection_pose_adjoint(
             let ijk = lat.ijk(f);
             let (m, pl) = grid.face_cells(axis, ijk);
             // Fluid weight: w = clamp(w_static − β): its derivative is −δβ inside the clamp.
-            let raw = g.static_weights[axis][f] - beta.v;
+            let raw = g.static_weights.weight(axis, f) - beta.v;
             if raw > 0.0 && raw < 1.0 && g.weights[axis][f] > 0.0 {
                 let uh = g.u_hat.c[axis][f];
                 let flux = area * uh * (row_val(m, g.s) - row_val(pl, g.s));

@@ -8,6 +8,7 @@
 use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::{self, BodyFaces};
 use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::weights::StaticWeights;
 use crate::math::par::{for_each_keyed_mut, sum_by};
 use crate::stages::advect::{advect_into, needed_faces, FaceMask};
 use crate::stages::forces::add_gravity;
@@ -23,8 +24,8 @@ use std::sync::Mutex;
 pub struct StaticGeometry {
     /// Signed distance of the obstacles at grid nodes.
     pub node_sdf: Vec<f64>,
-    /// Fluid weight of every face (0 on walls).
-    pub weights: [Vec<f64>; 3],
+    /// Fluid weight of every face (0 on walls), in a byte a face.
+    pub weights: StaticWeights,
     /// Cells whose centre lies inside an obstacle.
     pub centre_in_solid: Vec<bool>,
 }
@@ -71,13 +72,11 @@ impl Geometry {
             Some(Geometry { mut weights, mut centre_in_solid, .. })
                 if centre_in_solid.len() == statics.centre_in_solid.len() =>
             {
-                for (w, s) in weights.iter_mut().zip(&statics.weights) {
-                    w.copy_from_slice(s);
-                }
+                statics.weights.write_into(&mut weights);
                 centre_in_solid.copy_from_slice(&statics.centre_in_solid);
                 (weights, centre_in_solid)
             }
-            _ => (statics.weights.clone(), statics.centre_in_solid.clone()),
+            _ => (statics.weights.to_dense(), statics.centre_in_solid.clone()),
         };
         let cells = grid.cells();
         for (b, faces) in bodies.iter().zip(&faces) {
