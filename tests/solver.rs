@@ -285,4 +285,8 @@ fn failure_to_converge_is_an_error() {
         }
         other => panic!("expected NotConverged, got {other:?}"),
     }
+    // The pressure solve failed while the step's system held φ_L's memory: φ_L is given
+    // back, that of the particles where the failed step left them.
+    assert_eq!(sim.liquid_phi().len(), sim.grid().num_cells());
+    assert_eq!(sim.liquid_phi(), sim.particle_phi());
 }

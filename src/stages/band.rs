@@ -273,11 +273,14 @@ pub fn update(
     }
     let kept: Vec<u32> =
         (0..before as u32).into_par_iter().filter(|&p| !gone[p as usize]).collect();
-    // Sized once: a collect then an extend would double the particles' memory.
-    let mut next: Vec<Vec3> = Vec::with_capacity(kept.len() + seeded.len());
-    next.par_extend(kept.par_iter().map(|&p| particles[p as usize]));
-    next.extend(seeded);
-    *particles = next;
+    // In place (the kept indices increase, so each moves down or stays): a second vector
+    // of the particles would double their memory at the step's peak.
+    for (i, &p) in kept.iter().enumerate() {
+        particles[i] = particles[p as usize];
+    }
+    particles.truncate(kept.len());
+    particles.reserve_exact(seeded.len());
+    particles.extend(seeded);
     full_density_into(grid, &deep, m, &mut band.density);
     band.deep = deep;
     BandChange { before, kept, added }

@@ -110,7 +110,8 @@ pub struct DensityProjection {
     /// φ_L of P, extended into solids.
     pub phi: Vec<f64>,
     /// The particle each cell's φ is the distance to (see [`surface::liquid_sdf_nearest`];
-    /// `NONE` where the extension into the solids set φ).
+    /// `NONE` where the extension into the solids set φ). Empty in a forward step's
+    /// projection, which has no adjoint.
     pub nearest: Vec<u32>,
     /// Particle density at cell centres.
     pub dens: Vec<f64>,
@@ -127,16 +128,43 @@ pub struct DensityProjection {
 }
 
 impl DensityProjection {
-    /// The system for particles `particles`; None when no cell is over full.
+    /// The system for particles `particles`, with all its adjoint reads; None when no cell
+    /// is over full.
     pub fn build(particles: &[Vec3], g: &DensityInputs<'_>) -> Option<DensityProjection> {
+        DensityProjection::build_with(particles, g, true)
+    }
+
+    /// [`DensityProjection::build`] for a forward step: without what only the adjoint reads
+    /// (see [`DensityProjection::without_adjoint_inputs`]; the nearest particles are not
+    /// even found).
+    fn build_forward(particles: &[Vec3], g: &DensityInputs<'_>) -> Option<DensityProjection> {
+        let proj = DensityProjection::build_with(particles, g, false)?;
+        Some(proj.without_adjoint_inputs(g))
+    }
+
+    /// [`DensityProjection::build`], with [`DensityProjection::nearest`] only when
+    /// `adjoint` (empty otherwise).
+    fn build_with(
+        particles: &[Vec3],
+        g: &DensityInputs<'_>,
+        adjoint: bool,
+    ) -> Option<DensityProjection> {
         let grid = g.grid;
-        let bins = Bins::new(particles, grid);
         let deep = g.band.map(Band::deep);
-        let (mut phi, mut nearest) =
-            surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface, deep);
+        // The bins serve φ_L only, so they are gone before the deposit's arrays are made.
+        let (mut phi, mut nearest) = {
+            let bins = Bins::new(particles, grid);
+            if adjoint {
+                surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface, deep)
+            } else {
+                (surface::liquid_sdf(particles, &bins, grid, &g.surface, deep), Vec::new())
+            }
+        };
         // A cell the extension into the solids sets moves with no particle.
         for c in surface::extend_into_solids(&mut phi, grid, g.centre_in_solid) {
-            nearest[c as usize] = crate::geometry::grid::NONE;
+            if let Some(n) = nearest.get_mut(c as usize) {
+                *n = crate::geometry::grid::NONE;
+            }
         }
         let base = g.band.map(|b| b.density.as_slice());
         let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
@@ -278,6 +306,7 @@ impl DensityProjection {
         g: &DensityInputs<'_>,
     ) -> (Vec<f64>, CgStats) {
         let grid = g.grid;
+        assert_eq!(self.nearest.len(), grid.num_cells(), "a forward step's projection");
         let Displacement { d, valid0 } = disp;
         let walls = Walls::new(grid, g.node_sdf);
         let step = jacobian_step(grid);
@@ -429,10 +458,9 @@ pub fn correct(
     g: &DensityInputs<'_>,
     step: usize,
 ) -> Result<(DensityStats, Option<Vec<f64>>)> {
-    let Some(proj) = DensityProjection::build(particles, g) else {
+    let Some(proj) = DensityProjection::build_forward(particles, g) else {
         return Ok((DensityStats::default(), None));
     };
-    let proj = proj.without_adjoint_inputs(g);
     let (q, stats) = proj.solve(g, step)?;
     Ok(displaced(proj, particles, q, stats.iterations, g))
 }
@@ -446,10 +474,10 @@ pub fn correct_replayed(
     (q, iterations): (Option<Vec<f64>>, usize),
     step: usize,
 ) -> Result<(DensityStats, Option<Vec<f64>>)> {
-    match (DensityProjection::build(particles, g), q) {
+    match (DensityProjection::build_forward(particles, g), q) {
         (None, None) => Ok((DensityStats::default(), None)),
         (Some(proj), Some(q)) if q.len() == proj.sys.len() => {
-            Ok(displaced(proj.without_adjoint_inputs(g), particles, q, iterations, g))
+            Ok(displaced(proj, particles, q, iterations, g))
         }
         (proj, _) => {
             if let Some(p) = proj {

@@ -12,6 +12,7 @@
 use crate::geometry::body::RigidBody;
 use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::shape::Solid;
+use crate::math::buffer::refill;
 use crate::math::par::{min_pieces, MIN_LEN};
 use crate::math::{Pose, SharedShape, Vec3};
 use rayon::prelude::*;
@@ -636,7 +637,19 @@ pub fn liquid_sdf(
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
 ) -> Vec<f64> {
-    liquid_sdf_nearest(pos, bins, grid, model, deep).0
+    liquid_sdf_with(Vec::new(), pos, bins, grid, model, deep, false).0
+}
+
+/// [`liquid_sdf`] written into the memory of `phi` (whatever it holds).
+pub fn liquid_sdf_into(
+    phi: &mut Vec<f64>,
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
+) {
+    *phi = liquid_sdf_with(std::mem::take(phi), pos, bins, grid, model, deep, false).0;
 }
 
 /// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
@@ -653,6 +666,20 @@ pub fn liquid_sdf_nearest(
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
 ) -> (Vec<f64>, Vec<u32>) {
+    liquid_sdf_with(Vec::new(), pos, bins, grid, model, deep, true)
+}
+
+/// [`liquid_sdf_nearest`] in the memory of `phi`, the nearest particles only when `nearest`
+/// (empty otherwise: 4 bytes a cell that the forward pass never reads).
+fn liquid_sdf_with(
+    mut phi: Vec<f64>,
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
+    nearest: bool,
+) -> (Vec<f64>, Vec<u32>) {
     let radius = model.radius;
     use crate::geometry::grid::NONE;
     let cells = grid.cells();
@@ -664,8 +691,10 @@ pub fn liquid_sdf_nearest(
         (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty()).collect();
     let reach = linf_distance(grid, &occupied, 3);
     // Filled in place, a slab a task (not built a slab at a time and copied together).
-    let mut phi = vec![0.0; cells.len()];
-    let mut who = vec![NONE; cells.len()];
+    if phi.len() != cells.len() {
+        refill(&mut phi, cells.len(), 0.0);
+    }
+    let mut who = if nearest { vec![NONE; cells.len()] } else { Vec::new() };
     // φ of cell (i, j, k) and the particle it is the distance to.
     let cell_phi = |i: usize, j: usize, k: usize| -> (f64, u32) {
         if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
@@ -708,16 +737,26 @@ pub fn liquid_sdf_nearest(
             (value, d.1)
         }
     };
-    phi.par_chunks_mut(slab).zip(who.par_chunks_mut(slab)).enumerate().for_each(
-        |(k, (phi_k, who_k))| {
-            for j in 0..grid.n[1] {
-                for i in 0..grid.n[0] {
-                    let o = i + grid.n[0] * j;
-                    (phi_k[o], who_k[o]) = cell_phi(i, j, k);
+    let slab_phi = |k: usize, phi_k: &mut [f64], mut who_k: Option<&mut [u32]>| {
+        for j in 0..grid.n[1] {
+            for i in 0..grid.n[0] {
+                let o = i + grid.n[0] * j;
+                let (value, particle) = cell_phi(i, j, k);
+                phi_k[o] = value;
+                if let Some(w) = who_k.as_deref_mut() {
+                    w[o] = particle;
                 }
             }
-        },
-    );
+        }
+    };
+    if nearest {
+        phi.par_chunks_mut(slab)
+            .zip(who.par_chunks_mut(slab))
+            .enumerate()
+            .for_each(|(k, (phi_k, who_k))| slab_phi(k, phi_k, Some(who_k)));
+    } else {
+        phi.par_chunks_mut(slab).enumerate().for_each(|(k, phi_k)| slab_phi(k, phi_k, None));
+    }
     (phi, who)
 }
 

@@ -819,9 +819,20 @@ impl Simulation {
     /// The liquid signed distance from the particles (before extension into solids): the
     /// frozen one, or the current particles'.
     pub fn particle_phi(&self) -> Vec<f64> {
+        let mut phi = Vec::new();
+        self.particle_phi_into(&mut phi);
+        phi
+    }
+
+    /// [`Simulation::particle_phi`] written into the memory of `phi`.
+    fn particle_phi_into(&self, phi: &mut Vec<f64>) {
         match &self.frozen_phi {
-            Some(phi) => phi.to_vec(),
-            None => surface::liquid_sdf(
+            Some(frozen) => {
+                phi.clear();
+                phi.extend_from_slice(frozen);
+            }
+            None => surface::liquid_sdf_into(
+                phi,
                 &self.particles,
                 &Bins::new(&self.particles, &self.grid),
                 &self.grid,
@@ -877,7 +888,24 @@ impl Simulation {
         self.settings.contact.enabled && contact_possible(&self.bodies, self.grid.size(), dt)
     }
 
+    /// One step of `dt`, taped on `tape` when given, its pressures as `pressures` says. A
+    /// step that fails leaves φ_L that of the particles where they are.
     fn step_inner(
+        &mut self,
+        dt: f64,
+        tape: Option<&mut Tape>,
+        pressures: Pressures,
+    ) -> Result<StepReport> {
+        let report = self.step_stages(dt, tape, pressures);
+        if report.is_err() && self.phi.len() != self.grid.num_cells() {
+            // The step failed while its system held φ_L's memory.
+            self.phi = self.particle_phi();
+        }
+        report
+    }
+
+    /// [`Simulation::step_inner`]'s stages.
+    fn step_stages(
         &mut self,
         dt: f64,
         tape: Option<&mut Tape>,
@@ -947,7 +975,14 @@ impl Simulation {
                 r.nearest = nearest;
                 phi
             }
-            None => self.particle_phi(),
+            // Nothing reads the last step's φ_L after the band's update: its memory takes
+            // this step's, which the step's system holds until the step ends (a failed step
+            // gives it back, see `Simulation::step_inner`).
+            None => {
+                let mut phi = std::mem::take(&mut self.phi);
+                self.particle_phi_into(&mut phi);
+                phi
+            }
         };
         lap(&mut times.surface);
         let taped_phi = match (&start, &self.frozen_phi) {
