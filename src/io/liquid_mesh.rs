@@ -57,8 +57,7 @@ pub fn liquid_surface(sim: &Simulation, samples: usize) -> TriangleMesh {
     let n = [0, 1, 2].map(|a| (r * (hi[a] + 1 - lo[a]) + 4) as u32);
     let shape = RuntimeShape::<u32, 3>::new(n);
     let node_sdf = &sim.statics().node_sdf;
-    let obstacles = crate::geometry::fractions::has_solids(&grid, node_sdf);
-    let nodes = grid.nodes();
+    let obstacles = node_sdf.has_solids();
     let point =
         |ijk: [u32; 3]| Vec3::from_array([0, 1, 2].map(|a| (ijk[a] as f64 + origin[a]) * h));
     // Cells away from the surface (all of their 3³ neighbours of one kind) are liquid or air
@@ -93,7 +92,7 @@ pub fn liquid_surface(sim: &Simulation, samples: usize) -> TriangleMesh {
         let plane = |k: usize| row(ty.1, k) * (1.0 - ty.3) + row(ty.2, k) * ty.3;
         let v = plane(tz.1) * (1.0 - tz.3) + plane(tz.2) * tz.3;
         if obstacles {
-            v.max(-nodes.sample(node_sdf, point(ijk)))
+            v.max(-node_sdf.sample(&grid, point(ijk)))
         } else {
             v
         }

@@ -448,7 +448,7 @@ mod tests {
     fn pool() -> (Grid, Vec<Vec3>, Vec<bool>) {
         let g = grid();
         let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.2, 0.7, 0.8));
-        let sdf = vec![1e3; g.nodes().len()];
+        let sdf = crate::geometry::fractions::NodeSdf::new(&g, &[]);
         let pos = surface::seed(&g, &[region], 8, &sdf, None);
         let outside = (0..g.num_cells()).map(|c| g.cells().ijk(c)[1] >= 7).collect();
         (g, pos, outside)
@@ -479,7 +479,7 @@ mod tests {
         let g = grid();
         for m in 1..=3 {
             let region = Solid::aabb(Vec3::new(0.0, 0.0, 0.0), Vec3::new(0.5, 0.3, 0.8));
-            let sdf = vec![1e3; g.nodes().len()];
+            let sdf = crate::geometry::fractions::NodeSdf::new(&g, &[]);
             let pos = surface::seed(&g, &[region], m * m * m, &sdf, None);
             let real = surface::particle_density(&pos, &g, m * m * m, None);
             let deep: Vec<bool> = (0..g.num_cells())

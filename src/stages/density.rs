@@ -26,6 +26,7 @@
 //! the projection is the whole liquid's, as without a band.
 
 use crate::error::{Error, Result};
+use crate::geometry::fractions::NodeSdf;
 use crate::geometry::grid::{Grid, Mac};
 use crate::math::Vec3;
 use crate::solvers::cg::CgStats;
@@ -55,7 +56,7 @@ pub struct DensityInputs<'a> {
     /// Face fluid weights of the solids.
     pub weights: &'a [Vec<f64>; 3],
     /// Solid signed distance at nodes.
-    pub node_sdf: &'a [f64],
+    pub node_sdf: &'a NodeSdf,
     /// Cells whose centre is in a solid.
     pub centre_in_solid: &'a [bool],
     /// How φ_L is made from the particles.
@@ -520,7 +521,7 @@ mod tests {
         grid: Grid,
         particles: Vec<Vec3>,
         weights: [Vec<f64>; 3],
-        node_sdf: Vec<f64>,
+        node_sdf: NodeSdf,
         centre_in_solid: Vec<bool>,
         deep: Vec<bool>,
         band: Option<Band>,
@@ -529,7 +530,7 @@ mod tests {
     impl SqueezedPool {
         fn new(deep: Option<fn([usize; 3]) -> bool>) -> SqueezedPool {
             let grid = Grid { n: [8, 8, 6], dx: 0.1 };
-            let node_sdf = vec![1e3; grid.nodes().len()];
+            let node_sdf = NodeSdf::new(&grid, &[]);
             let pool = Solid::aabb(Vec3::ZERO, Vec3::new(0.8, 0.4, 0.6));
             let mut particles = surface::seed(&grid, &[pool], 8, &node_sdf, None);
             for (i, x) in particles.iter_mut().enumerate() {

@@ -10,6 +10,7 @@
 //! (see [`particle_radius`]).
 
 use crate::geometry::body::RigidBody;
+use crate::geometry::fractions::NodeSdf;
 use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::shape::Solid;
 use crate::math::buffer::refill;
@@ -57,11 +58,10 @@ pub fn seed(
     grid: &Grid,
     regions: &[Solid],
     ppc: usize,
-    node_sdf: &[f64],
+    node_sdf: &NodeSdf,
     skip: Option<&[bool]>,
 ) -> Vec<Vec3> {
     let off = sub_offsets(per_axis(ppc));
-    let nodes = grid.nodes();
     let liquid = Regions::new(regions);
     let slabs: Vec<Vec<Vec3>> = (0..grid.n[2])
         .into_par_iter()
@@ -74,7 +74,7 @@ pub fn seed(
                     }
                     out.extend(
                         sites(grid, [i, j, k], &off)
-                            .filter(|x| liquid.contain(*x) && nodes.sample(node_sdf, *x) > 0.0),
+                            .filter(|x| liquid.contain(*x) && node_sdf.sample(grid, *x) > 0.0),
                     );
                 }
             }
@@ -128,16 +128,15 @@ pub fn advect_substeps(u: &Mac, grid: &Grid, dt: f64) -> usize {
 pub struct Walls<'a> {
     /// The grid.
     pub grid: &'a Grid,
-    /// Signed distance of the static solids at grid nodes.
-    pub node_sdf: &'a [f64],
-    /// Whether there is any static solid (without one, keeping is clamping into the tank).
-    solids: bool,
+    /// Signed distance of the static solids at grid nodes, when there is any (without one,
+    /// keeping is clamping into the tank).
+    solids: Option<&'a [f64]>,
 }
 
 impl<'a> Walls<'a> {
     /// The walls of `grid` with the static solids of distance `node_sdf`.
-    pub fn new(grid: &'a Grid, node_sdf: &'a [f64]) -> Walls<'a> {
-        Walls { grid, node_sdf, solids: crate::geometry::fractions::has_solids(grid, node_sdf) }
+    pub fn new(grid: &'a Grid, node_sdf: &'a NodeSdf) -> Walls<'a> {
+        Walls { grid, solids: node_sdf.values() }
     }
 
     /// A point a thousandth of a cell out of the static solids and inside the tank.
@@ -147,8 +146,8 @@ impl<'a> Walls<'a> {
         let nodes = self.grid.nodes();
         let mut y = y;
         // The distance alone first: far from the solids (most particles) that is all.
-        if self.solids && nodes.sample(self.node_sdf, y) < margin {
-            let (d, g) = nodes.sample_grad(self.node_sdf, y);
+        if let Some(sdf) = self.solids.filter(|sdf| nodes.sample(sdf, y) < margin) {
+            let (d, g) = nodes.sample_grad(sdf, y);
             if g.length() > 1e-12 {
                 y += (margin - d) * g.normalize();
             }
@@ -173,7 +172,7 @@ fn advect_one(x: Vec3, u: &Mac, walls: &Walls<'_>, h: f64, subs: usize) -> Vec3 
 /// Advects particles through `u` for `dt` with the midpoint rule (RK2), in
 /// [`advect_substeps`] sub-steps, each pushing particles that ended inside a static solid
 /// back to its surface and keeping all inside the tank. Returns the sub-steps taken.
-pub fn advect(pos: &mut [Vec3], u: &Mac, grid: &Grid, dt: f64, node_sdf: &[f64]) -> usize {
+pub fn advect(pos: &mut [Vec3], u: &Mac, grid: &Grid, dt: f64, node_sdf: &NodeSdf) -> usize {
     let subs = advect_substeps(u, grid, dt);
     advect_substepped(pos, u, grid, dt, subs, node_sdf);
     subs
@@ -186,7 +185,7 @@ pub fn advect_substepped(
     grid: &Grid,
     dt: f64,
     subs: usize,
-    node_sdf: &[f64],
+    node_sdf: &NodeSdf,
 ) {
     let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
@@ -225,7 +224,7 @@ pub fn advect_adjoint(
     grid: &Grid,
     dt: f64,
     subs: usize,
-    node_sdf: &[f64],
+    node_sdf: &NodeSdf,
     ubar: &mut Mac,
 ) {
     let walls = Walls::new(grid, node_sdf);
@@ -1027,7 +1026,7 @@ mod tests {
         use crate::geometry::shape::Solid;
         let grid = Grid { n: [8, 8, 8], dx: 0.125 };
         let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0));
-        let sdf = vec![1e3; grid.nodes().len()];
+        let sdf = NodeSdf::new(&grid, &[]);
         let pos = seed(&grid, &[region], 8, &sdf, None);
         assert_eq!(pos.len(), 8 * 8 * 4 * 8);
         let bins = Bins::new(&pos, &grid);
@@ -1138,7 +1137,7 @@ mod adjoint_tests {
         let grid = grid();
         let obstacle =
             Solid::new(SharedShape::ball(0.12), Pose::from_translation(Vec3::new(0.4, 0.3, 0.3)));
-        let node_sdf = crate::geometry::fractions::node_sdf(&grid, &[obstacle]);
+        let node_sdf = NodeSdf::new(&grid, &[obstacle]);
         let (p0, u, du) = (particles(200), field(&grid, 1), field(&grid, 2));
         let (c, dp) = (dir(200, 3), dir(200, 4));
         let (dt, subs) = (0.05, 3);

@@ -315,7 +315,7 @@ impl SimulationBuilder {
     pub fn build(self) -> Result<Simulation> {
         let grid =
             self.check().map_err(|e| Error::InvalidSettings { key: e.key, message: e.message })?;
-        let node_sdf = fractions::node_sdf(&grid, &self.obstacles);
+        let node_sdf = fractions::NodeSdf::new(&grid, &self.obstacles);
         let weights = fractions::face_weights(&grid, &self.obstacles);
         let centre_in_solid = fractions::cell_centre_in_solid(&grid, &node_sdf);
         let ppc = self.settings.solver.particles_per_cell;
@@ -629,9 +629,8 @@ impl Simulation {
         let node_sdf = &self.statics.node_sdf;
         let bodies = &self.bodies;
         let margin = self.push_margin();
-        let nodes = grid.nodes();
         let admit =
-            |x: Vec3| nodes.sample(node_sdf, x) > 0.0 && bodies.iter().all(|b| b.sdf(x) > margin);
+            |x: Vec3| node_sdf.sample(&grid, x) > 0.0 && bodies.iter().all(|b| b.sdf(x) > margin);
         let band = Arc::make_mut(self.band.as_mut()?);
         let u = &self.u;
         Some(band::update(&mut self.particles, band, &outside, width, u, dt, &grid, m, admit))

@@ -6,7 +6,7 @@
 //! change to the step is a change to both directions.
 
 use crate::geometry::body::RigidBody;
-use crate::geometry::fractions::{self, BodyFaces};
+use crate::geometry::fractions::{self, BodyFaces, NodeSdf};
 use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::weights::StaticWeights;
 use crate::math::par::{for_each_keyed_mut, sum_by};
@@ -23,7 +23,7 @@ use std::sync::Mutex;
 #[derive(Clone, Debug)]
 pub struct StaticGeometry {
     /// Signed distance of the obstacles at grid nodes.
-    pub node_sdf: Vec<f64>,
+    pub node_sdf: NodeSdf,
     /// Fluid weight of every face (0 on walls), in a byte a face.
     pub weights: StaticWeights,
     /// Cells whose centre lies inside an obstacle.
