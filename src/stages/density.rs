@@ -74,15 +74,6 @@ pub struct DensityInputs<'a> {
 }
 
 impl DensityInputs<'_> {
-    /// A zero face field (the pool's, when there is one).
-    fn zero_field(&self) -> Mac {
-        let mut d = self.field();
-        if self.systems.is_some() {
-            d.c.iter_mut().for_each(|c| c.fill(0.0));
-        }
-        d
-    }
-
     /// A face field to overwrite (the pool's, when there is one).
     fn field(&self) -> Mac {
         self.systems.map_or_else(|| Mac::zeros(self.grid), |pool| pool.field(self.grid))
@@ -248,8 +239,10 @@ impl DensityProjection {
 
     /// The displacement field of potential `q` and the faces it was projected on.
     pub fn displacement(&self, q: &[f64], g: &DensityInputs<'_>) -> Displacement {
-        let mut d = g.zero_field();
-        let valid0 = self.sys.update_velocity(q, &mut d);
+        // Every face is written: those of the rows by the update, the rest by the
+        // extrapolation (its layer, or zero), so the field need not be zeroed first.
+        let mut d = g.field();
+        let valid0 = self.sys.velocity_update_into(q, &mut d);
         let mut valid = valid0.clone();
         // Zero on the faces the operator is closed at: the inputs' closed faces here, and
         // every face of a deep cell next (the closed weights' zeros, without reading them).

@@ -734,13 +734,29 @@ impl PressureSystem {
     /// Applies `u −= (Δt/ρ) ∇p` on every open face next to a liquid cell (with p = 0 in air
     /// at distance θ·dx) and returns the mask of faces so updated (the valid faces).
     pub fn update_velocity(&self, p: &[f64], u: &mut Mac) -> [Vec<u8>; 3] {
+        self.velocity_update_with(p, u, |x, du| *x -= du)
+    }
+
+    /// [`PressureSystem::update_velocity`] of a zero field, written over those faces of `u`
+    /// (its other faces left as they are, whatever they hold).
+    pub fn velocity_update_into(&self, p: &[f64], u: &mut Mac) -> [Vec<u8>; 3] {
+        self.velocity_update_with(p, u, |x, du| *x = 0.0 - du)
+    }
+
+    /// `apply(u_f, (Δt/ρ) ∇p)` on the faces the update acts on; their mask.
+    fn velocity_update_with(
+        &self,
+        p: &[f64],
+        u: &mut Mac,
+        apply: impl Fn(&mut f64, f64) + Sync,
+    ) -> [Vec<u8>; 3] {
         let grid = &self.grid;
         let k = self.params.dt / (self.params.density * grid.dx);
         let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
         for a in 0..3 {
             let face = |pf: &ProjectedFace| pf.face as usize;
             for_each_keyed_mut(&mut u.c[a], &self.faces[a], face, |_, pf, x| {
-                *x -= k * pf.gradient.apply(p)
+                apply(x, k * pf.gradient.apply(p))
             });
             for_each_keyed_mut(&mut valid[a], &self.faces[a], face, |_, _, v| *v = 1);
         }
