@@ -300,7 +300,11 @@ impl DensityProjection {
         g: &DensityInputs<'_>,
     ) -> (Vec<f64>, CgStats) {
         let grid = g.grid;
-        assert_eq!(self.nearest.len(), grid.num_cells(), "a forward step's projection");
+        assert_eq!(
+            self.nearest.len(),
+            grid.num_cells(),
+            "a forward step's projection (built without its adjoint's inputs) has no adjoint"
+        );
         let Displacement { d, valid0 } = disp;
         let walls = Walls::new(grid, g.node_sdf);
         let step = jacobian_step(grid);
@@ -616,6 +620,35 @@ mod tests {
         assert!(forward.closed.is_none());
         assert_eq!(forward.displacement(&q, &inputs).d, d);
         assert_adjoint_is_central_difference(&pool.particles, &inputs);
+    }
+
+    /// A displacement written over a kept field that holds anything (here the last one's
+    /// values scaled, and NaN) is the one built on zeros: every face is written.
+    #[test]
+    fn displacement_over_a_kept_field_is_the_one_on_zeros() {
+        let pool = SqueezedPool::new(Some(|[i, j, k]| {
+            j == 0 && (1..7).contains(&i) && (1..5).contains(&k)
+        }));
+        let fresh = pool.inputs();
+        let proj = DensityProjection::build(&pool.particles, &fresh).expect("over-full cells");
+        let (q, _) = proj.solve(&fresh, 1).unwrap();
+        let on_zeros = proj.displacement(&q, &fresh);
+        let systems = SystemPool::default();
+        let mut dirty = on_zeros.d.clone();
+        for (a, c) in dirty.c.iter_mut().enumerate() {
+            c.iter_mut()
+                .enumerate()
+                .for_each(|(f, x)| *x = if (f + a) % 3 == 0 { f64::NAN } else { 1e3 * *x - 1.0 });
+        }
+        systems.keep_field(dirty);
+        let kept = DensityInputs { systems: Some(&systems), ..pool.inputs() };
+        let over = proj.displacement(&q, &kept);
+        assert!(on_zeros.d.c.iter().any(|c| c.iter().any(|&x| x != 0.0)));
+        for a in 0..3 {
+            let (x, y) = (&over.d.c[a], &on_zeros.d.c[a]);
+            assert!(x.iter().zip(y).all(|(x, y)| x.to_bits() == y.to_bits()), "axis {a}");
+        }
+        assert_eq!(over.valid0, on_zeros.valid0);
     }
 
     /// Deep cells that seal over-full band cells off from the air (a whole layer of them
