@@ -117,14 +117,11 @@ pub struct Stencil {
 type Located = (usize, usize, f64);
 
 /// [`Located`] for the coordinate divided by the spacing `t`, on an axis of `n` samples at
-/// `(i + off)·dx`, clamped to its ends.
+/// `(i + off)·dx`, clamped to its ends: [`place`] without the derivative.
 #[inline]
 fn locate(t: f64, off: f64, n: usize) -> Located {
-    let top = (n - 1) as f64;
-    let g = (t - off).clamp(0.0, top);
-    let i0 = (g as usize).min(n.saturating_sub(2));
-    let i1 = (i0 + 1).min(n - 1);
-    (i0, i1, g - i0 as f64)
+    let p = place(t - off, n, 1.0);
+    (p.lo, p.hi, p.t)
 }
 
 /// Trilinear interpolation of `field` on a lattice of `n` samples at the place `at` along
@@ -156,20 +153,15 @@ struct Place {
 #[inline]
 fn place(g: f64, n: usize, dx: f64) -> Place {
     let top = (n - 1) as f64;
-    let (gc, inside) = if g <= 0.0 {
-        (0.0, false)
-    } else if g >= top {
-        (top, false)
-    } else {
-        (g, true)
-    };
+    // A clamp, not branches: the particles' velocity takes three places a lattice.
+    let gc = g.clamp(0.0, top);
     // gc ≥ 0: truncation is the floor.
     let lo = (gc as usize).min(n.saturating_sub(2));
     Place {
         lo,
         hi: (lo + 1).min(n - 1),
         t: gc - lo as f64,
-        live: if inside { 1.0 / dx } else { 0.0 },
+        live: if g > 0.0 && g < top { 1.0 / dx } else { 0.0 },
     }
 }
 
