@@ -328,22 +328,24 @@ fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> 
     out
 }
 
-/// One study of `diffluid bench` (see [`mod@bench`]).
+/// One study of `diffluid bench` (see [`mod@bench`]): [`bench::accuracy`],
+/// [`bench::stability`], [`bench::thin_plates`], [`bench::cost`], [`bench::smoothness`] and
+/// [`bench::scale`]. (The variants' own docs are the CLI's help, so they name no item.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Study {
-    /// Error against wall time ([`bench::accuracy`]).
+    /// Error against wall time.
     Accuracy,
-    /// The stability map ([`bench::stability`]).
+    /// The stability map of the monolithic and the weak coupling.
     Stability,
-    /// Thin plates ([`bench::thin_plates`]).
+    /// Thin plates.
     Thin,
-    /// Time per step against liquid cells ([`bench::cost`]).
+    /// Time per step against liquid cells.
     Cost,
-    /// Smoothness over long horizons ([`bench::smoothness`]).
+    /// Smoothness over long horizons.
     Smoothness,
-    /// Time per step and peak memory against grid size up to 8.4M cells ([`bench::scale`]):
-    /// run only when asked for (`--only scale`; it takes minutes and about 4 GB).
+    /// Time per step and peak memory against grid size up to 8.4M cells: run only when
+    /// asked for (`--only scale`; it takes about a minute and 4 GB).
     Scale,
 }
 
