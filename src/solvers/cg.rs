@@ -98,17 +98,20 @@ where
             converged: true,
         };
     }
-    let mut z = vec![0.0; n];
+    // q = A·d and z = M·r are never needed at once (q is spent on x and r before z is
+    // made, and z on d before the next q), so they share one vector: four of the system's
+    // length instead of five.
     let mut d = vec![0.0; n];
     let mut q = vec![0.0; n];
     let mut it = 0;
     'restart: loop {
-        precondition(&r, &mut z);
+        let z = &mut q;
+        precondition(&r, z);
         if s.project_constant {
-            remove_mean(&mut z);
+            remove_mean(z);
         }
-        d.copy_from_slice(&z);
-        let mut rho = dot(&r, &z);
+        d.copy_from_slice(z);
+        let mut rho = dot(&r, z);
         while it < s.max_iterations {
             it += 1;
             apply(&d, &mut q);
@@ -133,11 +136,12 @@ where
                 }
                 continue 'restart;
             }
-            precondition(&r, &mut z);
+            let z = &mut q;
+            precondition(&r, z);
             if s.project_constant {
-                remove_mean(&mut z);
+                remove_mean(z);
             }
-            let rho_new = dot(&r, &z);
+            let rho_new = dot(&r, z);
             let beta = rho_new / rho;
             rho = rho_new;
             d.par_iter_mut().zip(z.par_iter()).for_each(|(di, zi)| *di = zi + beta * *di);
