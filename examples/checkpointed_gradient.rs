@@ -3,22 +3,28 @@
 //! sweep per stage adjoint (the figures of the README's "Gradients at 1M cells"):
 //!
 //! ```sh
-//! MALLOC_ARENA_MAX=1 cargo run --release --example checkpointed_gradient -- 50 7
-//! MALLOC_ARENA_MAX=1 cargo run --release --example checkpointed_gradient -- 12 4 --live
+//! cargo run --release --example checkpointed_gradient -- 50 7
+//! cargo run --release --example checkpointed_gradient -- 12 4 --live
 //! ```
 //!
 //! Arguments: steps (default 50), checkpoint every (default 7; 0 keeps the whole tape),
 //! `--live` for the moving surface (default: frozen), `--re-solve` to solve again in the
-//! re-runs. `MALLOC_ARENA_MAX=1` is what the `diffluid` binary sets for itself; peak memory
-//! is the process's (`/usr/bin/time -v`).
+//! re-runs. It runs on the allocator the `diffluid` binary runs on
+//! ([`GridAllocator`](diffluid::math::memory::GridAllocator)); peak memory is the process's
+//! (`/usr/bin/time -v`).
 use diffluid::gradients::{
     backward::SurfaceGradient, value_and_gradient, BodyTargetLoss, GradientOptions,
     GradientSettings,
 };
+use diffluid::math::memory::GridAllocator;
 use diffluid::math::Vec3;
 use diffluid::Scene;
 
+#[global_allocator]
+static ALLOCATOR: GridAllocator = GridAllocator;
+
 fn main() -> diffluid::Result<()> {
+    GridAllocator::tune();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let number = |i: usize, default: usize| {
         args.iter()

@@ -8,6 +8,7 @@ use diffluid::experiments::outputs::{
 use diffluid::gradients::{gradcheck, GradcheckSettings};
 use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
 use diffluid::io::render::View;
+use diffluid::math::memory::GridAllocator;
 use diffluid::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -378,28 +379,14 @@ fn bench(args: BenchArgs) -> Outcome {
     Ok(())
 }
 
-/// Asks glibc for one malloc arena, before rayon starts its threads. A step's large arrays
-/// are allocated and freed by the worker threads too, and glibc gives each thread an arena of
-/// its own that keeps what was freed in it: measured on `large_tank` over 8 steps, peak
-/// resident memory 472 → 390 MB and page faults 210k → 138k, no slower (the arrays are large
-/// and few, so the shared arena's lock is seldom contended). `MALLOC_ARENA_MAX` in the
-/// environment still overrides it.
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn one_malloc_arena() {
-    if std::env::var_os("MALLOC_ARENA_MAX").is_none() {
-        // SAFETY: mallopt only sets a parameter of glibc's allocator; it is called before any
-        // other thread exists.
-        unsafe {
-            libc::mallopt(libc::M_ARENA_MAX, 1);
-        }
-    }
-}
-
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-fn one_malloc_arena() {}
+/// glibc's malloc, tuned for a few large arrays made again every step, the largest on huge
+/// pages (see [`GridAllocator`]).
+#[global_allocator]
+static ALLOCATOR: GridAllocator = GridAllocator;
 
 fn main() -> ExitCode {
-    one_malloc_arena();
+    // Before rayon starts its threads.
+    GridAllocator::tune();
     let result = match Cli::parse().command {
         Some(Command::Run(args)) => run(args),
         Some(Command::Gradcheck(args)) => gradcheck_cmd(args),

@@ -6,6 +6,7 @@
 
 pub mod buffer;
 pub mod dual;
+pub mod memory;
 pub mod par;
 pub mod runs;
 pub mod so3;
