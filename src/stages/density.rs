@@ -360,17 +360,43 @@ impl DensityProjection {
 /// where it would only be owed back to the band, but along the band to the air: the
 /// projection's operator has the band's cells only, a few times fewer rows.
 fn closed_at_deep(grid: &Grid, weights: Option<&[Vec<f64>; 3]>, deep: &[bool], out: &mut Mac) {
+    let n = grid.n;
     for (a, field) in out.c.iter_mut().enumerate() {
         let lat = grid.faces(a);
         let slab = lat.slab().max(1);
         field.par_chunks_mut(slab).enumerate().for_each(|(k, chunk)| {
-            for j in 0..lat.n[1] {
-                for i in 0..lat.n[0] {
-                    let o = i + lat.n[0] * j;
-                    if next_to_deep(grid, deep, a, [i, j, k]) {
-                        chunk[o] = 0.0;
-                    } else if let Some(w) = weights {
-                        chunk[o] = w[a][k * slab + o];
+            for (j, row) in chunk.chunks_mut(lat.n[0]).enumerate() {
+                let w = weights.map(|w| &w[a][k * slab + j * lat.n[0]..][..row.len()]);
+                // The cells on either side of the row's faces, as rows of `deep`: the row
+                // itself along x (its faces between cells i − 1 and i), the rows at j − 1 and
+                // j (k − 1 and k) along y (z), missing beyond the walls.
+                let cells = |j: usize, k: usize| &deep[grid.cell(0, j, k)..][..n[0]];
+                match a {
+                    0 => {
+                        let c = cells(j, k);
+                        let m = n[0];
+                        close_where(
+                            &mut row[1..m],
+                            w.map(|w| &w[1..m]),
+                            &c[1..],
+                            Some(&c[..m - 1]),
+                        );
+                        close_where(&mut row[..1], w.map(|w| &w[..1]), &c[..1], None);
+                        close_where(&mut row[m..], w.map(|w| &w[m..]), &c[m - 1..], None);
+                    }
+                    1 => {
+                        let below = (j > 0).then(|| cells(j - 1, k));
+                        match (j < n[1]).then(|| cells(j, k)) {
+                            Some(c) => close_where(row, w, c, below),
+                            None => close_where(row, w, below.expect("a face row"), None),
+                        }
+                    }
+                    _ => {
+                        let below = (k > 0).then(|| cells(j, k - 1));
+                        match (k < n[2]).then(|| cells(j, k)) {
+                            Some(c) => close_where(row, w, c, below),
+                            None => close_where(row, w, below.expect("a face slab"), None),
+                        }
                     }
                 }
             }
@@ -378,15 +404,28 @@ fn closed_at_deep(grid: &Grid, weights: Option<&[Vec<f64>; 3]>, deep: &[bool], o
     }
 }
 
-/// Whether the face `ijk` normal to `axis` is a face of a `deep` cell.
-#[inline]
-fn next_to_deep(grid: &Grid, deep: &[bool], axis: usize, mut ijk: [usize; 3]) -> bool {
-    if ijk[axis] < grid.n[axis] && deep[grid.cell(ijk[0], ijk[1], ijk[2])] {
-        return true;
-    }
-    ijk[axis] > 0 && {
-        ijk[axis] -= 1;
-        deep[grid.cell(ijk[0], ijk[1], ijk[2])]
+/// `out[i] = 0` where `a[i]` or `b[i]` (a deep cell on either side of the face), `w[i]`
+/// elsewhere (or `out[i]` as it is, without `w`): a row at a time, no branch a face.
+#[inline(always)]
+fn close_where(out: &mut [f64], w: Option<&[f64]>, a: &[bool], b: Option<&[bool]>) {
+    let len = out.len();
+    let a = &a[..len];
+    let shut = |i: usize, b: &[bool]| a[i] | b[i];
+    let b = b.map_or(a, |b| &b[..len]);
+    match w {
+        Some(w) => {
+            let w = &w[..len];
+            for i in 0..len {
+                out[i] = if shut(i, b) { 0.0 } else { w[i] };
+            }
+        }
+        None => {
+            for i in 0..len {
+                if shut(i, b) {
+                    out[i] = 0.0;
+                }
+            }
+        }
     }
 }
 
