@@ -384,18 +384,20 @@ fn closed_at_deep(grid: &Grid, weights: Option<&[Vec<f64>; 3]>, deep: &[bool], o
                         close_where(&mut row[..1], w.map(|w| &w[..1]), &c[..1], None);
                         close_where(&mut row[m..], w.map(|w| &w[m..]), &c[m - 1..], None);
                     }
-                    1 => {
-                        let below = (j > 0).then(|| cells(j - 1, k));
-                        match (j < n[1]).then(|| cells(j, k)) {
+                    _ => {
+                        // The row `back` cells behind this one along y or z.
+                        let behind = |back: usize| {
+                            if a == 1 {
+                                cells(j - back, k)
+                            } else {
+                                cells(j, k - back)
+                            }
+                        };
+                        let at = [j, k][a - 1];
+                        let below = (at > 0).then(|| behind(1));
+                        match (at < n[a]).then(|| behind(0)) {
                             Some(c) => close_where(row, w, c, below),
                             None => close_where(row, w, below.expect("a face row"), None),
-                        }
-                    }
-                    _ => {
-                        let below = (k > 0).then(|| cells(j, k - 1));
-                        match (k < n[2]).then(|| cells(j, k)) {
-                            Some(c) => close_where(row, w, c, below),
-                            None => close_where(row, w, below.expect("a face slab"), None),
                         }
                     }
                 }
