@@ -636,18 +636,20 @@ impl Multigrid {
     fn cycle(&self, l: usize, work: &mut [Work]) {
         let level = &self.levels[l];
         let (w, coarser) = work.split_first_mut().expect("work for every level");
-        w.x[1].par_iter_mut().with_min_len(MIN_PAR).for_each(|x| *x = 0.0);
+        // From a zero guess: the first red half-sweep reads only zeros of the black cells.
+        relax_red_from_zero(level, w);
         if l + 1 == self.levels.len() {
             // Palindromic: R (B R)^COARSEST_SWEEPS.
-            relax(level, 0, w);
             for _ in 0..COARSEST_SWEEPS {
                 relax(level, 1, w);
                 relax(level, 0, w);
             }
             return;
         }
-        for _ in 0..SMOOTHING {
-            relax(level, 0, w);
+        for sweep in 0..SMOOTHING {
+            if sweep > 0 {
+                relax(level, 0, w);
+            }
             relax(level, 1, w);
         }
         // Residual of the red cells; the black ones were just solved for exactly.
@@ -718,6 +720,18 @@ fn relax(level: &Level, colour: usize, w: &mut Work) {
     let b = &w.b[colour];
     x[..h.len()].par_chunks_mut(CHUNK).enumerate().for_each(|(c, x)| {
         h.each(c * CHUNK, x, other, |i, s, d| (b[i] + s) / d);
+    });
+}
+
+/// [`relax`] of the red cells when every black cell is zero (the cycle's first half-sweep):
+/// the same bits, `(b + 0)/d` for a neighbour sum of `+0`, without reading the neighbours. The
+/// black cells need not even be zero: the next half-sweep overwrites them all, and their
+/// padding slot is never written.
+fn relax_red_from_zero(level: &Level, w: &mut Work) {
+    let h = &level.half[0];
+    let b = &w.b[0];
+    w.x[0][..h.len()].par_iter_mut().with_min_len(MIN_PAR).enumerate().for_each(|(i, x)| {
+        *x = (b[i] + 0.0) / h.diag[i] as f64;
     });
 }
 
