@@ -239,6 +239,24 @@ impl Lattice {
         [i, r % self.n[1], r / self.n[1]]
     }
 
+    /// The flat index of the sample next to sample `idx` (at `ijk`) along `axis`, on its
+    /// lower (`side` 0) or upper (`side` 1) side; None past the lattice's end.
+    #[inline(always)]
+    pub fn neighbour(
+        &self,
+        idx: usize,
+        ijk: [usize; 3],
+        axis: usize,
+        side: usize,
+    ) -> Option<usize> {
+        let stride = [1, self.n[0], self.n[0] * self.n[1]][axis];
+        if side == 0 {
+            (ijk[axis] > 0).then(|| idx - stride)
+        } else {
+            (ijk[axis] + 1 < self.n[axis]).then(|| idx + stride)
+        }
+    }
+
     /// World position of sample (i, j, k).
     #[inline]
     pub fn position(&self, i: usize, j: usize, k: usize) -> Vec3 {
@@ -428,6 +446,24 @@ mod tests {
 
     fn grid() -> Grid {
         Grid { n: [5, 4, 3], dx: 0.25 }
+    }
+
+    #[test]
+    fn neighbours_are_the_samples_one_step_away_inside_the_lattice() {
+        for lat in [grid().cells(), grid().faces(1)] {
+            for idx in 0..lat.len() {
+                let ijk = lat.ijk(idx);
+                for (axis, side) in (0..3).flat_map(|a| [(a, 0), (a, 1)]) {
+                    let q = (ijk[axis] + 2 * side).checked_sub(1).filter(|&q| q < lat.n[axis]);
+                    let want = q.map(|q| {
+                        let mut p = ijk;
+                        p[axis] = q;
+                        lat.index(p[0], p[1], p[2])
+                    });
+                    assert_eq!(lat.neighbour(idx, ijk, axis, side), want, "{ijk:?} {axis} {side}");
+                }
+            }
+        }
     }
 
     #[test]

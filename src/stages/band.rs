@@ -232,11 +232,7 @@ pub fn update(
     let quiet = |c: usize| {
         band.deep[c] && bins.cell(c).is_empty() && {
             let ijk = cells.ijk(c);
-            let stride = [1, grid.n[0], grid.n[0] * grid.n[1]];
-            (0..3).all(|a| {
-                (ijk[a] == 0 || deep[c - stride[a]])
-                    && (ijk[a] + 1 == grid.n[a] || deep[c + stride[a]])
-            })
+            (0..6).all(|f| cells.neighbour(c, ijk, f / 2, f % 2).is_none_or(|n| deep[n]))
         }
     };
     let trading: Vec<usize> = (0..deep.len())
@@ -351,21 +347,13 @@ fn trade(
     let mut in_faces = Vec::new();
     let mut any_face = (0usize, 0i64);
     for a in 0..3 {
-        for side in [-1i64, 1] {
-            let q = ijk[a] as i64 + side;
-            if q < 0 || q >= grid.n[a] as i64 {
+        for s in 0..2 {
+            let Some(nc) = grid.cells().neighbour(c, ijk, a, s).filter(|&n| !deep[n]) else {
                 continue;
-            }
-            let mut nb = ijk;
-            nb[a] = q as usize;
-            let nc = grid.cell(nb[0], nb[1], nb[2]);
-            if deep[nc] {
-                continue;
-            }
+            };
+            let side = 2 * s as i64 - 1;
             let mut f = ijk;
-            if side > 0 {
-                f[a] += 1;
-            }
+            f[a] += s;
             let flux = side as f64 * u.c[a][grid.faces(a).index(f[0], f[1], f[2])] * dt * dx * dx;
             if any_face.1 == 0 {
                 any_face = (a, side);

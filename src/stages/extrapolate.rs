@@ -25,13 +25,10 @@ fn neighbours(
     out: &mut [usize; 6],
 ) -> usize {
     let p = lat.ijk(idx);
-    let step = [1, lat.n[0], lat.slab()];
     let mut n = 0;
     for a in 0..3 {
-        let below = (p[a] > 0).then(|| idx - step[a]);
-        let above = (p[a] + 1 < lat.n[a]).then(|| idx + step[a]);
-        for m in [below, above].into_iter().flatten() {
-            if keep(m) {
+        for side in 0..2 {
+            if let Some(m) = lat.neighbour(idx, p, a, side).filter(|&m| keep(m)) {
                 out[n] = m;
                 n += 1;
             }

@@ -390,13 +390,14 @@ pub fn has_open_face(grid: &Grid, weights: &[Vec<f64>; 3], c: usize) -> bool {
     (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0))
 }
 
-/// The neighbouring cell across the −side or +side face of axis `axis` and the face's
-/// weight, when the face is open (weight > 0) and the neighbour inside the grid: a liquid
+/// The neighbouring cell of cell `c` (at `ijk`) across its −side or +side face of axis
+/// `axis` and the face's weight, when the face is open (weight > 0) and the neighbour inside the grid: a liquid
 /// neighbour is coupled to the cell, any other is air (a ghost-fluid face).
 #[inline]
 fn open_neighbour(
     grid: &Grid,
     weights: &[Vec<f64>; 3],
+    c: usize,
     ijk: [usize; 3],
     axis: usize,
     side: usize,
@@ -405,25 +406,7 @@ fn open_neighbour(
     if w <= 0.0 {
         return None;
     }
-    neighbour(grid, axis, ijk, side).map(|n| (n, w))
-}
-
-/// The neighbouring cell across the −side or +side face, if inside the grid.
-#[inline]
-fn neighbour(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> Option<usize> {
-    let mut q = ijk;
-    if side == 0 {
-        if q[axis] == 0 {
-            return None;
-        }
-        q[axis] -= 1;
-    } else {
-        if q[axis] + 1 >= grid.n[axis] {
-            return None;
-        }
-        q[axis] += 1;
-    }
-    Some(grid.cell(q[0], q[1], q[2]))
+    grid.cells().neighbour(c, ijk, axis, side).map(|n| (n, w))
 }
 
 impl PressureSystem {
@@ -499,7 +482,7 @@ impl PressureSystem {
                 let mut air = false;
                 for a in 0..3 {
                     for side in 0..2 {
-                        let Some((n, w)) = open_neighbour(grid, weights, ijk, a, side) else {
+                        let Some((n, w)) = open_neighbour(grid, weights, c, ijk, a, side) else {
                             continue;
                         };
                         let rn = row_of_cell[n];
@@ -555,10 +538,11 @@ impl PressureSystem {
             .par_iter()
             .with_min_len(MIN_LEN)
             .map(|&c| {
-                let ijk = cells.ijk(c as usize);
+                let c = c as usize;
+                let ijk = cells.ijk(c);
                 (0..3).any(|a| {
                     (0..2).any(|s| {
-                        open_neighbour(grid, weights, ijk, a, s)
+                        open_neighbour(grid, weights, c, ijk, a, s)
                             .is_some_and(|(n, _)| self.row_of_cell[n] == NONE)
                     })
                 })
