@@ -31,6 +31,7 @@
 
 use crate::geometry::grid::{Grid, Mac};
 use crate::math::buffer::refill;
+use crate::math::par::min_pieces;
 use crate::math::Vec3;
 use crate::stages::surface;
 use rayon::prelude::*;
@@ -145,45 +146,57 @@ fn full_density_into(grid: &Grid, deep: &[bool], m: usize, out: &mut Vec<f64>) {
     let len = grid.num_cells();
     let mut scratch = vec![0.0; len];
     refill(out, len, 0.0);
-    let indicator = |c: usize| if deep[c] { 1.0 } else { 0.0 };
-    deposit_along(grid, &w, 0, indicator, out);
-    let along_x = &*out;
-    deposit_along(grid, &w, 1, |c| along_x[c], &mut scratch);
-    deposit_along(grid, &w, 2, |c| scratch[c], out);
+    deposit_along(grid, &w, 0, deep, |&d| if d { 1.0 } else { 0.0 }, out);
+    deposit_along(grid, &w, 1, out, |&x| x, &mut scratch);
+    deposit_along(grid, &w, 2, &scratch, |&x| x, out);
 }
 
-/// One axis of [`full_density`]: each cell's share of `src` along `axis`, own and the two
-/// neighbours', into `out`.
-fn deposit_along(
+/// One axis of [`full_density`]: each cell's share of `value(src)` along `axis`, own and the
+/// two neighbours', into `out`, a row of cells at a time (loops the compiler vectorises).
+fn deposit_along<T: Sync>(
     grid: &Grid,
     w: &[f64; 3],
     axis: usize,
-    src: impl Fn(usize) -> f64 + Sync,
+    src: &[T],
+    value: impl Fn(&T) -> f64 + Sync,
     out: &mut [f64],
 ) {
     let n = grid.n;
-    let stride = [1, n[0], n[0] * n[1]][axis];
-    let len = n[axis];
-    out.par_chunks_mut(n[0] * n[1]).enumerate().for_each(|(k, o)| {
-        for j in 0..n[1] {
-            for i in 0..n[0] {
-                let c = grid.cell(i, j, k);
-                let at = [i, j, k][axis];
-                // Own share, the share of the cell below (its upper weight) and of the
-                // cell above (its lower weight); at a wall the cell's own outer share
-                // folds back onto it.
-                let mut v = w[1] * src(c);
-                if at > 0 {
-                    v += w[2] * src(c - stride);
-                } else {
-                    v += w[0] * src(c);
+    let slab = n[0] * n[1];
+    // `o[i]` from the row's own cells and, along `axis`, the rows of the cells below and
+    // above (their upper and lower weights): at a wall the cell's own outer share folds
+    // back onto it.
+    let fold = |o: &mut [f64], own: &[T], below: Option<&[T]>, above: Option<&[T]>| {
+        for (i, o) in o.iter_mut().enumerate() {
+            let s = value(&own[i]);
+            let mut v = w[1] * s;
+            v += below.map_or(w[0] * s, |b| w[2] * value(&b[i]));
+            v += above.map_or(w[2] * s, |a| w[0] * value(&a[i]));
+            *o = v;
+        }
+    };
+    let n0 = n[0];
+    let rows = out.par_chunks_mut(slab).enumerate();
+    rows.with_min_len(min_pieces(slab)).for_each(|(k, o)| {
+        for (j, o) in o.chunks_mut(n0).enumerate() {
+            let row = |j: usize, k: usize| &src[grid.cell(0, j, k)..][..n0];
+            let own = row(j, k);
+            match axis {
+                0 if n0 == 1 => fold(o, own, None, None),
+                0 => {
+                    fold(&mut o[..1], &own[..1], None, Some(&own[1..2]));
+                    let m = n0 - 1;
+                    fold(&mut o[1..m], &own[1..m], Some(&own[..m - 1]), Some(&own[2..]));
+                    fold(&mut o[m..], &own[m..], Some(&own[m - 1..m]), None);
                 }
-                if at + 1 < len {
-                    v += w[0] * src(c + stride);
-                } else {
-                    v += w[2] * src(c);
+                1 => {
+                    let below = (j > 0).then(|| row(j - 1, k));
+                    fold(o, own, below, (j + 1 < n[1]).then(|| row(j + 1, k)));
                 }
-                o[i + n[0] * j] = v;
+                _ => {
+                    let below = (k > 0).then(|| row(j, k - 1));
+                    fold(o, own, below, (k + 1 < n[2]).then(|| row(j, k + 1)));
+                }
             }
         }
     });
