@@ -28,9 +28,12 @@ fn neighbours(
     let mut n = 0;
     for a in 0..3 {
         for side in 0..2 {
-            if let Some(m) = lat.neighbour(idx, p, a, side).filter(|&m| keep(m)) {
-                out[n] = m;
-                n += 1;
+            match lat.neighbour(idx, p, a, side) {
+                Some(m) if keep(m) => {
+                    out[n] = m;
+                    n += 1;
+                }
+                _ => {}
             }
         }
     }
