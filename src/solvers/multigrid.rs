@@ -54,6 +54,8 @@ pub const COARSEST_SWEEPS: usize = 30;
 
 /// Smallest loop handed to rayon as one piece.
 const MIN_PAR: usize = 1024;
+/// Rows a task sorts by colour when the finest level is built.
+const SORT_CHUNK: usize = 1 << 14;
 /// Entries a sweep hands to rayon as one piece.
 const CHUNK: usize = 2048;
 /// Marks a slot of the black colour in a packed (colour, index) slot.
@@ -443,29 +445,67 @@ fn split_rows(
         let [i, j, k] = cell_ijk(n, c as usize);
         (i + j + k) % 2
     };
-    let mut present = [0usize; 2];
-    for (r, &c) in cell_of_row.iter().enumerate() {
-        if a.diag[r] > 0.0 {
-            present[colour_of(c)] += 1;
-        }
-    }
-    clear_for(slot_of_row, cell_of_row.len());
-    for ((h, row), &n) in level.half.iter_mut().zip(row.iter_mut()).zip(&present) {
-        h.clear_for(n);
-        clear_for(row, n);
-    }
+    // The entries of each colour in row order, a chunk of rows a task: each chunk counts its
+    // present rows of each colour, and then writes its slots and entries from where the
+    // chunks before it end.
+    let chunks = cell_of_row.len().div_ceil(SORT_CHUNK);
+    let counts: Vec<[usize; 2]> = (0..chunks)
+        .into_par_iter()
+        .map(|ch| {
+            let rows = ch * SORT_CHUNK..((ch + 1) * SORT_CHUNK).min(cell_of_row.len());
+            let mut k = [0; 2];
+            for r in rows.filter(|&r| a.diag[r] > 0.0) {
+                k[colour_of(cell_of_row[r])] += 1;
+            }
+            k
+        })
+        .collect();
+    let mut first = Vec::with_capacity(chunks);
     let mut count = [0usize; 2];
-    for (r, &c) in cell_of_row.iter().enumerate() {
-        if a.diag[r] > 0.0 {
-            let colour = colour_of(c);
-            slot_of_row.push(pack(colour, count[colour]));
-            count[colour] += 1;
-            level.half[colour].cell.push(c);
-            row[colour].push(r as u32);
-        } else {
-            slot_of_row.push(NONE);
-        }
+    for k in &counts {
+        first.push(count);
+        count = [count[0] + k[0], count[1] + k[1]];
     }
+    refill(slot_of_row, cell_of_row.len(), NONE);
+    for ((h, row), &n) in level.half.iter_mut().zip(row.iter_mut()).zip(&count) {
+        h.clear_for(n);
+        refill(&mut h.cell, n, 0);
+        refill(row, n, 0);
+    }
+    // Each chunk's piece of a colour's vector.
+    fn pieces<'v>(v: &'v mut [u32], counts: &[[usize; 2]], colour: usize) -> Vec<&'v mut [u32]> {
+        let mut rest = v;
+        counts
+            .iter()
+            .map(|k| {
+                let (piece, tail) = std::mem::take(&mut rest).split_at_mut(k[colour]);
+                rest = tail;
+                piece
+            })
+            .collect()
+    }
+    let [h0, h1] = &mut level.half;
+    let [row0, row1] = row;
+    let cells = pieces(&mut h0.cell, &counts, 0).into_iter().zip(pieces(&mut h1.cell, &counts, 1));
+    let rows = pieces(row0, &counts, 0).into_iter().zip(pieces(row1, &counts, 1));
+    let pieces: Vec<_> = cells.zip(rows).collect();
+    slot_of_row.par_chunks_mut(SORT_CHUNK).zip(pieces).enumerate().for_each(
+        |(ch, (slots, ((c0, c1), (r0, r1))))| {
+            let (cell, row) = ([c0, c1], [r0, r1]);
+            let mut at = [0usize; 2];
+            for (t, slot) in slots.iter_mut().enumerate() {
+                let r = ch * SORT_CHUNK + t;
+                if a.diag[r] > 0.0 {
+                    let c = cell_of_row[r];
+                    let colour = colour_of(c);
+                    *slot = pack(colour, first[ch][colour] + at[colour]);
+                    cell[colour][at[colour]] = c;
+                    row[colour][at[colour]] = r as u32;
+                    at[colour] += 1;
+                }
+            }
+        },
+    );
     let slot_of_row = &*slot_of_row;
     // A neighbour row is an entry when present; its coupling is the − row's + coefficient
     // (the stencil lists neighbours only across open faces between two unknowns).
