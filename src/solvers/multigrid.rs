@@ -686,10 +686,9 @@ impl Multigrid {
             }
             return;
         }
-        for sweep in 0..SMOOTHING {
-            if sweep > 0 {
-                relax(level, 0, w);
-            }
+        relax(level, 1, w);
+        for _ in 1..SMOOTHING {
+            relax(level, 0, w);
             relax(level, 1, w);
         }
         // Residual of the red cells; the black ones were just solved for exactly.

@@ -391,8 +391,8 @@ pub fn has_open_face(grid: &Grid, weights: &[Vec<f64>; 3], c: usize) -> bool {
 }
 
 /// The neighbouring cell of cell `c` (at `ijk`) across its −side or +side face of axis
-/// `axis` and the face's weight, when the face is open (weight > 0) and the neighbour inside the grid: a liquid
-/// neighbour is coupled to the cell, any other is air (a ghost-fluid face).
+/// `axis` and the face's weight, when the face is open (weight > 0) and the neighbour inside
+/// the grid: a liquid neighbour is coupled to the cell, any other is air (a ghost-fluid face).
 #[inline]
 fn open_neighbour(
     grid: &Grid,
