@@ -386,7 +386,12 @@ fn cell_face(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> usize {
 
 /// Whether cell `c` has a face of positive weight (a liquid cell is an unknown when it has).
 pub fn has_open_face(grid: &Grid, weights: &[Vec<f64>; 3], c: usize) -> bool {
-    let ijk = grid.cells().ijk(c);
+    has_open_face_at(grid, weights, grid.cells().ijk(c))
+}
+
+/// [`has_open_face`] of the cell at `ijk`.
+#[inline]
+fn has_open_face_at(grid: &Grid, weights: &[Vec<f64>; 3], ijk: [usize; 3]) -> bool {
     (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0))
 }
 
@@ -433,20 +438,27 @@ impl PressureSystem {
         let SystemMemory { mut cell_of_row, mut row_of_cell, mut stencil, faces, multigrid } =
             memory;
         let cells = grid.cells();
-        // The unknowns: liquid cells with an open face, marked, counted, then numbered.
+        // The unknowns: liquid cells with an open face, marked, counted, then numbered. A
+        // z-slab a task, walked by (i, j): a cell's (i, j, k) from its flat index is two
+        // integer divisions, which were a third of this loop's time.
         refill(&mut row_of_cell, cells.len(), NONE);
+        let slab = cells.slab();
         let rows: usize = row_of_cell
-            .par_iter_mut()
+            .par_chunks_mut(slab)
+            .zip(phi.par_chunks(slab))
             .enumerate()
-            .map(|(c, r)| {
-                if phi[c] >= 0.0 {
-                    return 0;
+            .map(|(k, (rows, phi))| {
+                let mut open = 0;
+                for j in 0..grid.n[1] {
+                    let first = grid.n[0] * j;
+                    for i in 0..grid.n[0] {
+                        if phi[first + i] < 0.0 && has_open_face_at(grid, weights, [i, j, k]) {
+                            rows[first + i] = 0;
+                            open += 1;
+                        }
+                    }
                 }
-                let open = has_open_face(grid, weights, c);
-                if open {
-                    *r = 0;
-                }
-                usize::from(open)
+                open
             })
             .sum();
         clear_for(&mut cell_of_row, rows);
