@@ -149,18 +149,25 @@ struct Place {
     live: f64,
 }
 
+/// ⌊g⌋ for `g` ≥ 0, 0 below (and for NaN), as `g as usize` gives it. Through i64: x86-64
+/// converts an f64 to an i64 in one instruction, to a u64 in about ten (half the instructions
+/// of a [`place`]).
+#[inline(always)]
+pub fn floor_index(g: f64) -> usize {
+    (g as i64).max(0) as usize
+}
+
 /// [`Place`] of the point at `g` sample spacings from the first of `n` samples `dx` apart.
 #[inline]
 fn place(g: f64, n: usize, dx: f64) -> Place {
     let top = (n - 1) as f64;
     // A clamp, not branches: the particles' velocity takes three places a lattice.
     let gc = g.clamp(0.0, top);
-    // gc ≥ 0: truncation is the floor.
-    let lo = (gc as usize).min(n.saturating_sub(2));
+    let lo = floor_index(gc).min(n.saturating_sub(2));
     Place {
         lo,
         hi: (lo + 1).min(n - 1),
-        t: gc - lo as f64,
+        t: gc - lo as i64 as f64,
         live: if g > 0.0 && g < top { 1.0 / dx } else { 0.0 },
     }
 }

@@ -11,7 +11,7 @@
 
 use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::NodeSdf;
-use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::grid::{floor_index, Grid, Mac};
 use crate::geometry::shape::Solid;
 use crate::math::buffer::refill;
 use crate::math::par::{min_pieces, MIN_LEN};
@@ -538,7 +538,7 @@ pub fn cell_of(grid: &Grid, x: Vec3) -> usize {
     // Truncation is the floor here: a negative coordinate saturates to cell 0 either way.
     // Written out: as an array map this was left as a call (`try_map`) in some builds, 2.4%
     // of a step's instructions.
-    let at = |a: f64, d: usize| ((a / grid.dx) as usize).min(grid.n[d] - 1);
+    let at = |a: f64, d: usize| floor_index(a / grid.dx).min(grid.n[d] - 1);
     grid.cell(at(x.x, 0), at(x.y, 1), at(x.z, 2))
 }
 
