@@ -151,7 +151,7 @@ struct Place {
 
 /// ⌊g⌋ for `g` ≥ 0, 0 below (and for NaN), as `g as usize` gives it. Through i64: x86-64
 /// converts an f64 to an i64 in one instruction, to a u64 in about ten (half the instructions
-/// of a [`place`]).
+/// of a [`place`]); and an index back to f64 likewise.
 #[inline(always)]
 pub fn floor_index(g: f64) -> usize {
     (g as i64).max(0) as usize
@@ -160,7 +160,8 @@ pub fn floor_index(g: f64) -> usize {
 /// [`Place`] of the point at `g` sample spacings from the first of `n` samples `dx` apart.
 #[inline]
 fn place(g: f64, n: usize, dx: f64) -> Place {
-    let top = (n - 1) as f64;
+    // Index to f64 through i64 (one instruction; from usize, about six), as below.
+    let top = (n - 1) as i64 as f64;
     // A clamp, not branches: the particles' velocity takes three places a lattice.
     let gc = g.clamp(0.0, top);
     let lo = floor_index(gc).min(n.saturating_sub(2));
@@ -267,10 +268,11 @@ impl Lattice {
     /// World position of sample (i, j, k).
     #[inline]
     pub fn position(&self, i: usize, j: usize, k: usize) -> Vec3 {
+        // Through i64: see `place`.
         Vec3::new(
-            (i as f64 + self.off[0]) * self.dx,
-            (j as f64 + self.off[1]) * self.dx,
-            (k as f64 + self.off[2]) * self.dx,
+            (i as i64 as f64 + self.off[0]) * self.dx,
+            (j as i64 as f64 + self.off[1]) * self.dx,
+            (k as i64 as f64 + self.off[2]) * self.dx,
         )
     }
 
