@@ -16,7 +16,8 @@ Every diffluid error is a Python exception with the CLI's message: ``ValueError`
 scene or argument, :class:`SolverError` for a pressure solve that does not converge,
 :class:`SimulationError` for a state that blew up or a body that left the tank,
 :class:`GradientError` for a map the backward pass cannot differentiate. Steps and gradients
-release the GIL.
+release the GIL. :func:`tune_memory` sets the process's malloc as the CLI's (for grids of a
+million cells and more: a lower, steadier peak).
 """
 
 from ._diffluid import (
@@ -31,6 +32,7 @@ from ._diffluid import (
     __version__,
     optimize,
     rollout,
+    tune_memory,
     value_and_grad,
 )
 from .builder import WorldBuilder
@@ -47,6 +49,7 @@ __all__ = [
     "__version__",
     "optimize",
     "rollout",
+    "tune_memory",
     "value_and_grad",
     "WorldBuilder",
 ]

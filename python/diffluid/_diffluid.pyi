@@ -243,3 +243,7 @@ def rollout(
 ) -> Rollout: ...
 def _panic_for_tests() -> None:
     """Panics inside the boundary guard (raises InternalError); for the tests."""
+def tune_memory() -> bool:
+    """Sets glibc's malloc for the whole process as the diffluid binary does (one arena, no
+    allocation mapped apart, no trimming); True where it applies (Linux with glibc). Call it
+    before the first step."""

@@ -482,7 +482,11 @@ impl Rollout {
 
     /// The simulation at the end of the run (a copy).
     fn final_simulation(&self) -> Simulation {
-        Simulation { inner: self.inner.final_state().clone(), scene_steps: self.steps(), loss: None }
+        Simulation {
+            inner: self.inner.final_state().clone(),
+            scene_steps: self.steps(),
+            loss: None,
+        }
     }
 
     /// Steps run.

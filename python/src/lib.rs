@@ -10,6 +10,7 @@
 //! handed out are marked read-only so that writing into one is an error rather than a
 //! silent no-op.
 
+use diffluid::math::memory::GridAllocator;
 use numpy::ndarray::{Array2, Array3, ShapeBuilder};
 use numpy::{IntoPyArray, PyArray, PyArray1, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyRuntimeError, PyValueError};
@@ -242,6 +243,27 @@ pub(crate) fn to_py_object<'py>(
     json_to_py(py, &j)
 }
 
+/// The system allocator with the largest arrays (16 MiB and more: a grid of a few million
+/// cells) advised onto huge pages, as the CLI's; glibc itself is left as the interpreter set
+/// it unless [`tune_memory`] is called.
+#[global_allocator]
+static ALLOCATOR: GridAllocator = GridAllocator;
+
+/// Sets glibc's malloc for the whole process as the `diffluid` binary sets it (one arena,
+/// no allocation mapped apart, no trimming: what a step frees, the next takes again without
+/// a page fault). Returns True where it applies (Linux with glibc), False elsewhere.
+///
+/// Measured on `large_tank` (1M cells, 8 steps): peak RSS 384 → 302 MB (the CLI: 295 MB),
+/// 200k → 79k page faults, 0.81 → 0.48 s of kernel time. It changes malloc for everything
+/// in the process, NumPy and torch included, whose freed memory then also stays with the
+/// process; so it is asked for, not done on import. Call it before the first step (before
+/// diffluid's threads start).
+#[pyfunction]
+fn tune_memory() -> bool {
+    GridAllocator::tune();
+    cfg!(all(target_os = "linux", target_env = "gnu"))
+}
+
 /// The native module.
 #[pymodule]
 fn _diffluid(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -258,6 +280,7 @@ fn _diffluid(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(gradients::optimize, m)?)?;
     m.add_function(wrap_pyfunction!(gradients::rollout, m)?)?;
     m.add_function(wrap_pyfunction!(simulation::_panic_for_tests, m)?)?;
+    m.add_function(wrap_pyfunction!(tune_memory, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

@@ -187,3 +187,41 @@ def test_external_force_pushes_the_body(sim):
     assert sim.velocities[0, 0] > other.velocities[0, 0] + 0.01
     with pytest.raises(ValueError, match="force: element 1 is NaN"):
         sim.set_external_force(0, np.array([0.0, np.nan, 0.0]))
+
+
+# In a fresh interpreter: tune_memory sets malloc for the whole process.
+TUNED_RUN = """
+import json, sys
+import diffluid
+tuned = diffluid.tune_memory() if sys.argv[1] == "tune" else None
+scene = diffluid.Scene.builtin("gradcheck_live")
+scene.steps = 3
+sim = diffluid.Simulation(scene)
+report = sim.run()
+print(json.dumps({
+    "tuned": tuned,
+    "x": sim.positions.tolist(),
+    "v": sim.velocities.tolist(),
+    "particles": sim.particles.tolist(),
+    "volume": report["liquid_volume"],
+}))
+"""
+
+
+def test_tune_memory_applies_on_glibc_and_changes_no_result():
+    import json
+    import platform
+    import subprocess
+    import sys
+
+    def run(mode):
+        out = subprocess.run(
+            [sys.executable, "-c", TUNED_RUN, mode], check=True, capture_output=True, text=True
+        )
+        return json.loads(out.stdout)
+
+    tuned, plain = run("tune"), run("plain")
+    glibc = sys.platform == "linux" and platform.libc_ver()[0] == "glibc"
+    assert tuned.pop("tuned") is glibc and plain.pop("tuned") is None
+    # Every float as its shortest round-trip text: the same bits.
+    assert tuned == plain
