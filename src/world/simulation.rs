@@ -1393,21 +1393,24 @@ impl Simulation {
 
     /// Largest speed at the centre of a liquid cell (faces averaged per axis).
     fn max_liquid_speed(&self, cell_of_row: &[u32]) -> f64 {
-        let cells = self.grid.cells();
-        cell_of_row
+        let [n0, n1, _] = self.grid.n;
+        let u = &self.u.c;
+        // The largest square, then its root: the same bits, since a correctly rounded
+        // square root never decreases.
+        let squared = cell_of_row
             .par_iter()
             .with_min_len(MIN_LEN)
             .map(|&c| {
-                let ijk = cells.ijk(c as usize);
-                let v = [0, 1, 2].map(|a| {
-                    let lat = self.grid.faces(a);
-                    let mut hi = ijk;
-                    hi[a] += 1;
-                    0.5 * (self.u.c[a][lat.index(ijk[0], ijk[1], ijk[2])]
-                        + self.u.c[a][lat.index(hi[0], hi[1], hi[2])])
-                });
-                (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+                // Cell (i, j, k)'s −side faces: along x (one more face a row) at
+                // c + (j + n1·k), along y (one more row a slab) at c + n0·k, along z at c;
+                // the +side faces one row, slab or face further on.
+                let c = c as usize;
+                let (row, slab) = (c / n0, c / (n0 * n1));
+                let mean = |a: usize, lo: usize, step: usize| 0.5 * (u[a][lo] + u[a][lo + step]);
+                let v = [mean(0, c + row, 1), mean(1, c + n0 * slab, n0), mean(2, c, n0 * n1)];
+                v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
             })
-            .reduce(|| 0.0, f64::max)
+            .reduce(|| 0.0, f64::max);
+        squared.sqrt()
     }
 }
