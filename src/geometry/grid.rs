@@ -153,7 +153,7 @@ struct Place {
 
 /// ⌊g⌋ for `g` ≥ 0, 0 below (and for NaN), as `g as usize` gives it. Through i64: x86-64
 /// converts an f64 to an i64 in one instruction, to a u64 in about ten (half the instructions
-/// of a [`place`]); and an index back to f64 likewise.
+/// of a `place`); and an index back to f64 likewise.
 #[inline(always)]
 pub fn floor_index(g: f64) -> usize {
     (g as i64).max(0) as usize
