@@ -274,9 +274,9 @@ pub fn advect_adjoint_into(
                 let z = (j * block).min(slabs[axis])..((j + 1) * block).min(slabs[axis]);
                 let mut g = z.start * n0 * n1;
                 for k in z {
-                    for j in 0..n1 {
+                    for row in 0..n1 {
                         for i in 0..n0 {
-                            face(axis, [i, j, k], g, &mut sc);
+                            face(axis, [i, row, k], g, &mut sc);
                             g += 1;
                         }
                     }
