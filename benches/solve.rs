@@ -11,6 +11,7 @@ use diffluid::experiments::shapes::{Placed, ShapeSpec};
 use diffluid::geometry::body::RigidBody;
 use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::{Grid, Mac};
+use diffluid::geometry::weights::FaceWeights;
 use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
 use diffluid::world::step::{dt_minv, generalized_velocity};
@@ -36,12 +37,8 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
     body.v = diffluid::math::v3([0.1, -0.5, 0.05]);
     body.w = diffluid::math::v3([0.0, 0.3, 2.0]);
     let faces = body.face_fractions(&grid);
-    let mut weights = face_weights(&grid, &[]);
-    for (w, covered) in weights.iter_mut().zip(&faces.faces) {
-        for &(f, b) in covered {
-            w[f] = (w[f] - b).max(0.0);
-        }
-    }
+    let mut weights = FaceWeights::new(&face_weights(&grid, &[]));
+    weights.subtract(&faces.faces);
     let cells = grid.cells();
     let mut phi = vec![0.0; cells.len()];
     cells.fill_par(&mut phi, |i, j, k| {

@@ -13,6 +13,7 @@
 
 use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::Grid;
+use diffluid::geometry::weights::FaceWeights;
 use diffluid::math::Vec3;
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
 use diffluid::world::step::dt_minv;
@@ -57,15 +58,10 @@ fn coupled_operator_is_symmetric() {
     let scene = tank_scene(0.6, 0.05, 0.4, [0.1, 0.08, 0.12], [0.31, 0.37, 0.29], 600.0, 0.01, 1);
     let sim = scene.build().unwrap();
     let grid: Grid = *sim.grid();
-    let weights0 = face_weights(&grid, &[]);
     let body = sim.bodies()[0].clone();
     let faces = body.face_fractions(&grid);
-    let mut weights = weights0.clone();
-    for a in 0..3 {
-        for &(f, b) in &faces.faces[a] {
-            weights[a][f] = (weights[a][f] - b).max(0.0);
-        }
-    }
+    let mut weights = FaceWeights::new(&face_weights(&grid, &[]));
+    weights.subtract(&faces.faces);
     let cells = grid.cells();
     let mut phi = vec![0.0; cells.len()];
     cells.fill_par(&mut phi, |i, j, k| cells.position(i, j, k).y - 0.4);

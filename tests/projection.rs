@@ -12,6 +12,7 @@
 use diffluid::experiments::shapes::{AxisAngle, Placed, ShapeSpec};
 use diffluid::geometry::fractions::face_weights;
 use diffluid::geometry::grid::{dot, Grid, Mac};
+use diffluid::geometry::weights::FaceWeights;
 use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{PressureParams, PressureSystem};
 
@@ -39,8 +40,9 @@ fn projection_leaves_divergence_at_solver_tolerance() {
     }
     .build(std::path::Path::new("."))
     .unwrap();
-    let weights = face_weights(&grid, &[obstacle]);
-    let partial = weights.iter().flatten().filter(|w| **w > 0.0 && **w < 1.0).count();
+    let weights = FaceWeights::new(&face_weights(&grid, &[obstacle]));
+    let partial: usize =
+        (0..3).map(|a| weights.cut(a).filter(|&(_, w)| w > 0.0 && w < 1.0).count()).sum();
     assert!(partial > 50, "the obstacle must cut faces partially ({partial})");
     // A wavy free surface: φ_L < 0 below y = 0.45 + 0.05 sin(...).
     let cells = grid.cells();

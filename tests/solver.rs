@@ -12,6 +12,7 @@ use diffluid::experiments::shapes::{Placed, ShapeSpec};
 use diffluid::geometry::body::RigidBody;
 use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::{Grid, Mac};
+use diffluid::geometry::weights::FaceWeights;
 use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
 use diffluid::world::step::{dt_minv, generalized_velocity};
@@ -19,7 +20,7 @@ use diffluid::{Error, Scene};
 use nalgebra::{DMatrix, DVector};
 
 /// A tank with a ball obstacle (partial weights) and a sloped free surface at height `level`.
-fn system(n: [usize; 3], level: f64) -> (PressureSystem, [Vec<f64>; 3]) {
+fn system(n: [usize; 3], level: f64) -> (PressureSystem, FaceWeights) {
     let grid = Grid { n, dx: 1.0 / n[0] as f64 };
     let ball = Placed {
         shape: ShapeSpec::Ball { radius: 0.17 },
@@ -29,7 +30,7 @@ fn system(n: [usize; 3], level: f64) -> (PressureSystem, [Vec<f64>; 3]) {
     }
     .build(std::path::Path::new("."))
     .unwrap();
-    let weights = face_weights(&grid, &[ball]);
+    let weights = FaceWeights::new(&face_weights(&grid, &[ball]));
     let cells = grid.cells();
     let mut phi = vec![0.0; cells.len()];
     cells.fill_par(&mut phi, |i, j, k| {
@@ -61,7 +62,7 @@ fn dense(sys: &PressureSystem) -> DMatrix<f64> {
     a
 }
 
-fn rhs(sys: &PressureSystem, weights: &[Vec<f64>; 3]) -> Vec<f64> {
+fn rhs(sys: &PressureSystem, weights: &FaceWeights) -> Vec<f64> {
     let mut u = Mac::zeros(&sys.grid);
     for a in 0..3 {
         for (f, x) in u.c[a].iter_mut().enumerate() {
@@ -191,12 +192,8 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
     body.v = diffluid::math::v3([0.1, -0.5, 0.05]);
     body.w = diffluid::math::v3([0.0, 0.3, 2.0]);
     let faces = body.face_fractions(&grid);
-    let mut weights = face_weights(&grid, &[]);
-    for (w, covered) in weights.iter_mut().zip(&faces.faces) {
-        for &(f, b) in covered {
-            w[f] = (w[f] - b).max(0.0);
-        }
-    }
+    let mut weights = FaceWeights::new(&face_weights(&grid, &[]));
+    weights.subtract(&faces.faces);
     let cells = grid.cells();
     let mut phi = vec![0.0; cells.len()];
     cells.fill_par(&mut phi, |i, j, k| {

@@ -1,10 +1,12 @@
-//! The static solids' face weights in a byte a face.
+//! Face weights in a byte a face.
 //!
-//! A face of the tank is open (weight 1) or closed (a wall, or inside an obstacle: 0), except
-//! where an obstacle's surface cuts it. A dense copy of the weights in f64 sits through every
-//! step (every step's combined weights start from it): 25 MB at 1 M cells, 200 MB at 8.4 M.
-//! [`StaticWeights`] keeps a byte a face and lists the cut faces with their weights, and
-//! gives back every weight bit for bit.
+//! A face of the tank is open (weight 1) or closed (a wall, inside an obstacle or a body: 0),
+//! except where a solid's surface cuts it. In f64 the weights are 25 MB at 1 M cells and
+//! 200 MB at 8.4 M, nearly all of them exactly 0 or 1. [`FaceWeights`] keeps a byte a face
+//! and lists the cut faces with their weights, gives back every weight bit for bit, and is
+//! what every stage reads: the static solids' weights, a step's (those minus the bodies'
+//! fractions, [`FaceWeights::subtract`]) and the density projection's (closed at the narrow
+//! band's deep cells, [`FaceWeights::close_faces`]).
 
 use crate::math::par::MIN_LEN;
 use rayon::prelude::*;
@@ -13,6 +15,17 @@ use rayon::prelude::*;
 const CLOSED: u8 = 0;
 const OPEN: u8 = 1;
 const CUT: u8 = 2;
+
+/// The byte of weight `w`: [`CLOSED`] for +0.0 exactly, [`OPEN`] for 1.0, [`CUT`] otherwise
+/// (−0.0 too, so that its sign comes back).
+#[inline]
+fn kind_of(w: f64) -> u8 {
+    match w.to_bits() {
+        b if b == 0f64.to_bits() => CLOSED,
+        b if b == 1f64.to_bits() => OPEN,
+        _ => CUT,
+    }
+}
 
 /// The weights of one axis's faces.
 #[derive(Clone, Debug, PartialEq)]
@@ -25,15 +38,7 @@ struct Axis {
 
 impl Axis {
     fn new(w: &[f64]) -> Axis {
-        let kind: Vec<u8> = w
-            .par_iter()
-            .with_min_len(MIN_LEN)
-            .map(|x| match x.to_bits() {
-                b if b == 0f64.to_bits() => CLOSED,
-                b if b == 1f64.to_bits() => OPEN,
-                _ => CUT,
-            })
-            .collect();
+        let kind: Vec<u8> = w.par_iter().with_min_len(MIN_LEN).map(|&x| kind_of(x)).collect();
         let cut = kind
             .iter()
             .enumerate()
@@ -43,108 +48,238 @@ impl Axis {
         Axis { kind, cut }
     }
 
+    /// The weight of a face listed as cut: out of line, so that the bytes' test inlines
+    /// into the stages' loops.
+    #[inline(never)]
+    fn cut_weight(&self, f: usize) -> f64 {
+        let at = self.cut.binary_search_by_key(&(f as u32), |c| c.0);
+        self.cut[at.expect("a cut face is listed")].1
+    }
+
+    #[inline(always)]
     fn weight(&self, f: usize) -> f64 {
         match self.kind[f] {
             CLOSED => 0.0,
             OPEN => 1.0,
-            _ => {
-                let at = self.cut.binary_search_by_key(&(f as u32), |c| c.0);
-                self.cut[at.expect("a cut face is listed")].1
+            _ => self.cut_weight(f),
+        }
+    }
+
+    /// `w ← clamp(w − β, 0, 1)` on each face of `faces` (sorted by face, each once).
+    fn subtract(&mut self, faces: &[(usize, f64)]) {
+        debug_assert!(faces.windows(2).all(|p| p[0].0 < p[1].0), "faces sorted, each once");
+        let mut changed = Vec::new();
+        for &(f, beta) in faces {
+            let w = (self.weight(f) - beta).clamp(0.0, 1.0);
+            self.kind[f] = kind_of(w);
+            if self.kind[f] == CUT {
+                changed.push((f as u32, w));
             }
         }
+        // The new list: the old entries of the faces not touched, merged with the changed.
+        let mut touched = faces.iter().map(|&(f, _)| f as u32).peekable();
+        let kept = self.cut.iter().copied().filter(|&(f, _)| {
+            while touched.next_if(|&t| t < f).is_some() {}
+            touched.peek() != Some(&f)
+        });
+        let mut merged = Vec::with_capacity(self.cut.len() + changed.len());
+        let mut changed = changed.into_iter().peekable();
+        for old in kept {
+            while let Some(new) = changed.next_if(|new| new.0 < old.0) {
+                merged.push(new);
+            }
+            merged.push(old);
+        }
+        merged.extend(changed);
+        self.cut = merged;
     }
 }
 
-/// Face weights that are 0 or 1 but on a few faces (see the module doc).
+/// Face weights in a byte a face but on the cut faces (see the module doc).
 #[derive(Clone, Debug, PartialEq)]
-pub struct StaticWeights {
+pub struct FaceWeights {
     axes: [Axis; 3],
 }
 
-impl StaticWeights {
+impl FaceWeights {
     /// The weights `dense` (one vector per axis) in a byte a face.
-    pub fn new(dense: &[Vec<f64>; 3]) -> StaticWeights {
-        StaticWeights { axes: [0, 1, 2].map(|a| Axis::new(&dense[a])) }
+    pub fn new(dense: &[Vec<f64>; 3]) -> FaceWeights {
+        FaceWeights { axes: [0, 1, 2].map(|a| Axis::new(&dense[a])) }
     }
 
     /// The weight of face `f` normal to `axis`.
-    #[inline]
+    #[inline(always)]
     pub fn weight(&self, axis: usize, f: usize) -> f64 {
         self.axes[axis].weight(f)
     }
 
-    /// Writes every weight over `out` (one vector per axis, of the lattices' lengths).
-    pub fn write_into(&self, out: &mut [Vec<f64>; 3]) {
-        for (o, ax) in out.iter_mut().zip(&self.axes) {
-            assert_eq!(o.len(), ax.kind.len(), "a vector per face");
-            o.par_iter_mut().with_min_len(MIN_LEN).zip(&ax.kind).for_each(|(o, &k)| {
-                *o = if k == OPEN { 1.0 } else { 0.0 };
-            });
-            for &(f, w) in &ax.cut {
-                o[f as usize] = w;
-            }
+    /// Whether face `f` normal to `axis` is open (weight > 0).
+    #[inline(always)]
+    pub fn open(&self, axis: usize, f: usize) -> bool {
+        let ax = &self.axes[axis];
+        match ax.kind[f] {
+            CLOSED => false,
+            OPEN => true,
+            _ => ax.cut_weight(f) > 0.0,
         }
+    }
+
+    /// Whether face `f` normal to `axis` is closed (weight ≤ 0): what the velocity correction
+    /// zeroes and its transpose lets nothing through.
+    #[inline(always)]
+    pub fn closed(&self, axis: usize, f: usize) -> bool {
+        let ax = &self.axes[axis];
+        match ax.kind[f] {
+            CLOSED => true,
+            OPEN => false,
+            _ => ax.cut_weight(f) <= 0.0,
+        }
+    }
+
+    /// The number of faces normal to `axis`.
+    pub fn len(&self, axis: usize) -> usize {
+        self.axes[axis].kind.len()
+    }
+
+    /// The faces normal to `axis` that are neither 0 nor 1, with their weights, in
+    /// increasing face order.
+    pub fn cut(&self, axis: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        self.axes[axis].cut.iter().map(|&(f, w)| (f as usize, w))
+    }
+
+    /// Overwrites these weights with `other`'s, in this value's memory.
+    pub fn copy_from(&mut self, other: &FaceWeights) {
+        for (ax, o) in self.axes.iter_mut().zip(&other.axes) {
+            ax.kind.clone_from(&o.kind);
+            ax.cut.clone_from(&o.cut);
+        }
+    }
+
+    /// `w ← clamp(w − β, 0, 1)` on each face of `faces[axis]` (a body's fractions, sorted by
+    /// face, each face once): the weights the liquid sees beside a body.
+    pub fn subtract(&mut self, faces: &[Vec<(usize, f64)>; 3]) {
+        for (ax, list) in self.axes.iter_mut().zip(faces) {
+            ax.subtract(list);
+        }
+    }
+
+    /// These weights with every face `close` picks closed. `close(axis, kind)` gets each
+    /// axis's bytes (the face lattice's, in its order) and sets those of the faces to close
+    /// to the byte it is handed.
+    pub fn close_faces(&self, close: impl Fn(usize, &mut [u8], u8)) -> FaceWeights {
+        let mut out = self.clone();
+        for (a, ax) in out.axes.iter_mut().enumerate() {
+            close(a, &mut ax.kind, CLOSED);
+            let kind = &ax.kind;
+            ax.cut.retain(|&(f, _)| kind[f as usize] == CUT);
+        }
+        out
     }
 
     /// Every weight, one vector per axis.
     pub fn to_dense(&self) -> [Vec<f64>; 3] {
-        let mut out = [0, 1, 2].map(|a| vec![0.0; self.axes[a].kind.len()]);
-        self.write_into(&mut out);
-        out
-    }
-}
-
-/// Which faces are closed (weight ≤ 0): what the velocity correction zeroes and its
-/// transpose lets nothing through.
-pub trait ClosedFaces: Sync {
-    /// Whether face `f` normal to `axis` is closed.
-    fn closed(&self, axis: usize, f: usize) -> bool;
-}
-
-impl ClosedFaces for [Vec<f64>; 3] {
-    #[inline]
-    fn closed(&self, axis: usize, f: usize) -> bool {
-        self[axis][f] <= 0.0
-    }
-}
-
-impl ClosedFaces for StaticWeights {
-    #[inline]
-    fn closed(&self, axis: usize, f: usize) -> bool {
-        match self.axes[axis].kind[f] {
-            CLOSED => true,
-            OPEN => false,
-            _ => self.axes[axis].weight(f) <= 0.0,
-        }
+        self.axes.each_ref().map(|ax| {
+            let mut out: Vec<f64> = ax
+                .kind
+                .par_iter()
+                .with_min_len(MIN_LEN)
+                .map(|&k| if k == OPEN { 1.0 } else { 0.0 })
+                .collect();
+            for &(f, w) in &ax.cut {
+                out[f as usize] = w;
+            }
+            out
+        })
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
-    /// Every weight comes back bit for bit, whatever it is (−0.0, tiny, just under one),
-    /// and a face is closed exactly where the dense weight is at most zero.
-    #[test]
-    fn weights_come_back_bit_for_bit() {
-        let special = [0.0, 1.0, -0.0, 0.5, 1e-300, 1.0 - f64::EPSILON, 0.25, 1.0, 0.0];
-        let dense = [0, 1, 2].map(|a| {
-            (0..40_000).map(|f| special[(f * 7 + a * 3 + f / 11) % special.len()]).collect()
-        });
-        let s = StaticWeights::new(&dense);
+    /// The special weights a face can have: −0.0, tiny, just under one.
+    const SPECIAL: [f64; 9] = [0.0, 1.0, -0.0, 0.5, 1e-300, 1.0 - f64::EPSILON, 0.25, 1.0, 0.0];
+
+    fn same_bits(s: &FaceWeights, dense: &[Vec<f64>; 3]) {
         for a in 0..3 {
-            for (f, w) in dense[a].iter().enumerate() {
+            assert_eq!(s.len(a), dense[a].len());
+            for (f, &w) in dense[a].iter().enumerate() {
                 assert_eq!(s.weight(a, f).to_bits(), w.to_bits(), "axis {a} face {f}");
-                assert_eq!(s.closed(a, f), dense.closed(a, f), "axis {a} face {f}");
+                assert_eq!(s.closed(a, f), w <= 0.0, "axis {a} face {f}");
+                assert_eq!(s.open(a, f), w > 0.0, "axis {a} face {f}");
             }
         }
         let back = s.to_dense();
         for a in 0..3 {
             assert!(back[a].iter().zip(&dense[a]).all(|(x, y)| x.to_bits() == y.to_bits()));
+            let listed: Vec<usize> = s.cut(a).map(|(f, _)| f).collect();
+            let cut: Vec<usize> =
+                (0..dense[a].len()).filter(|&f| kind_of(dense[a][f]) == CUT).collect();
+            assert_eq!(listed, cut, "axis {a}: exactly the faces neither +0 nor 1 are listed");
         }
-        // Only the faces neither 0 nor 1 are listed.
-        let cut = dense[0].iter().filter(|w| w.to_bits() != 0 && **w != 1.0).count();
-        assert_eq!(s.axes[0].cut.len(), cut);
+    }
+
+    /// Every weight comes back bit for bit, whatever it is, and a face is closed exactly
+    /// where the dense weight is at most zero.
+    #[test]
+    fn weights_come_back_bit_for_bit() {
+        let dense = [0, 1, 2].map(|a| {
+            (0..40_000).map(|f| SPECIAL[(f * 7 + a * 3 + f / 11) % SPECIAL.len()]).collect()
+        });
+        let s = FaceWeights::new(&dense);
+        same_bits(&s, &dense);
+        let cut = s.cut(0).count();
         assert!(cut > 0 && cut < dense[0].len());
+    }
+
+    proptest! {
+        /// Subtracting bodies' fractions gives the bits the dense `clamp(w − β, 0, 1)` does,
+        /// body after body, and closing faces closes those and no other.
+        #[test]
+        fn subtract_and_close_match_the_dense_weights(
+            start in proptest::collection::vec(0usize..SPECIAL.len(), 60),
+            bodies in proptest::collection::vec(
+                proptest::collection::btree_map(0usize..60, 0.0f64..=1.0, 0..30), 1..4),
+            snap in proptest::collection::vec(any::<bool>(), 60),
+            shut in proptest::collection::vec(any::<bool>(), 60),
+        ) {
+            let mut dense = [0, 1, 2].map(|a| {
+                start.iter().map(|&i| SPECIAL[(i + a) % SPECIAL.len()]).collect::<Vec<f64>>()
+            });
+            let mut s = FaceWeights::new(&dense);
+            let mut copy = FaceWeights::new(&[vec![0.5; 3], vec![], vec![1.0]]);
+            copy.copy_from(&s);
+            prop_assert_eq!(&copy, &s);
+            for body in &bodies {
+                // Fractions snapped to 0 or 1 on some faces, as a body's are.
+                let list: Vec<(usize, f64)> = body
+                    .iter()
+                    .map(|(&f, &b)| (f, if snap[f] { b.round() } else { b }))
+                    .collect();
+                for w in dense.iter_mut() {
+                    for &(f, beta) in &list {
+                        w[f] = (w[f] - beta).clamp(0.0, 1.0);
+                    }
+                }
+                s.subtract(&[list.clone(), list.clone(), list]);
+            }
+            same_bits(&s, &dense);
+            let closed = s.close_faces(|_, kind, to| {
+                for (k, &c) in kind.iter_mut().zip(&shut) {
+                    if c {
+                        *k = to;
+                    }
+                }
+            });
+            for w in dense.iter_mut() {
+                for (w, &c) in w.iter_mut().zip(&shut) {
+                    if c {
+                        *w = 0.0;
+                    }
+                }
+            }
+            same_bits(&closed, &dense);
+        }
     }
 }

@@ -600,7 +600,7 @@ impl ParticleAdjoint<'_> {
             for (axis, list) in faces.iter().enumerate() {
                 for (f, beta) in list {
                     let raw = statics.weight(axis, *f) - beta.v;
-                    if !(raw > 0.0 && raw < 1.0 && weights[axis][*f] > 0.0) {
+                    if !(raw > 0.0 && raw < 1.0 && weights.weight(axis, *f) > 0.0) {
                         continue;
                     }
                     let w = proj.sys.weight_adjoint(axis, *f, weights, &proj.phi, s, q);

@@ -41,7 +41,7 @@ pub(crate) mod testing {
         PressureSystem::build(
             &grid,
             &phi,
-            &weights,
+            &crate::geometry::weights::FaceWeights::new(&weights),
             PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
         )
     }

@@ -28,6 +28,7 @@
 use crate::error::{Error, Result};
 use crate::geometry::fractions::NodeSdf;
 use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::weights::FaceWeights;
 use crate::math::Vec3;
 use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
@@ -54,7 +55,7 @@ pub struct DensityInputs<'a> {
     /// The grid.
     pub grid: &'a Grid,
     /// Face fluid weights of the solids.
-    pub weights: &'a [Vec<f64>; 3],
+    pub weights: &'a FaceWeights,
     /// Solid signed distance at nodes.
     pub node_sdf: &'a NodeSdf,
     /// Cells whose centre is in a solid.
@@ -115,8 +116,8 @@ pub struct DensityProjection {
     /// notes): with the inputs' weights, every face of a deep cell closed.
     pub deep_closed: bool,
     /// Those weights, when [`DensityProjection::deep_closed`], for the adjoint (a forward
-    /// projection hands them back before its solve).
-    pub closed: Option<Mac>,
+    /// projection drops them before its solve).
+    pub closed: Option<FaceWeights>,
 }
 
 impl DensityProjection {
@@ -131,7 +132,7 @@ impl DensityProjection {
     /// even found).
     fn build_forward(particles: &[Vec3], g: &DensityInputs<'_>) -> Option<DensityProjection> {
         let proj = DensityProjection::build_with(particles, g, false)?;
-        Some(proj.without_adjoint_inputs(g))
+        Some(proj.without_adjoint_inputs())
     }
 
     /// [`DensityProjection::build`], with [`DensityProjection::nearest`] only when
@@ -163,16 +164,14 @@ impl DensityProjection {
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
         let memory = g.systems.map(SystemPool::take).unwrap_or_default();
         let mut closed = g.band.filter(|b| b.deep.par_iter().any(|&d| d)).map(|b| {
-            let mut w = g.field();
-            closed_at_deep(grid, Some(g.weights), &b.deep, &mut w);
-            w
+            g.weights.close_faces(|a, kind, shut| closed_at_deep(grid, a, &b.deep, kind, shut))
         });
-        let weights = closed.as_ref().map_or(g.weights, |w| &w.c);
+        let weights = closed.as_ref().unwrap_or(g.weights);
         let mut sys = PressureSystem::build_in(memory, grid, &phi, weights, params);
         if closed.is_some() && !excess_reaches_air(&sys, weights, &phi, &dens, g) {
             // Some excess has no way to the air but through the deep cells: the whole liquid's
             // operator, as without a band.
-            g.give_back(None, closed.take());
+            closed = None;
             sys = PressureSystem::build_in(sys.into_memory(), grid, &phi, g.weights, params);
         }
         let vol = grid.dx.powi(3);
@@ -203,22 +202,21 @@ impl DensityProjection {
     /// # Panics
     /// When the projection was closed at the deep cells and its closed weights were handed
     /// back (a forward projection's, which no adjoint reads).
-    pub fn weights<'w>(&'w self, g: &'w DensityInputs<'_>) -> &'w [Vec<f64>; 3] {
+    pub fn weights<'w>(&'w self, g: &'w DensityInputs<'_>) -> &'w FaceWeights {
         assert_eq!(self.closed.is_some(), self.deep_closed, "the closed weights were handed back");
-        self.closed.as_ref().map_or(g.weights, |w| &w.c)
+        self.closed.as_ref().unwrap_or(g.weights)
     }
 
-    /// Hands the system's memory and the closed weights' field back to the inputs' pool.
+    /// Hands the system's memory back to the inputs' pool.
     pub fn give_back(self, g: &DensityInputs<'_>) {
-        g.give_back(Some(self.sys), self.closed);
+        g.give_back(Some(self.sys), None);
     }
 
     /// The projection with only what a forward step reads after the build (the system and
     /// the right-hand side): φ, the nearest particles and the density, which only the
     /// adjoint reads, freed before the solve (21 MB at a million cells), and the closed
-    /// weights handed back to the inputs' pool (the displacement is built in that memory).
-    fn without_adjoint_inputs(self, g: &DensityInputs<'_>) -> DensityProjection {
-        g.give_back(None, self.closed);
+    /// weights (3 MB).
+    fn without_adjoint_inputs(self) -> DensityProjection {
         let (phi, nearest, dens) = (Vec::new(), Vec::new(), Vec::new());
         DensityProjection { phi, nearest, dens, closed: None, ..self }
     }
@@ -249,7 +247,9 @@ impl DensityProjection {
         correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
         if self.deep_closed {
             let deep = &g.band.expect("a projection closed at deep cells has a band").deep;
-            closed_at_deep(g.grid, None, deep, &mut d);
+            for (a, field) in d.c.iter_mut().enumerate() {
+                closed_at_deep(g.grid, a, deep, field, 0.0);
+            }
         }
         Displacement { d, valid0 }
     }
@@ -354,79 +354,67 @@ impl DensityProjection {
     }
 }
 
-/// `out` with every face of a `deep` cell closed (zero), its other faces copied from
-/// `weights` when given and left as they are otherwise. A deep cell is full by construction
-/// (the narrow band carries no particles there), so the band's excess is not pushed into it,
-/// where it would only be owed back to the band, but along the band to the air: the
-/// projection's operator has the band's cells only, a few times fewer rows.
-fn closed_at_deep(grid: &Grid, weights: Option<&[Vec<f64>; 3]>, deep: &[bool], out: &mut Mac) {
+/// Sets every face of a `deep` cell of `field` (the faces normal to `axis`, in the face
+/// lattice's order) to `shut`, and leaves the others as they are. A deep cell is full by
+/// construction (the narrow band carries no particles there), so the band's excess is not
+/// pushed into it, where it would only be owed back to the band, but along the band to the
+/// air: the projection's operator has the band's cells only, a few times fewer rows. Closes
+/// the weights (`shut` the closed byte) and zeroes a displacement (`shut` = 0.0).
+fn closed_at_deep<T: Copy + Send + Sync>(
+    grid: &Grid,
+    axis: usize,
+    deep: &[bool],
+    field: &mut [T],
+    shut: T,
+) {
     let n = grid.n;
-    for (a, field) in out.c.iter_mut().enumerate() {
-        let lat = grid.faces(a);
-        let slab = lat.slab().max(1);
-        field.par_chunks_mut(slab).enumerate().for_each(|(k, chunk)| {
-            for (j, row) in chunk.chunks_mut(lat.n[0]).enumerate() {
-                let w = weights.map(|w| &w[a][k * slab + j * lat.n[0]..][..row.len()]);
-                // The cells on either side of the row's faces, as rows of `deep`: the row
-                // itself along x (its faces between cells i − 1 and i), the rows at j − 1 and
-                // j (k − 1 and k) along y (z), missing beyond the walls.
-                let cells = |j: usize, k: usize| &deep[grid.cell(0, j, k)..][..n[0]];
-                match a {
-                    0 => {
-                        let c = cells(j, k);
-                        let m = n[0];
-                        close_where(
-                            &mut row[1..m],
-                            w.map(|w| &w[1..m]),
-                            &c[1..],
-                            Some(&c[..m - 1]),
-                        );
-                        close_where(&mut row[..1], w.map(|w| &w[..1]), &c[..1], None);
-                        close_where(&mut row[m..], w.map(|w| &w[m..]), &c[m - 1..], None);
-                    }
-                    _ => {
-                        // The row `back` cells behind this one along y or z.
-                        let behind = |back: usize| {
-                            if a == 1 {
-                                cells(j - back, k)
-                            } else {
-                                cells(j, k - back)
-                            }
-                        };
-                        let at = [j, k][a - 1];
-                        let below = (at > 0).then(|| behind(1));
-                        match (at < n[a]).then(|| behind(0)) {
-                            Some(c) => close_where(row, w, c, below),
-                            None => close_where(row, w, below.expect("a face row"), None),
+    let lat = grid.faces(axis);
+    let slab = lat.slab().max(1);
+    field.par_chunks_mut(slab).enumerate().for_each(|(k, chunk)| {
+        for (j, row) in chunk.chunks_mut(lat.n[0]).enumerate() {
+            // The cells on either side of the row's faces, as rows of `deep`: the row itself
+            // along x (its faces between cells i − 1 and i), the rows at j − 1 and j (k − 1
+            // and k) along y (z), missing beyond the walls.
+            let cells = |j: usize, k: usize| &deep[grid.cell(0, j, k)..][..n[0]];
+            match axis {
+                0 => {
+                    let c = cells(j, k);
+                    let m = n[0];
+                    close_where(&mut row[1..m], &c[1..], Some(&c[..m - 1]), shut);
+                    close_where(&mut row[..1], &c[..1], None, shut);
+                    close_where(&mut row[m..], &c[m - 1..], None, shut);
+                }
+                _ => {
+                    // The row `back` cells behind this one along y or z.
+                    let behind = |back: usize| {
+                        if axis == 1 {
+                            cells(j - back, k)
+                        } else {
+                            cells(j, k - back)
                         }
+                    };
+                    let at = [j, k][axis - 1];
+                    let below = (at > 0).then(|| behind(1));
+                    match (at < n[axis]).then(|| behind(0)) {
+                        Some(c) => close_where(row, c, below, shut),
+                        None => close_where(row, below.expect("a face row"), None, shut),
                     }
                 }
-            }
-        });
-    }
-}
-
-/// `out[i] = 0` where `a[i]` or `b[i]` (a deep cell on either side of the face), `w[i]`
-/// elsewhere (or `out[i]` as it is, without `w`): a row at a time, no branch a face.
-#[inline(always)]
-fn close_where(out: &mut [f64], w: Option<&[f64]>, a: &[bool], b: Option<&[bool]>) {
-    let len = out.len();
-    let a = &a[..len];
-    let shut = |i: usize, b: &[bool]| a[i] | b[i];
-    let b = b.map_or(a, |b| &b[..len]);
-    match w {
-        Some(w) => {
-            let w = &w[..len];
-            for i in 0..len {
-                out[i] = if shut(i, b) { 0.0 } else { w[i] };
             }
         }
-        None => {
-            for i in 0..len {
-                if shut(i, b) {
-                    out[i] = 0.0;
-                }
-            }
+    });
+}
+
+/// `out[i] = shut` where `a[i]` or `b[i]` (a deep cell on either side of the face): a row at
+/// a time.
+#[inline(always)]
+fn close_where<T: Copy>(out: &mut [T], a: &[bool], b: Option<&[bool]>, shut: T) {
+    let len = out.len();
+    let a = &a[..len];
+    let b = b.map_or(a, |b| &b[..len]);
+    for i in 0..len {
+        if a[i] | b[i] {
+            out[i] = shut;
         }
     }
 }
@@ -437,7 +425,7 @@ fn close_where(out: &mut [f64], w: Option<&[f64]>, a: &[bool], b: Option<&[bool]
 /// deep cells is singular where the excess is, or misses it.
 fn excess_reaches_air(
     sys: &PressureSystem,
-    weights: &[Vec<f64>; 3],
+    weights: &FaceWeights,
     phi: &[f64],
     dens: &[f64],
     g: &DensityInputs<'_>,
@@ -558,7 +546,7 @@ mod tests {
     struct SqueezedPool {
         grid: Grid,
         particles: Vec<Vec3>,
-        weights: [Vec<f64>; 3],
+        weights: FaceWeights,
         node_sdf: NodeSdf,
         centre_in_solid: Vec<bool>,
         deep: Vec<bool>,
@@ -586,7 +574,7 @@ mod tests {
             SqueezedPool {
                 grid,
                 particles,
-                weights: crate::geometry::fractions::face_weights(&grid, &[]),
+                weights: FaceWeights::new(&crate::geometry::fractions::face_weights(&grid, &[])),
                 node_sdf,
                 centre_in_solid: vec![false; grid.num_cells()],
                 deep,
@@ -657,7 +645,7 @@ mod tests {
         let moved: usize = d.c.iter().map(|c| c.iter().filter(|&&x| x != 0.0).count()).sum();
         assert!(moved > 100, "the band's excess moved ({moved} faces)");
         // A forward step's projection, its closed weights handed back, displaces the same.
-        let forward = proj.without_adjoint_inputs(&inputs);
+        let forward = proj.without_adjoint_inputs();
         assert!(forward.closed.is_none());
         assert_eq!(forward.displacement(&q, &inputs).d, d);
         assert_adjoint_is_central_difference(&pool.particles, &inputs);

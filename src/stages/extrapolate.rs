@@ -8,7 +8,7 @@
 //! backward pass (paper, eq. 10).
 
 use crate::geometry::grid::{Grid, Lattice, Mac};
-use crate::geometry::weights::ClosedFaces;
+use crate::geometry::weights::FaceWeights;
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use rayon::prelude::*;
 
@@ -151,7 +151,7 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
 pub fn correct_velocity(
     u: &mut Mac,
     valid: &mut [Vec<u8>; 3],
-    weights: &(impl ClosedFaces + ?Sized),
+    weights: &FaceWeights,
     grid: &Grid,
     layers: usize,
 ) {
@@ -162,7 +162,7 @@ pub fn correct_velocity(
 }
 
 /// Zeroes the values of the faces normal to `axis` that `weights` closes.
-fn zero_closed(field: &mut [f64], weights: &(impl ClosedFaces + ?Sized), axis: usize) {
+fn zero_closed(field: &mut [f64], weights: &FaceWeights, axis: usize) {
     field.par_iter_mut().enumerate().with_min_len(MIN_LEN).for_each(|(f, x)| {
         if weights.closed(axis, f) {
             *x = 0.0;
@@ -211,7 +211,7 @@ pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers
 pub fn correct_velocity_adjoint(
     adj: &mut Mac,
     valid0: &[Vec<u8>; 3],
-    weights: &(impl ClosedFaces + ?Sized),
+    weights: &FaceWeights,
     grid: &Grid,
     layers: usize,
 ) {
@@ -231,7 +231,7 @@ pub fn apply_body_velocities(
     u: &mut Mac,
     bodies: &[crate::geometry::body::RigidBody],
     faces: &[crate::geometry::fractions::BodyFaces],
-    weights: &[Vec<f64>; 3],
+    weights: &FaceWeights,
     grid: &Grid,
 ) {
     let mut touched = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
@@ -241,11 +241,12 @@ pub fn apply_body_velocities(
             for &(f, beta) in &bf.faces[a] {
                 let [i, j, k] = lat.ijk(f);
                 let ub = crate::math::comp(b.velocity_at(lat.position(i, j, k)), a);
-                if weights[a][f] <= 0.0 {
+                let w = weights.weight(a, f);
+                if w <= 0.0 {
                     u.c[a][f] = ub;
                 } else {
                     if !touched[a][f] {
-                        u.c[a][f] *= weights[a][f];
+                        u.c[a][f] *= w;
                         touched[a][f] = true;
                     }
                     u.c[a][f] += beta * ub;
@@ -287,7 +288,7 @@ pub fn apply_body_velocities_adjoint(
     u_old: impl Fn(usize, usize) -> f64,
     bodies: &[crate::geometry::body::RigidBody],
     faces: &[crate::geometry::fractions::BodyFaces],
-    weights: &[Vec<f64>; 3],
+    weights: &FaceWeights,
     grid: &Grid,
 ) -> Vec<BodyVelocityAdjoint> {
     let mut out = vec![BodyVelocityAdjoint::default(); bodies.len()];
@@ -304,7 +305,7 @@ pub fn apply_body_velocities_adjoint(
             let lat = grid.faces(a);
             let e = crate::math::unit(a);
             for (&(f, beta), &g) in faces[i].faces[a].iter().zip(&incoming[i][a]) {
-                let closed = weights[a][f] <= 0.0;
+                let closed = weights.closed(a, f);
                 if closed && claimed[a][f] {
                     continue;
                 }
@@ -324,7 +325,7 @@ pub fn apply_body_velocities_adjoint(
                     let ub = crate::math::comp(b.velocity_at(lat.position(ii, jj, kk)), a);
                     out[i].dbeta.push((a, f, (ub - u_old(a, f)) * g));
                     if !scaled[a][f] {
-                        ubar.c[a][f] = weights[a][f] * g;
+                        ubar.c[a][f] = weights.weight(a, f) * g;
                         scaled[a][f] = true;
                     }
                 }
@@ -345,6 +346,7 @@ mod tests {
         let mut weights = [0, 1, 2].map(|a| vec![1.0; grid.faces(a).len()]);
         weights[1][7] = 0.0;
         weights[0][20] = 0.0;
+        let weights = FaceWeights::new(&weights);
         let valid = [0, 1, 2].map(|a| {
             (0..grid.faces(a).len()).map(|f| u8::from((f * 37 + a) % 5 == 0)).collect::<Vec<u8>>()
         });

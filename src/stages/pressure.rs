@@ -15,7 +15,7 @@
 //! matrix-free from a stored 7-point stencil; rigid bodies add a rank-6 term per body.
 
 use crate::geometry::grid::{Grid, Mac, NONE};
-use crate::geometry::weights::StaticWeights;
+use crate::geometry::weights::FaceWeights;
 use crate::math::buffer::{clear_for, refill};
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use crate::math::Vec3;
@@ -355,7 +355,7 @@ fn open_faces(
     grid: &Grid,
     axis: usize,
     k: usize,
-    w: &[f64],
+    weights: &FaceWeights,
     mut visit: impl FnMut(usize, usize, usize),
 ) {
     let [nx, ny, _] = grid.faces(axis).n;
@@ -373,7 +373,7 @@ fn open_faces(
         let (lo, hi) = if axis == 0 { (1, n[0]) } else { (0, nx) };
         for i in lo..hi {
             let f = f0 + i;
-            if w[f] > 0.0 {
+            if weights.open(axis, f) {
                 let c = c0 + i;
                 visit(f, c - below, c);
             }
@@ -390,14 +390,14 @@ fn cell_face(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> usize {
 }
 
 /// Whether cell `c` has a face of positive weight (a liquid cell is an unknown when it has).
-pub fn has_open_face(grid: &Grid, weights: &[Vec<f64>; 3], c: usize) -> bool {
+pub fn has_open_face(grid: &Grid, weights: &FaceWeights, c: usize) -> bool {
     has_open_face_at(grid, weights, grid.cells().ijk(c))
 }
 
 /// [`has_open_face`] of the cell at `ijk`.
 #[inline]
-fn has_open_face_at(grid: &Grid, weights: &[Vec<f64>; 3], ijk: [usize; 3]) -> bool {
-    (0..3).any(|a| (0..2).any(|s| weights[a][cell_face(grid, a, ijk, s)] > 0.0))
+fn has_open_face_at(grid: &Grid, weights: &FaceWeights, ijk: [usize; 3]) -> bool {
+    (0..3).any(|a| (0..2).any(|s| weights.open(a, cell_face(grid, a, ijk, s))))
 }
 
 /// The neighbouring cell of cell `c` (at `ijk`) across its −side or +side face of axis
@@ -406,13 +406,13 @@ fn has_open_face_at(grid: &Grid, weights: &[Vec<f64>; 3], ijk: [usize; 3]) -> bo
 #[inline]
 fn open_neighbour(
     grid: &Grid,
-    weights: &[Vec<f64>; 3],
+    weights: &FaceWeights,
     c: usize,
     ijk: [usize; 3],
     axis: usize,
     side: usize,
 ) -> Option<(usize, f64)> {
-    let w = weights[axis][cell_face(grid, axis, ijk, side)];
+    let w = weights.weight(axis, cell_face(grid, axis, ijk, side));
     if w <= 0.0 {
         return None;
     }
@@ -422,12 +422,7 @@ fn open_neighbour(
 impl PressureSystem {
     /// Classifies cells and builds the stencil from the liquid signed distance `phi` (cell
     /// centres) and the face fluid weights.
-    pub fn build(
-        grid: &Grid,
-        phi: &[f64],
-        weights: &[Vec<f64>; 3],
-        params: PressureParams,
-    ) -> Self {
+    pub fn build(grid: &Grid, phi: &[f64], weights: &FaceWeights, params: PressureParams) -> Self {
         PressureSystem::build_in(SystemMemory::default(), grid, phi, weights, params)
     }
 
@@ -437,7 +432,7 @@ impl PressureSystem {
         memory: SystemMemory,
         grid: &Grid,
         phi: &[f64],
-        weights: &[Vec<f64>; 3],
+        weights: &FaceWeights,
         params: PressureParams,
     ) -> Self {
         let SystemMemory { mut cell_of_row, mut row_of_cell, mut stencil, faces, multigrid } =
@@ -548,7 +543,7 @@ impl PressureSystem {
     /// that do is held by the air; a group of rows closed on every side by faces of zero
     /// weight makes A singular, and only a right-hand side that sums to zero over it can be
     /// solved for.
-    pub fn rows_reaching_air(&self, weights: &[Vec<f64>; 3]) -> Vec<bool> {
+    pub fn rows_reaching_air(&self, weights: &FaceWeights) -> Vec<bool> {
         let (grid, cells) = (&self.grid, self.grid.cells());
         let mut reached: Vec<bool> = self
             .cell_of_row
@@ -597,13 +592,12 @@ impl PressureSystem {
     fn projected_faces(
         &self,
         axis: usize,
-        weights: &[Vec<f64>; 3],
+        weights: &FaceWeights,
         phi: &[f64],
         out: &mut Vec<ProjectedFace>,
     ) {
         let lat = self.grid.faces(axis);
         let nz = lat.n[2];
-        let w = &weights[axis];
         let rows = &self.row_of_cell;
         // A face has a gradient when a cell on either side is an unknown: counted without
         // computing it.
@@ -611,7 +605,7 @@ impl PressureSystem {
             .into_par_iter()
             .map(|k| {
                 let mut count = 0;
-                open_faces(&self.grid, axis, k, w, |_, m, pl| {
+                open_faces(&self.grid, axis, k, weights, |_, m, pl| {
                     count += usize::from(rows[m] != NONE || rows[pl] != NONE);
                 });
                 count
@@ -628,7 +622,7 @@ impl PressureSystem {
         }
         slabs.into_par_iter().enumerate().for_each(|(k, part)| {
             let mut next = part.iter_mut();
-            open_faces(&self.grid, axis, k, w, |f, m, pl| {
+            open_faces(&self.grid, axis, k, weights, |f, m, pl| {
                 if let Some(gradient) = self.gradient_between(m, pl, phi) {
                     *next.next().expect("counted") = ProjectedFace { face: f as u32, gradient };
                 }
@@ -656,7 +650,7 @@ impl PressureSystem {
     }
 
     /// Volume flux out of each liquid cell through its fluid faces, `Σ_f σ_if·dx²·w_f·u_f`.
-    pub fn fluid_flux(&self, u: &Mac, weights: &[Vec<f64>; 3]) -> Vec<f64> {
+    pub fn fluid_flux(&self, u: &Mac, weights: &FaceWeights) -> Vec<f64> {
         let grid = &self.grid;
         let area = grid.dx * grid.dx;
         let cells = grid.cells();
@@ -668,7 +662,7 @@ impl PressureSystem {
                 for a in 0..3 {
                     let lo = cell_face(grid, a, ijk, 0);
                     let hi = cell_face(grid, a, ijk, 1);
-                    f += weights[a][hi] * u.c[a][hi] - weights[a][lo] * u.c[a][lo];
+                    f += weights.weight(a, hi) * u.c[a][hi] - weights.weight(a, lo) * u.c[a][lo];
                 }
                 f * area
             })
@@ -678,7 +672,7 @@ impl PressureSystem {
     /// Right-hand side `(1/ρ) Gᵀ M_F u − Jᵀ V`: minus the volume flux out of each cell,
     /// through its fluid faces and pushed by each body's velocity `V = [v; ω]` (one per
     /// entry of `bodies`).
-    pub fn rhs(&self, u: &Mac, weights: &[Vec<f64>; 3], body_velocity: &[[f64; 6]]) -> Vec<f64> {
+    pub fn rhs(&self, u: &Mac, weights: &FaceWeights, body_velocity: &[[f64; 6]]) -> Vec<f64> {
         assert_eq!(body_velocity.len(), self.bodies.len());
         let mut b = self.fluid_flux(u, weights);
         b.iter_mut().for_each(|x| *x = -*x);
@@ -783,10 +777,10 @@ impl PressureSystem {
         &self,
         axis: usize,
         f: usize,
-        weights: &[Vec<f64>; 3],
+        weights: &FaceWeights,
         phi: &[f64],
     ) -> Option<FaceGradient> {
-        if weights[axis][f] <= 0.0 {
+        if weights.closed(axis, f) {
             return None;
         }
         let grid = &self.grid;
@@ -821,7 +815,7 @@ impl PressureSystem {
         &self,
         axis: usize,
         f: usize,
-        weights: &[Vec<f64>; 3],
+        weights: &FaceWeights,
         phi: &[f64],
         s: &[f64],
         p: &[f64],
@@ -843,7 +837,7 @@ impl PressureSystem {
     pub fn phi_adjoint(
         &self,
         phi: &[f64],
-        weights: &[Vec<f64>; 3],
+        weights: &FaceWeights,
         s: &[f64],
         p: &[f64],
         ubar: &Mac,
@@ -871,7 +865,7 @@ impl PressureSystem {
                 }
                 let theta2 = raw * raw;
                 // u_f = û_f − k·sign·p_l/θ.
-                let theta_bar = s[r] * scale * weights[a][pf.face as usize] * p[r] / theta2
+                let theta_bar = s[r] * scale * weights.weight(a, pf.face as usize) * p[r] / theta2
                     + ubar.c[a][pf.face as usize] * sign * k * p[r] / theta2;
                 let den = (pl_ - pa) * (pl_ - pa);
                 out[l] += theta_bar * (-pa) / den;
@@ -907,14 +901,14 @@ impl PressureSystem {
     /// Subtracts from `adj` the transpose of [`PressureSystem::fluid_flux`] applied to a row
     /// adjoint `s` (zero in air and solid): the face adjoint `dx²·w_f·(s_m − s_p)` on each
     /// projected face, for the system's face weights `weights`.
-    pub fn subtract_fluid_flux_adjoint(&self, s: &[f64], weights: &[Vec<f64>; 3], adj: &mut Mac) {
+    pub fn subtract_fluid_flux_adjoint(&self, s: &[f64], weights: &FaceWeights, adj: &mut Mac) {
         let area = self.grid.dx * self.grid.dx;
         let sv = |r: u32| if r != NONE { s[r as usize] } else { 0.0 };
         for a in 0..3 {
             let face = |pf: &ProjectedFace| pf.face as usize;
             for_each_keyed_mut(&mut adj.c[a], &self.faces[a], face, |_, pf, x| {
                 let g = &pf.gradient;
-                *x -= area * weights[a][pf.face as usize] * (sv(g.rm) - sv(g.rp));
+                *x -= area * weights.weight(a, pf.face as usize) * (sv(g.rm) - sv(g.rp));
             });
         }
     }
@@ -961,7 +955,7 @@ impl PressureSystem {
         &self,
         adj_u: &Mac,
         adj_v: &[[f64; 6]],
-        weights: &[Vec<f64>; 3],
+        weights: &FaceWeights,
         how: &LinearSolve,
     ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
         let (s, stats) = self.adjoint_solve(adj_u, adj_v, how);
@@ -992,11 +986,11 @@ pub struct PoseAdjointInputs<'a> {
     /// The step's system (its `bodies` the coupled bodies' terms).
     pub sys: &'a PressureSystem,
     /// The combined fluid weights.
-    pub weights: &'a [Vec<f64>; 3],
+    pub weights: &'a FaceWeights,
     /// φ_L (extended into the solids).
     pub phi: &'a [f64],
     /// The static solids' weights.
-    pub static_weights: &'a StaticWeights,
+    pub static_weights: &'a FaceWeights,
     /// The fluid velocity before the projection.
     pub u_hat: &'a Mac,
     /// The step's pressure.
@@ -1044,7 +1038,7 @@ pub fn projection_pose_adjoint(
             let (m, pl) = grid.face_cells(axis, ijk);
             // Fluid weight: w = clamp(w_static − β): its derivative is −δβ inside the clamp.
             let raw = g.static_weights.weight(axis, f) - beta.v;
-            if raw > 0.0 && raw < 1.0 && g.weights[axis][f] > 0.0 {
+            if raw > 0.0 && raw < 1.0 && g.weights.weight(axis, f) > 0.0 {
                 let uh = g.u_hat.c[axis][f];
                 let flux = area * uh * (row_val(m, g.s) - row_val(pl, g.s));
                 let stencil = sys.weight_adjoint(axis, f, g.weights, g.phi, g.s, g.p);
@@ -1122,7 +1116,7 @@ mod tests {
         system_with_inputs().0
     }
 
-    fn system_with_inputs() -> (PressureSystem, Vec<f64>, [Vec<f64>; 3]) {
+    fn system_with_inputs() -> (PressureSystem, Vec<f64>, FaceWeights) {
         let grid = Grid { n: [5, 6, 4], dx: 0.1 };
         let cells = grid.cells();
         let mut phi = vec![0.0; cells.len()];
@@ -1141,6 +1135,7 @@ mod tests {
             w
         });
         weights[0][grid.faces(0).index(2, 1, 1)] = 0.3;
+        let weights = FaceWeights::new(&weights);
         let sys = PressureSystem::build(
             &grid,
             &phi,
@@ -1178,7 +1173,7 @@ mod tests {
         let (sys, phi, weights) = system_with_inputs();
         let grid = Grid { n: [9, 7, 8], dx: 0.1 };
         let other_phi = vec![-1.0; grid.num_cells()];
-        let other_w = [0, 1, 2].map(|a| vec![0.5; grid.faces(a).len()]);
+        let other_w = FaceWeights::new(&[0, 1, 2].map(|a| vec![0.5; grid.faces(a).len()]));
         let other = PressureSystem::build(&grid, &other_phi, &other_w, sys.params);
         let how = LinearSolve {
             tolerance: 1e-10,

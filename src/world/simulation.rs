@@ -34,7 +34,7 @@ use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::fractions;
 use crate::geometry::grid::{on_pool, Grid, Mac};
 use crate::geometry::shape::Solid;
-use crate::geometry::weights::StaticWeights;
+use crate::geometry::weights::FaceWeights;
 use crate::math::par::MIN_LEN;
 use crate::math::{v3, Vec3};
 use crate::stages::band::{self, Band, BandChange};
@@ -353,7 +353,7 @@ impl SimulationBuilder {
             phi: vec![0.0; grid.num_cells()],
             statics: Arc::new(StaticGeometry {
                 node_sdf,
-                weights: StaticWeights::new(&weights),
+                weights: FaceWeights::new(&weights),
                 centre_in_solid,
             }),
             radius,

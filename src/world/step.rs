@@ -8,7 +8,7 @@
 use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::{self, BodyFaces, NodeSdf};
 use crate::geometry::grid::{Grid, Mac};
-use crate::geometry::weights::StaticWeights;
+use crate::geometry::weights::FaceWeights;
 use crate::math::par::{for_each_keyed_mut, sum_by};
 use crate::stages::advect::{advect_into, needed_faces, FaceMask};
 use crate::stages::forces::add_gravity;
@@ -25,7 +25,7 @@ pub struct StaticGeometry {
     /// Signed distance of the obstacles at grid nodes.
     pub node_sdf: NodeSdf,
     /// Fluid weight of every face (0 on walls), in a byte a face.
-    pub weights: StaticWeights,
+    pub weights: FaceWeights,
     /// Cells whose centre lies inside an obstacle.
     pub centre_in_solid: Vec<bool>,
 }
@@ -34,7 +34,7 @@ pub struct StaticGeometry {
 #[derive(Clone, Debug)]
 pub struct Geometry {
     /// Fluid weight of every face: static weight minus the bodies' fractions, in [0, 1].
-    pub weights: [Vec<f64>; 3],
+    pub weights: FaceWeights,
     /// Cells whose centre is inside a static solid or a body.
     pub centre_in_solid: Vec<bool>,
     /// Faces covered by each body.
@@ -72,21 +72,17 @@ impl Geometry {
             Some(Geometry { mut weights, mut centre_in_solid, .. })
                 if centre_in_solid.len() == statics.centre_in_solid.len() =>
             {
-                statics.weights.write_into(&mut weights);
+                weights.copy_from(&statics.weights);
                 centre_in_solid.copy_from_slice(&statics.centre_in_solid);
                 (weights, centre_in_solid)
             }
-            _ => (statics.weights.to_dense(), statics.centre_in_solid.clone()),
+            _ => (statics.weights.clone(), statics.centre_in_solid.clone()),
         };
         let cells = grid.cells();
         for (b, faces) in bodies.iter().zip(&faces) {
-            for a in 0..3 {
-                for &(f, beta) in &faces.faces[a] {
-                    // β is already snapped to 0 or 1 where it is within round-off of
-                    // them, so w + β = 1 holds exactly on every face a body alone covers.
-                    weights[a][f] = (weights[a][f] - beta).clamp(0.0, 1.0);
-                }
-            }
+            // β is already snapped to 0 or 1 where it is within round-off of them, so
+            // w + β = 1 holds exactly on every face a body alone covers.
+            weights.subtract(&faces.faces);
             let (lo, hi) = b.bounds();
             let lo = lo.to_array().map(|x| ((x / grid.dx).floor().max(0.0)) as usize);
             let hi = hi.to_array();
@@ -387,12 +383,12 @@ pub struct StepReport {
 
 /// ½ Σ ρ·w_f·dx³·u_f² over the faces the projection updated. Sequential on purpose: the
 /// sum is cheap and its order fixed.
-pub fn kinetic_energy(u: &Mac, sys: &PressureSystem, weights: &[Vec<f64>; 3], rho: f64) -> f64 {
+pub fn kinetic_energy(u: &Mac, sys: &PressureSystem, weights: &FaceWeights, rho: f64) -> f64 {
     let e: f64 = (0..3)
         .map(|a| {
             sum_by(&sys.faces[a], |pf| {
                 let uf = u.c[a][pf.face as usize];
-                weights[a][pf.face as usize] * uf * uf
+                weights.weight(a, pf.face as usize) * uf * uf
             })
         })
         .sum();
