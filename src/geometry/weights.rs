@@ -11,7 +11,8 @@
 use crate::math::par::MIN_LEN;
 use rayon::prelude::*;
 
-/// What a face's byte says.
+/// What a face's byte says. A closed or open face's byte is its weight (0 or 1), which
+/// [`Axis::weight`] reads as it is.
 const CLOSED: u8 = 0;
 const OPEN: u8 = 1;
 const CUT: u8 = 2;
@@ -73,6 +74,7 @@ impl Axis {
     /// The weight of a face listed as cut: its entry is its block's rank plus the cut faces
     /// before it in the block (a count of at most 63 bytes, not a search of the list). Out of
     /// line, so that the bytes' test inlines into the stages' loops.
+    #[cold]
     #[inline(never)]
     fn cut_weight(&self, f: usize) -> f64 {
         let b = f / BLOCK;
@@ -84,10 +86,10 @@ impl Axis {
 
     #[inline(always)]
     fn weight(&self, f: usize) -> f64 {
+        // The closed and open bytes are their weights' values: one test, not a match.
         match self.kind[f] {
-            CLOSED => 0.0,
-            OPEN => 1.0,
-            _ => self.cut_weight(f),
+            CUT => self.cut_weight(f),
+            k => f64::from(k),
         }
     }
 
@@ -126,6 +128,45 @@ impl Axis {
     }
 }
 
+/// The weights of one axis's faces, borrowed from a [`FaceWeights`].
+#[derive(Clone, Copy, Debug)]
+pub struct AxisWeights<'a> {
+    kind: &'a [u8],
+    axis: &'a Axis,
+}
+
+impl AxisWeights<'_> {
+    /// The weight of face `f`.
+    #[inline(always)]
+    pub fn weight(&self, f: usize) -> f64 {
+        // The closed and open bytes are their weights' values: one test, not a match.
+        match self.kind[f] {
+            CUT => self.axis.cut_weight(f),
+            k => f64::from(k),
+        }
+    }
+
+    /// Whether face `f` is open (weight > 0).
+    #[inline(always)]
+    pub fn open(&self, f: usize) -> bool {
+        match self.kind[f] {
+            OPEN => true,
+            CLOSED => false,
+            _ => self.axis.cut_weight(f) > 0.0,
+        }
+    }
+
+    /// Whether face `f` is closed (weight ≤ 0).
+    #[inline(always)]
+    pub fn closed(&self, f: usize) -> bool {
+        match self.kind[f] {
+            CLOSED => true,
+            OPEN => false,
+            _ => self.axis.cut_weight(f) <= 0.0,
+        }
+    }
+}
+
 /// Face weights in a byte a face but on the cut faces (see the module doc).
 #[derive(Clone, Debug, PartialEq)]
 pub struct FaceWeights {
@@ -138,32 +179,53 @@ impl FaceWeights {
         FaceWeights { axes: [0, 1, 2].map(|a| Axis::new(&dense[a])) }
     }
 
+    /// The weights of the faces normal to `axis`: what a loop over one axis's faces reads
+    /// (its bytes found once, not once a face).
+    #[inline(always)]
+    pub fn axis(&self, axis: usize) -> AxisWeights<'_> {
+        let ax = &self.axes[axis];
+        AxisWeights { kind: &ax.kind, axis: ax }
+    }
+
+    /// [`FaceWeights::axis`] of the three axes.
+    #[inline(always)]
+    pub fn axes(&self) -> [AxisWeights<'_>; 3] {
+        [self.axis(0), self.axis(1), self.axis(2)]
+    }
+
     /// The weight of face `f` normal to `axis`.
     #[inline(always)]
     pub fn weight(&self, axis: usize, f: usize) -> f64 {
-        self.axes[axis].weight(f)
+        self.axis(axis).weight(f)
     }
 
     /// Whether face `f` normal to `axis` is open (weight > 0).
     #[inline(always)]
     pub fn open(&self, axis: usize, f: usize) -> bool {
-        let ax = &self.axes[axis];
-        match ax.kind[f] {
-            CLOSED => false,
-            OPEN => true,
-            _ => ax.cut_weight(f) > 0.0,
-        }
+        self.axis(axis).open(f)
     }
 
     /// Whether face `f` normal to `axis` is closed (weight ≤ 0): what the velocity correction
     /// zeroes and its transpose lets nothing through.
     #[inline(always)]
     pub fn closed(&self, axis: usize, f: usize) -> bool {
+        self.axis(axis).closed(f)
+    }
+
+    /// Sets `field` (a value per face normal to `axis`) to zero on every closed face: a
+    /// pass over the bytes that needs no branch a face, then the cut faces of weight ≤ 0.
+    pub fn zero_closed(&self, axis: usize, field: &mut [f64]) {
         let ax = &self.axes[axis];
-        match ax.kind[f] {
-            CLOSED => true,
-            OPEN => false,
-            _ => ax.cut_weight(f) <= 0.0,
+        assert_eq!(field.len(), ax.kind.len(), "a value per face");
+        field.par_chunks_mut(MIN_LEN).zip(ax.kind.par_chunks(MIN_LEN)).for_each(|(x, k)| {
+            for (x, &k) in x.iter_mut().zip(k) {
+                *x = if k == CLOSED { 0.0 } else { *x };
+            }
+        });
+        for &(f, w) in &ax.cut {
+            if w <= 0.0 {
+                field[f as usize] = 0.0;
+            }
         }
     }
 
@@ -241,6 +303,13 @@ mod tests {
                 assert_eq!(s.weight(a, f).to_bits(), w.to_bits(), "axis {a} face {f}");
                 assert_eq!(s.closed(a, f), w <= 0.0, "axis {a} face {f}");
                 assert_eq!(s.open(a, f), w > 0.0, "axis {a} face {f}");
+            }
+        }
+        for a in 0..3 {
+            let mut field = vec![1.5; dense[a].len()];
+            s.zero_closed(a, &mut field);
+            for (f, &w) in dense[a].iter().enumerate() {
+                assert_eq!(field[f] == 0.0, w <= 0.0, "axis {a} face {f} zeroed where closed");
             }
         }
         let back = s.to_dense();

@@ -157,17 +157,8 @@ pub fn correct_velocity(
 ) {
     for a in 0..3 {
         extrapolate(&mut u.c[a], &mut valid[a], &grid.faces(a), layers);
-        zero_closed(&mut u.c[a], weights, a);
+        weights.zero_closed(a, &mut u.c[a]);
     }
-}
-
-/// Zeroes the values of the faces normal to `axis` that `weights` closes.
-fn zero_closed(field: &mut [f64], weights: &FaceWeights, axis: usize) {
-    field.par_iter_mut().enumerate().with_min_len(MIN_LEN).for_each(|(f, x)| {
-        if weights.closed(axis, f) {
-            *x = 0.0;
-        }
-    });
 }
 
 /// Transpose of [`extrapolate`] for the projection's mask `valid0`: takes the adjoint of
@@ -216,7 +207,7 @@ pub fn correct_velocity_adjoint(
     layers: usize,
 ) {
     for a in 0..3 {
-        zero_closed(&mut adj.c[a], weights, a);
+        weights.zero_closed(a, &mut adj.c[a]);
         extrapolate_adjoint(&mut adj.c[a], &valid0[a], &grid.faces(a), layers);
     }
 }

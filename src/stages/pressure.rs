@@ -15,7 +15,7 @@
 //! matrix-free from a stored 7-point stencil; rigid bodies add a rank-6 term per body.
 
 use crate::geometry::grid::{Grid, Mac, NONE};
-use crate::geometry::weights::FaceWeights;
+use crate::geometry::weights::{AxisWeights, FaceWeights};
 use crate::math::buffer::{clear_for, refill};
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use crate::math::Vec3;
@@ -360,6 +360,7 @@ fn open_faces(
 ) {
     let [nx, ny, _] = grid.faces(axis).n;
     let n = grid.n;
+    let w = weights.axis(axis);
     // The cell on the − side of a face is this far below the one on its + side.
     let below = [1, n[0], n[0] * n[1]][axis];
     if axis == 2 && (k == 0 || k == n[2]) {
@@ -373,7 +374,7 @@ fn open_faces(
         let (lo, hi) = if axis == 0 { (1, n[0]) } else { (0, nx) };
         for i in lo..hi {
             let f = f0 + i;
-            if weights.open(axis, f) {
+            if w.open(f) {
                 let c = c0 + i;
                 visit(f, c - below, c);
             }
@@ -391,13 +392,13 @@ fn cell_face(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> usize {
 
 /// Whether cell `c` has a face of positive weight (a liquid cell is an unknown when it has).
 pub fn has_open_face(grid: &Grid, weights: &FaceWeights, c: usize) -> bool {
-    has_open_face_at(grid, weights, grid.cells().ijk(c))
+    has_open_face_at(grid, &weights.axes(), grid.cells().ijk(c))
 }
 
-/// [`has_open_face`] of the cell at `ijk`.
+/// [`has_open_face`] of the cell at `ijk`, with each axis's weights.
 #[inline]
-fn has_open_face_at(grid: &Grid, weights: &FaceWeights, ijk: [usize; 3]) -> bool {
-    (0..3).any(|a| (0..2).any(|s| weights.open(a, cell_face(grid, a, ijk, s))))
+fn has_open_face_at(grid: &Grid, w: &[AxisWeights<'_>; 3], ijk: [usize; 3]) -> bool {
+    (0..3).any(|a| (0..2).any(|s| w[a].open(cell_face(grid, a, ijk, s))))
 }
 
 /// The neighbouring cell of cell `c` (at `ijk`) across its −side or +side face of axis
@@ -406,13 +407,13 @@ fn has_open_face_at(grid: &Grid, weights: &FaceWeights, ijk: [usize; 3]) -> bool
 #[inline]
 fn open_neighbour(
     grid: &Grid,
-    weights: &FaceWeights,
+    weights: &[AxisWeights<'_>; 3],
     c: usize,
     ijk: [usize; 3],
     axis: usize,
     side: usize,
 ) -> Option<(usize, f64)> {
-    let w = weights.weight(axis, cell_face(grid, axis, ijk, side));
+    let w = weights[axis].weight(cell_face(grid, axis, ijk, side));
     if w <= 0.0 {
         return None;
     }
@@ -438,6 +439,7 @@ impl PressureSystem {
         let SystemMemory { mut cell_of_row, mut row_of_cell, mut stencil, faces, multigrid } =
             memory;
         let cells = grid.cells();
+        let axes = weights.axes();
         // The unknowns: liquid cells with an open face, marked, counted, then numbered. A
         // z-slab a task, walked by (i, j): a cell's (i, j, k) from its flat index is two
         // integer divisions, which were a third of this loop's time.
@@ -452,7 +454,7 @@ impl PressureSystem {
                 for j in 0..grid.n[1] {
                     let first = grid.n[0] * j;
                     for i in 0..grid.n[0] {
-                        if phi[first + i] < 0.0 && has_open_face_at(grid, weights, [i, j, k]) {
+                        if phi[first + i] < 0.0 && has_open_face_at(grid, &axes, [i, j, k]) {
                             rows[first + i] = 0;
                             open += 1;
                         }
@@ -494,7 +496,7 @@ impl PressureSystem {
                 let mut air = false;
                 for a in 0..3 {
                     for side in 0..2 {
-                        let Some((n, w)) = open_neighbour(grid, weights, c, ijk, a, side) else {
+                        let Some((n, w)) = open_neighbour(grid, &axes, c, ijk, a, side) else {
                             continue;
                         };
                         let rn = row_of_cell[n];
@@ -545,6 +547,7 @@ impl PressureSystem {
     /// solved for.
     pub fn rows_reaching_air(&self, weights: &FaceWeights) -> Vec<bool> {
         let (grid, cells) = (&self.grid, self.grid.cells());
+        let axes = weights.axes();
         let mut reached: Vec<bool> = self
             .cell_of_row
             .par_iter()
@@ -554,7 +557,7 @@ impl PressureSystem {
                 let ijk = cells.ijk(c);
                 (0..3).any(|a| {
                     (0..2).any(|s| {
-                        open_neighbour(grid, weights, c, ijk, a, s)
+                        open_neighbour(grid, &axes, c, ijk, a, s)
                             .is_some_and(|(n, _)| self.row_of_cell[n] == NONE)
                     })
                 })
@@ -654,6 +657,7 @@ impl PressureSystem {
         let grid = &self.grid;
         let area = grid.dx * grid.dx;
         let cells = grid.cells();
+        let w = weights.axes();
         self.cell_of_row
             .par_iter()
             .map(|&c| {
@@ -662,7 +666,7 @@ impl PressureSystem {
                 for a in 0..3 {
                     let lo = cell_face(grid, a, ijk, 0);
                     let hi = cell_face(grid, a, ijk, 1);
-                    f += weights.weight(a, hi) * u.c[a][hi] - weights.weight(a, lo) * u.c[a][lo];
+                    f += w[a].weight(hi) * u.c[a][hi] - w[a].weight(lo) * u.c[a][lo];
                 }
                 f * area
             })
@@ -906,9 +910,10 @@ impl PressureSystem {
         let sv = |r: u32| if r != NONE { s[r as usize] } else { 0.0 };
         for a in 0..3 {
             let face = |pf: &ProjectedFace| pf.face as usize;
+            let w = weights.axis(a);
             for_each_keyed_mut(&mut adj.c[a], &self.faces[a], face, |_, pf, x| {
                 let g = &pf.gradient;
-                *x -= area * weights.weight(a, pf.face as usize) * (sv(g.rm) - sv(g.rp));
+                *x -= area * w.weight(pf.face as usize) * (sv(g.rm) - sv(g.rp));
             });
         }
     }

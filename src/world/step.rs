@@ -386,9 +386,10 @@ pub struct StepReport {
 pub fn kinetic_energy(u: &Mac, sys: &PressureSystem, weights: &FaceWeights, rho: f64) -> f64 {
     let e: f64 = (0..3)
         .map(|a| {
+            let w = weights.axis(a);
             sum_by(&sys.faces[a], |pf| {
                 let uf = u.c[a][pf.face as usize];
-                weights.weight(a, pf.face as usize) * uf * uf
+                w.weight(pf.face as usize) * uf * uf
             })
         })
         .sum();
