@@ -770,6 +770,26 @@ mod tests {
         }
     }
 
+    /// The memory check's particle count is at least what the built-in scenes seed (so its
+    /// bytes are not an underestimate), and not more than twice it: with a band, the count
+    /// is the band's, not the liquid's (`large_tank` seeds 0.63 M particles; its liquid
+    /// holds 3.7 M).
+    #[test]
+    fn memory_estimate_counts_the_particles_seeded() {
+        for name in ["large_tank", "dam_break", "block_drop", "floating_box"] {
+            let scene = Scene::builtin(name).unwrap();
+            let builder = scene.builder().unwrap();
+            let grid = builder.check().unwrap();
+            let (bytes, particles) = builder.memory_estimate(&grid);
+            let seeded = scene.build().unwrap().particles.len() as f64;
+            assert!(
+                particles >= seeded && particles <= 2.0 * seeded,
+                "{name}: {particles} particles estimated, {seeded} seeded"
+            );
+            assert!(bytes >= 250.0 * grid.num_cells() as f64 + 56.0 * seeded, "{name}");
+        }
+    }
+
     #[test]
     fn locate_finds_keys_in_tables() {
         let src = "name = \"x\"\n[domain]\nsize = [1, 1, 1]\ndx = 0.1\n[[liquid]]\na = 1\n[[liquid]]\nb = 2\n";
