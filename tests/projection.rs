@@ -74,3 +74,72 @@ fn projection_leaves_divergence_at_solver_tolerance() {
     assert!(max_div <= bound, "max divergence {max_div:e} 1/s above {bound:e}");
     assert!(max_div < 1e-7 * before, "divergence fell only from {before:e} to {max_div:e}");
 }
+
+/// A step's face weights, built into the memory of the last step's (a `FaceWeights` a byte a
+/// face, the static solids' copied in and each body's fractions subtracted), are the dense
+/// `clamp(w_static − β, 0, 1)` face by face, to the bit, step after step: with two obstacles
+/// that cut faces (a ball and a tilted box) and two bodies, a ball a fifth of a cell above
+/// the obstacle ball, so that some faces are cut by both.
+#[test]
+fn a_steps_weights_are_the_dense_weights() {
+    let text = r#"
+name = "weights"
+[domain]
+size = [1.6, 0.8, 0.8]
+dx = 0.05
+[time]
+dt = 0.01
+steps = 4
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = { kind = "box", min = [0.0, 0.0, 0.0], max = [1.6, 0.45, 0.8] }
+[[obstacle]]
+shape = { kind = "ball", radius = 0.13 }
+position = [1.2, 0.1, 0.4]
+[[obstacle]]
+shape = { kind = "cuboid", half_extents = [0.06, 0.2, 0.15] }
+position = [0.6, 0.2, 0.41]
+axis_angle = { axis = [0.2, 1.0, 0.3], degrees = 27.0 }
+[[body]]
+name = "ball"
+shape = { kind = "ball", radius = 0.11 }
+density = 600.0
+position = [1.2, 0.35, 0.4]
+[[body]]
+name = "block"
+shape = { kind = "cuboid", half_extents = [0.08, 0.05, 0.1] }
+density = 500.0
+position = [0.79, 0.43, 0.4]
+axis_angle = { axis = [1.0, 0.3, 0.0], degrees = 12.0 }
+"#;
+    let mut sim =
+        diffluid::Scene::from_toml(text, "weights").expect("scene").build().expect("build");
+    let grid = *sim.grid();
+    let statics = sim.statics().weights.to_dense();
+    let cut = |w: &[Vec<f64>; 3]| w.iter().flatten().filter(|w| **w > 0.0 && **w < 1.0).count();
+    assert!(cut(&statics) > 100, "the obstacles cut faces ({})", cut(&statics));
+    for step in 0..4 {
+        let geometry = sim.geometry();
+        let mut dense = statics.clone();
+        let mut shared = 0;
+        for body in sim.bodies() {
+            for (a, list) in body.face_fractions(&grid).faces.iter().enumerate() {
+                for &(f, beta) in list {
+                    shared += usize::from(beta > 0.0 && statics[a][f] > 0.0 && statics[a][f] < 1.0);
+                    dense[a][f] = (dense[a][f] - beta).clamp(0.0, 1.0);
+                }
+            }
+        }
+        assert!(shared > 0, "step {step}: faces that an obstacle and a body both cut");
+        assert!(cut(&dense) > cut(&statics), "step {step}: the bodies cut faces");
+        for (a, dense) in dense.iter().enumerate() {
+            for (f, w) in dense.iter().enumerate() {
+                let got = geometry.weights.weight(a, f);
+                assert_eq!(got.to_bits(), w.to_bits(), "step {step}, axis {a}, face {f}");
+            }
+        }
+        sim.step().expect("step");
+    }
+}
