@@ -24,7 +24,7 @@ use crate::error::{Error, Result};
 use crate::geometry::body::{
     carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, Motion, RigidBody,
 };
-use crate::geometry::grid::on_pool;
+use crate::geometry::grid::on_pool_spinning;
 use crate::geometry::grid::Mac;
 use crate::math::dual::Dual;
 use crate::math::so3;
@@ -196,7 +196,7 @@ pub fn backward_adjoint(
     options: &GradientOptions,
 ) -> Result<(AdjointState, AdjointSeconds)> {
     check_differentiable(initial, tape, options)?;
-    on_pool(|| {
+    on_pool_spinning(initial.spins(), || {
         let mut times = AdjointSeconds::default();
         let mut adj = final_adjoint;
         for (t, rec) in tape.steps.iter().enumerate().rev() {

@@ -32,7 +32,7 @@ use super::tape::{ParticleRecord, Replay, Solves, StepRecord, Tape};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::fractions;
-use crate::geometry::grid::{on_pool, Grid, Mac};
+use crate::geometry::grid::{on_pool_spinning, Grid, Mac};
 use crate::geometry::shape::Solid;
 use crate::geometry::weights::FaceWeights;
 use crate::math::par::MIN_LEN;
@@ -797,28 +797,36 @@ impl Simulation {
         while left > 1e-12 * frame_dt {
             let n = (left / self.stable_dt()).ceil().max(1.0);
             let h = left / n;
-            reports.push(on_pool(|| self.step_inner(h, None, Pressures::Solve))?);
+            reports.push(on_pool_spinning(self.spins(), || {
+                self.step_inner(h, None, Pressures::Solve)
+            })?);
             left -= h;
         }
         Ok(reports)
     }
 
+    /// Whether a step keeps the pool's other workers spinning (`solver.spin_workers`; by
+    /// default for grids of 64³ cells and more).
+    pub fn spins(&self) -> bool {
+        self.settings.solver.spin_workers.unwrap_or(self.grid.num_cells() >= 1 << 18)
+    }
+
     /// Advances one step of the fixed Δt.
     pub fn step(&mut self) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool(|| self.step_inner(dt, None, Pressures::Solve))
+        on_pool_spinning(self.spins(), || self.step_inner(dt, None, Pressures::Solve))
     }
 
     /// Advances one step and records on `tape` what the backward pass needs.
     pub fn step_taped(&mut self, tape: &mut Tape) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool(|| self.step_inner(dt, Some(tape), Pressures::Solve))
+        on_pool_spinning(self.spins(), || self.step_inner(dt, Some(tape), Pressures::Solve))
     }
 
     /// Advances one step and keeps its pressure solves in `solves` (see [`Solves`]).
     pub(crate) fn step_recording(&mut self, solves: &mut Solves) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool(|| self.step_inner(dt, None, Pressures::Record(solves)))
+        on_pool_spinning(self.spins(), || self.step_inner(dt, None, Pressures::Record(solves)))
     }
 
     /// [`Simulation::step_taped`] that takes its pressures from `replay` instead of solving:
@@ -827,7 +835,10 @@ impl Simulation {
     /// fastest speed, the liquid volume) is not computed.
     pub(crate) fn step_replayed(&mut self, tape: &mut Tape, replay: &mut Replay) -> Result<()> {
         let dt = self.settings.dt;
-        on_pool(|| self.step_inner(dt, Some(tape), Pressures::Replay(replay))).map(drop)
+        on_pool_spinning(self.spins(), || {
+            self.step_inner(dt, Some(tape), Pressures::Replay(replay))
+        })
+        .map(drop)
     }
 
     /// A copy to re-run steps from (a gradient's checkpoint snapshot): with the surface
