@@ -12,7 +12,7 @@ use crate::math::par::MIN_LEN;
 use rayon::prelude::*;
 
 /// What a face's byte says. A closed or open face's byte is its weight (0 or 1), which
-/// [`Axis::weight`] reads as it is.
+/// [`AxisWeights::weight`] reads as it is.
 const CLOSED: u8 = 0;
 const OPEN: u8 = 1;
 const CUT: u8 = 2;
@@ -84,27 +84,26 @@ impl Axis {
         w
     }
 
+    /// This axis's weights as the stages read them.
     #[inline(always)]
-    fn weight(&self, f: usize) -> f64 {
-        // The closed and open bytes are their weights' values: one test, not a match.
-        match self.kind[f] {
-            CUT => self.cut_weight(f),
-            k => f64::from(k),
-        }
+    fn view(&self) -> AxisWeights<'_> {
+        AxisWeights { kind: &self.kind, axis: self }
     }
 
     /// `w ← clamp(w − β, 0, 1)` on each face of `faces` (sorted by face, each once).
     fn subtract(&mut self, faces: &[(usize, f64)]) {
         debug_assert!(faces.windows(2).all(|p| p[0].0 < p[1].0), "faces sorted, each once");
         // Every new weight first: a weight is read through the bytes before it.
+        let view = self.view();
         let new: Vec<(u32, f64)> = faces
             .iter()
-            .map(|&(f, beta)| (f as u32, (self.weight(f) - beta).clamp(0.0, 1.0)))
+            .map(|&(f, beta)| (f as u32, (view.weight(f) - beta).clamp(0.0, 1.0)))
             .collect();
         let mut changed = Vec::new();
         for (f, w) in new {
-            self.kind[f as usize] = kind_of(w);
-            if kind_of(w) == CUT {
+            let kind = kind_of(w);
+            self.kind[f as usize] = kind;
+            if kind == CUT {
                 changed.push((f, w));
             }
         }
@@ -183,8 +182,7 @@ impl FaceWeights {
     /// (its bytes found once, not once a face).
     #[inline(always)]
     pub fn axis(&self, axis: usize) -> AxisWeights<'_> {
-        let ax = &self.axes[axis];
-        AxisWeights { kind: &ax.kind, axis: ax }
+        self.axes[axis].view()
     }
 
     /// [`FaceWeights::axis`] of the three axes.

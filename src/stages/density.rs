@@ -200,10 +200,10 @@ impl DensityProjection {
     /// The face weights the operator was built with (see [`DensityProjection::closed`]).
     ///
     /// # Panics
-    /// When the projection was closed at the deep cells and its closed weights were handed
-    /// back (a forward projection's, which no adjoint reads).
+    /// When the projection was closed at the deep cells and its closed weights were dropped
+    /// (a forward projection's, which no adjoint reads).
     pub fn weights<'w>(&'w self, g: &'w DensityInputs<'_>) -> &'w FaceWeights {
-        assert_eq!(self.closed.is_some(), self.deep_closed, "the closed weights were handed back");
+        assert_eq!(self.closed.is_some(), self.deep_closed, "the closed weights were dropped");
         self.closed.as_ref().unwrap_or(g.weights)
     }
 
@@ -644,7 +644,7 @@ mod tests {
         }
         let moved: usize = d.c.iter().map(|c| c.iter().filter(|&&x| x != 0.0).count()).sum();
         assert!(moved > 100, "the band's excess moved ({moved} faces)");
-        // A forward step's projection, its closed weights handed back, displaces the same.
+        // A forward step's projection, its closed weights dropped, displaces the same.
         let forward = proj.without_adjoint_inputs();
         assert!(forward.closed.is_none());
         assert_eq!(forward.displacement(&q, &inputs).d, d);
