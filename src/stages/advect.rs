@@ -88,27 +88,6 @@ pub fn face_velocity(u: &Mac, grid: &Grid, axis: usize, ijk: [usize; 3], f: usiz
     crate::math::v3(v)
 }
 
-/// Transpose of [`face_velocity`]: adds `Σ_b coef_b · ∂v_b/∂u` into `out`.
-#[inline(always)]
-fn face_velocity_adjoint(
-    out: &mut Scatter<'_>,
-    grid: &Grid,
-    axis: usize,
-    ijk: [usize; 3],
-    f: usize,
-    coef: Vec3,
-) {
-    out.add(axis, f, crate::math::comp(coef, axis));
-    for b in (0..3).filter(|&b| b != axis) {
-        let c = 0.25 * crate::math::comp(coef, b);
-        if c != 0.0 {
-            for q in cross_faces(grid, axis, ijk, b) {
-                out.add(b, q, c);
-            }
-        }
-    }
-}
-
 /// Advects `u` through itself for `dt`. With a mask, faces outside it are left at zero.
 pub fn advect(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>) -> Mac {
     let mut out = Mac::zeros(grid);
@@ -118,19 +97,32 @@ pub fn advect(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>) -> Mac {
 
 /// [`advect`] written over `out` (a field of the grid's size): every face is set.
 pub fn advect_into(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>, out: &mut Mac) {
-    for (axis, dst) in out.c.iter_mut().enumerate() {
-        let lat = grid.faces(axis);
-        let src = &u.c[axis];
-        let m = mask.map(|m| &m[axis]);
-        lat.fill_par(dst, |i, j, k| {
-            let f = lat.index(i, j, k);
-            if m.is_some_and(|m| !m[f]) {
-                return 0.0;
-            }
-            let xb = lat.position(i, j, k) - dt * face_velocity(u, grid, axis, [i, j, k], f);
-            lat.sample(src, xb)
-        });
-    }
+    let [x, y, z] = &mut out.c;
+    advect_axis::<0>(u, grid, dt, mask, x);
+    advect_axis::<1>(u, grid, dt, mask, y);
+    advect_axis::<2>(u, grid, dt, mask, z);
+}
+
+/// [`advect_into`]'s component `AXIS`, the axis a constant (each face's index arithmetic
+/// then folds: 13.5 → 11.5 ms a `large_tank` step).
+fn advect_axis<const AXIS: usize>(
+    u: &Mac,
+    grid: &Grid,
+    dt: f64,
+    mask: Option<&FaceMask>,
+    dst: &mut [f64],
+) {
+    let lat = grid.faces(AXIS);
+    let src = &u.c[AXIS];
+    let m = mask.map(|m| &m[AXIS]);
+    lat.fill_par(dst, |i, j, k| {
+        let f = lat.index(i, j, k);
+        if m.is_some_and(|m| !m[f]) {
+            return 0.0;
+        }
+        let xb = lat.position(i, j, k) - dt * face_velocity(u, grid, AXIS, [i, j, k], f);
+        lat.sample(src, xb)
+    });
 }
 
 #[cfg(test)]
@@ -227,21 +219,7 @@ pub fn advect_adjoint_into(
     // Slabs of each lattice along z (the z faces have one more).
     let slabs = [0, 1, 2].map(|a| grid.faces(a).n[2]);
     let blocks = slabs.iter().max().expect("three axes").div_ceil(block);
-    let face = |axis: usize, ijk: [usize; 3], g: usize, out: &mut Scatter<'_>| {
-        let lat = grid.faces(axis);
-        let a = adj.c[axis][g];
-        if a == 0.0 || mask.is_some_and(|m| !m[axis][g]) {
-            return;
-        }
-        let xb = lat.position(ijk[0], ijk[1], ijk[2]) - dt * face_velocity(u, grid, axis, ijk, g);
-        let sb = lat.stencil(xb);
-        let mut grad = Vec3::ZERO;
-        for c in 0..8 {
-            out.add(axis, sb.idx[c], a * sb.w[c]);
-            grad += sb.dw[c] * u.c[axis][sb.idx[c]];
-        }
-        face_velocity_adjoint(out, grid, axis, ijk, g, (-dt * a) * grad);
-    };
+    let walk = AdjointWalk { u, adj, grid, dt, mask };
     for parity in 0..2 {
         // Each block of this parity owns the slabs within `reach` of its own.
         let mut parts: Vec<(usize, Scatter<'_>)> = Vec::new();
@@ -268,21 +246,78 @@ pub fn advect_adjoint_into(
         // A block of a small grid is less work than waking a worker.
         let per = min_pieces(block * grid.faces(0).slab());
         parts.into_par_iter().with_min_len(per).for_each(|(j, mut sc)| {
-            for axis in 0..3 {
-                // Walked by (k, j, i), not by flat index: two integer divisions a face less.
-                let [n0, n1, _] = grid.faces(axis).n;
-                let z = (j * block).min(slabs[axis])..((j + 1) * block).min(slabs[axis]);
-                let mut g = z.start * n0 * n1;
-                for k in z {
-                    for row in 0..n1 {
-                        for i in 0..n0 {
-                            face(axis, [i, row, k], g, &mut sc);
-                            g += 1;
-                        }
-                    }
+            let z = |a: usize| (j * block).min(slabs[a])..((j + 1) * block).min(slabs[a]);
+            walk.slabs::<0>(z(0), &mut sc);
+            walk.slabs::<1>(z(1), &mut sc);
+            walk.slabs::<2>(z(2), &mut sc);
+        });
+    }
+}
+
+/// What the adjoint's faces read ([`advect_adjoint_into`]), walked an axis at a time with
+/// the axis a constant (each face's index arithmetic then folds).
+struct AdjointWalk<'a> {
+    u: &'a Mac,
+    adj: &'a Mac,
+    grid: &'a Grid,
+    dt: f64,
+    mask: Option<&'a FaceMask>,
+}
+
+impl AdjointWalk<'_> {
+    /// The faces of component `AXIS` in the z-slabs `z`, in face order (walked by (k, j, i),
+    /// not by flat index: two integer divisions a face less).
+    fn slabs<const AXIS: usize>(&self, z: std::ops::Range<usize>, out: &mut Scatter<'_>) {
+        let [n0, n1, _] = self.grid.faces(AXIS).n;
+        let mut g = z.start * n0 * n1;
+        for k in z {
+            for row in 0..n1 {
+                for i in 0..n0 {
+                    self.face::<AXIS>([i, row, k], g, out);
+                    g += 1;
                 }
             }
-        });
+        }
+    }
+
+    /// One face's transpose: its sample's weights and, through its backtrace, the
+    /// velocity it was traced with ([`face_velocity`]'s transpose, the four faces of each
+    /// other component found once for both).
+    #[inline(always)]
+    fn face<const AXIS: usize>(&self, ijk: [usize; 3], g: usize, out: &mut Scatter<'_>) {
+        let (u, grid, dt) = (self.u, self.grid, self.dt);
+        let lat = grid.faces(AXIS);
+        let a = self.adj.c[AXIS][g];
+        if a == 0.0 || self.mask.is_some_and(|m| !m[AXIS][g]) {
+            return;
+        }
+        // The four faces of each other component, read for the velocity and written by
+        // its transpose.
+        let mut q = [[0usize; 4]; 3];
+        let mut v = [0.0; 3];
+        v[AXIS] = u.c[AXIS][g];
+        for b in (0..3).filter(|&b| b != AXIS) {
+            q[b] = cross_faces(grid, AXIS, ijk, b);
+            let c = &u.c[b];
+            v[b] = 0.25 * ((c[q[b][0]] + c[q[b][1]]) + (c[q[b][2]] + c[q[b][3]]));
+        }
+        let xb = lat.position(ijk[0], ijk[1], ijk[2]) - dt * crate::math::v3(v);
+        let sb = lat.stencil(xb);
+        let mut grad = Vec3::ZERO;
+        for c in 0..8 {
+            out.add(AXIS, sb.idx[c], a * sb.w[c]);
+            grad += sb.dw[c] * u.c[AXIS][sb.idx[c]];
+        }
+        let coef = (-dt * a) * grad;
+        out.add(AXIS, g, crate::math::comp(coef, AXIS));
+        for b in (0..3).filter(|&b| b != AXIS) {
+            let c = 0.25 * crate::math::comp(coef, b);
+            if c != 0.0 {
+                for f in q[b] {
+                    out.add(b, f, c);
+                }
+            }
+        }
     }
 }
 
