@@ -64,11 +64,26 @@ impl Layers {
             .collect();
         let mut fronts = Vec::with_capacity(layers);
         for l in 0..layers {
-            let front = next_to(&level, lat, l as u8, |v| v == NEVER);
+            let front = next_to(&level, lat, |_, v| v == l as u8, |v| v == NEVER);
             for_each_keyed_mut(&mut level, &front, |&m| m, |_, _, x| *x = l as u8 + 1);
             fronts.push(front);
         }
         Layers { level, fronts }
+    }
+
+    /// Per layer l, the faces known before it next to a face it set, in increasing index
+    /// order: those of level l itself with a neighbour of level l + 1 (a face of level
+    /// v < l has none, as the fronts grow one face a layer: its neighbours of higher level
+    /// were set in layer v, and are of level v + 1), all layers found by one pass.
+    fn targets(&self, lat: &Lattice) -> Vec<Vec<usize>> {
+        let layers = self.fronts.len();
+        let all =
+            next_to(&self.level, lat, |own, v| v == own.wrapping_add(1), |v| (v as usize) < layers);
+        let mut out = vec![Vec::new(); layers];
+        for m in all {
+            out[self.level[m] as usize].push(m);
+        }
+        out
     }
 
     /// Valid before layer `l`.
@@ -78,13 +93,18 @@ impl Layers {
     }
 }
 
-/// The samples whose own level `own` accepts with a lattice neighbour at level `at`, in
-/// increasing index order.
-fn next_to(level: &[u8], lat: &Lattice, at: u8, own: impl Fn(u8) -> bool + Sync) -> Vec<usize> {
+/// The samples whose own level `own` accepts with a lattice neighbour whose level `nb`
+/// accepts (as `nb(own level, neighbour level)`), in increasing index order.
+fn next_to(
+    level: &[u8],
+    lat: &Lattice,
+    nb: impl Fn(u8, u8) -> bool + Sync,
+    own: impl Fn(u8) -> bool + Sync,
+) -> Vec<usize> {
     let [n0, n1, n2] = lat.n;
     let slab = lat.slab();
-    let mark = |hit: &mut [bool], src: &[u8]| {
-        hit.iter_mut().zip(src).for_each(|(h, &v)| *h |= v == at);
+    let mark = |hit: &mut [bool], mine: &[u8], src: &[u8]| {
+        hit.iter_mut().zip(mine).zip(src).for_each(|((h, &m), &v)| *h |= nb(m, v));
     };
     level
         .par_chunks(slab)
@@ -94,19 +114,19 @@ fn next_to(level: &[u8], lat: &Lattice, at: u8, own: impl Fn(u8) -> bool + Sync)
             for j in 0..n1 {
                 let (row, h) = (&lv[j * n0..][..n0], &mut hit[j * n0..][..n0]);
                 if n0 > 1 {
-                    mark(&mut h[1..], &row[..n0 - 1]);
-                    mark(&mut h[..n0 - 1], &row[1..]);
+                    mark(&mut h[1..], &row[1..], &row[..n0 - 1]);
+                    mark(&mut h[..n0 - 1], &row[..n0 - 1], &row[1..]);
                 }
             }
             if n1 > 1 {
-                mark(&mut hit[n0..], &lv[..slab - n0]);
-                mark(&mut hit[..slab - n0], &lv[n0..]);
+                mark(&mut hit[n0..], &lv[n0..], &lv[..slab - n0]);
+                mark(&mut hit[..slab - n0], &lv[..slab - n0], &lv[n0..]);
             }
             if k > 0 {
-                mark(&mut hit, &level[(k - 1) * slab..][..slab]);
+                mark(&mut hit, lv, &level[(k - 1) * slab..][..slab]);
             }
             if k + 1 < n2 {
-                mark(&mut hit, &level[(k + 1) * slab..][..slab]);
+                mark(&mut hit, lv, &level[(k + 1) * slab..][..slab]);
             }
             let own = &own;
             (0..slab).filter(move |&i| hit[i] && own(lv[i])).map(move |i| k * slab + i)
@@ -171,6 +191,7 @@ pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers
             *a = 0.0;
         }
     });
+    let targets = lay.targets(lat);
     for (l, front) in lay.fronts.iter().enumerate().rev() {
         // A face of the front was set to the mean of its n neighbours known before the
         // layer: each of them gets adj/n of it back, gathered per neighbour (in parallel,
@@ -181,7 +202,7 @@ pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers
             adj[idx] / neighbours(lat, idx, known, &mut nb) as f64
         };
         // The faces known before the layer next to one set in it, in index order.
-        let targets = next_to(&lay.level, lat, l as u8 + 1, |v| v as usize <= l);
+        let targets = &targets[l];
         let set_in_layer = |m: usize| lay.level[m] as usize == l + 1;
         let adds: Vec<(usize, f64)> = targets
             .par_iter()
@@ -386,6 +407,34 @@ mod tests {
                     .collect();
                 assert_eq!(front, &expect, "lattice {n:?}");
                 expect.iter().for_each(|&f| known[f] = true);
+            }
+        }
+    }
+
+    /// The adjoint's targets of each layer, found in one pass, are the faces known before
+    /// the layer with a neighbour it set, found by brute force (and thus the faces of
+    /// that layer's own level).
+    #[test]
+    fn targets_are_the_known_faces_next_to_each_layer() {
+        for n in [[7, 5, 4], [1, 6, 3], [5, 1, 1], [3, 4, 1], [9, 8, 7]] {
+            let lat = Lattice { n, off: [0.0; 3], dx: 1.0 };
+            for (seed, layers) in [(11, 4), (23, 1), (5, 3), (61, 6)] {
+                let valid: Vec<u8> =
+                    (0..lat.len()).map(|f| u8::from((f * 37) % seed == 0)).collect();
+                let lay = Layers::new(&valid, &lat, layers);
+                let targets = lay.targets(&lat);
+                assert_eq!(targets.len(), layers);
+                for (l, got) in targets.iter().enumerate() {
+                    let expect: Vec<usize> = (0..lat.len())
+                        .filter(|&f| lay.known_before(f, l))
+                        .filter(|&f| {
+                            let mut nb = [0usize; 6];
+                            let set = |m: usize| lay.level[m] as usize == l + 1;
+                            neighbours(&lat, f, set, &mut nb) > 0
+                        })
+                        .collect();
+                    assert_eq!(got, &expect, "lattice {n:?}, 1 in {seed} valid, layer {l}");
+                }
             }
         }
     }
