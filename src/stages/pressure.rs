@@ -109,9 +109,11 @@ pub struct PressureSystem {
     pub cell_of_row: Vec<u32>,
     /// Unknown of each cell, [`NONE`] for air and solid.
     pub row_of_cell: Vec<u32>,
-    /// The fluid stencil.
+    /// The fluid stencil (empty when the system was built without its operator: see
+    /// [`PressureSystem::build_without_operator_in`]).
     pub stencil: Stencil,
-    /// True when some liquid cell touches air (then A is definite).
+    /// True when some liquid cell touches air (then A is definite); false without the
+    /// operator.
     pub has_air: bool,
     /// Rank-6 coupling terms, one per dynamic body.
     pub bodies: Vec<BodyCoupling>,
@@ -121,6 +123,8 @@ pub struct PressureSystem {
     /// The preconditioner, factored from the stencil at the first solve and reused by every
     /// later one (a step's contact iterations solve up to five times with one operator).
     preconditioner: PreconditionerCache,
+    /// Whether the operator (the stencil) was built.
+    operator: bool,
 }
 
 /// A factored preconditioner.
@@ -159,7 +163,7 @@ impl PreconditionerCache {
         }
         let p = std::sync::Arc::new(match kind {
             Preconditioner::Mic0 => {
-                Prepared::Mic0(Mic0::new(&sys.stencil, sys.grid.n, &sys.cell_of_row))
+                Prepared::Mic0(Mic0::new(sys.operator(), sys.grid.n, &sys.cell_of_row))
             }
             Preconditioner::Multigrid => {
                 let spare = self.spare.lock().map(|mut s| s.take()).unwrap_or_default();
@@ -167,7 +171,7 @@ impl PreconditionerCache {
                     spare.unwrap_or_default(),
                     sys.grid.n,
                     &sys.cell_of_row,
-                    &sys.stencil,
+                    sys.operator(),
                 ))
             }
             Preconditioner::None | Preconditioner::Auto => Prepared::None,
@@ -436,6 +440,32 @@ impl PressureSystem {
         weights: &FaceWeights,
         params: PressureParams,
     ) -> Self {
+        PressureSystem::build_parts_in(memory, grid, phi, weights, params, true)
+    }
+
+    /// [`PressureSystem::build_in`] without the operator, for a step that is given its
+    /// pressures instead of solving for them (a checkpointed gradient's re-run): the unknowns,
+    /// the velocity update and the bodies' terms are built, the stencil is not (half the
+    /// build). Solving with it, or applying it, panics.
+    pub fn build_without_operator_in(
+        memory: SystemMemory,
+        grid: &Grid,
+        phi: &[f64],
+        weights: &FaceWeights,
+        params: PressureParams,
+    ) -> Self {
+        PressureSystem::build_parts_in(memory, grid, phi, weights, params, false)
+    }
+
+    /// The build, with the operator or without.
+    fn build_parts_in(
+        memory: SystemMemory,
+        grid: &Grid,
+        phi: &[f64],
+        weights: &FaceWeights,
+        params: PressureParams,
+        operator: bool,
+    ) -> Self {
         let SystemMemory { mut cell_of_row, mut row_of_cell, mut stencil, faces, multigrid } =
             memory;
         let cells = grid.cells();
@@ -476,47 +506,58 @@ impl PressureSystem {
             |&c| c as usize,
             |r, _, x| *x = r as u32,
         );
-        let s = params.dt * grid.dx / params.density;
-        let len = cell_of_row.len();
-        refill(&mut stencil.diag, len, 0.0);
-        refill(&mut stencil.plus, len, [0.0; 3]);
-        refill(&mut stencil.nbr, len, [NONE; 6]);
-        let has_air = stencil
-            .diag
-            .par_iter_mut()
-            .zip(stencil.plus.par_iter_mut())
-            .zip(stencil.nbr.par_iter_mut())
-            .zip(cell_of_row.par_iter())
-            .map(|(((diag_r, plus_r), nbr_r), &c)| {
-                let c = c as usize;
-                let ijk = cells.ijk(c);
-                let mut diag = 0.0;
-                let mut plus = [0.0; 3];
-                let mut nbr = [NONE; 6];
-                let mut air = false;
-                for a in 0..3 {
-                    for side in 0..2 {
-                        let Some((n, w)) = open_neighbour(grid, &axes, c, ijk, a, side) else {
-                            continue;
-                        };
-                        let rn = row_of_cell[n];
-                        if rn != NONE {
-                            diag += s * w;
-                            nbr[2 * a + side] = rn;
-                            if side == 1 {
-                                plus[a] = s * w;
+        // Only a solve reads the operator: without it the stencil is left empty (its memory
+        // kept for the next system).
+        let has_air = if operator {
+            let s = params.dt * grid.dx / params.density;
+            let len = cell_of_row.len();
+            refill(&mut stencil.diag, len, 0.0);
+            refill(&mut stencil.plus, len, [0.0; 3]);
+            refill(&mut stencil.nbr, len, [NONE; 6]);
+            let air = stencil
+                .diag
+                .par_iter_mut()
+                .zip(stencil.plus.par_iter_mut())
+                .zip(stencil.nbr.par_iter_mut())
+                .zip(cell_of_row.par_iter())
+                .map(|(((diag_r, plus_r), nbr_r), &c)| {
+                    let c = c as usize;
+                    let ijk = cells.ijk(c);
+                    let mut diag = 0.0;
+                    let mut plus = [0.0; 3];
+                    let mut nbr = [NONE; 6];
+                    let mut air = false;
+                    for a in 0..3 {
+                        for side in 0..2 {
+                            let Some((n, w)) = open_neighbour(grid, &axes, c, ijk, a, side) else {
+                                continue;
+                            };
+                            let rn = row_of_cell[n];
+                            if rn != NONE {
+                                diag += s * w;
+                                nbr[2 * a + side] = rn;
+                                if side == 1 {
+                                    plus[a] = s * w;
+                                }
+                            } else {
+                                diag += s * w / ghost_theta(phi[c], phi[n], params.theta_min);
+                                air = true;
                             }
-                        } else {
-                            diag += s * w / ghost_theta(phi[c], phi[n], params.theta_min);
-                            air = true;
                         }
                     }
-                }
-                (*diag_r, *plus_r, *nbr_r) = (diag, plus, nbr);
-                air
-            })
-            .reduce(|| false, |a, b| a || b);
-        stencil.find_runs();
+                    (*diag_r, *plus_r, *nbr_r) = (diag, plus, nbr);
+                    air
+                })
+                .reduce(|| false, |a, b| a || b);
+            stencil.find_runs();
+            air
+        } else {
+            stencil.diag.clear();
+            stencil.plus.clear();
+            stencil.nbr.clear();
+            stencil.runs.clear();
+            false
+        };
         let preconditioner = PreconditionerCache::default();
         if let Ok(mut spare) = preconditioner.spare.lock() {
             *spare = multigrid;
@@ -531,6 +572,7 @@ impl PressureSystem {
             bodies: Vec::new(),
             faces: Default::default(),
             preconditioner,
+            operator,
         };
         let [mut fx, mut fy, mut fz] = faces;
         sys.projected_faces(0, weights, phi, &mut fx);
@@ -566,7 +608,7 @@ impl PressureSystem {
         let mut stack: Vec<u32> =
             (0..reached.len() as u32).filter(|&r| reached[r as usize]).collect();
         while let Some(r) = stack.pop() {
-            for &n in &self.stencil.nbr[r as usize] {
+            for &n in &self.operator().nbr[r as usize] {
                 if n != NONE && !reached[n as usize] {
                     reached[n as usize] = true;
                     stack.push(n);
@@ -643,9 +685,22 @@ impl PressureSystem {
         self.cell_of_row.is_empty()
     }
 
+    /// The fluid stencil, which a solve reads.
+    ///
+    /// # Panics
+    /// When the system was built without it ([`PressureSystem::build_without_operator_in`]).
+    pub fn operator(&self) -> &Stencil {
+        assert!(
+            self.operator,
+            "the pressure system was built without its operator (for a step given its \
+             pressures), and cannot be solved or applied"
+        );
+        &self.stencil
+    }
+
     /// y = A x (the fluid stencil).
     pub fn apply(&self, x: &[f64], y: &mut [f64]) {
-        self.stencil.apply(x, y);
+        self.operator().apply(x, y);
         for b in &self.bodies {
             let s = b.dt_minv_times(&b.force(x));
             b.add_jt(&s, y);
@@ -710,7 +765,7 @@ impl PressureSystem {
             match prepared.as_ref() {
                 Prepared::Mic0(m) => pcg_from(
                     apply,
-                    |r: &[f64], z: &mut [f64]| m.apply(&self.stencil, r, z),
+                    |r: &[f64], z: &mut [f64]| m.apply(self.operator(), r, z),
                     b,
                     &mut p,
                     &settings,
@@ -1210,6 +1265,48 @@ mod tests {
         let (p0, _) = sys.solve(&b, &how);
         let (p1, _) = reused.solve(&b, &how);
         assert!(p0.iter().zip(&p1).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
+
+    /// Built without its operator, into a solved system's memory: the unknowns and the
+    /// velocity update are the full build's to the bit, and solving panics instead of reading
+    /// the old system's stencil.
+    #[test]
+    fn built_without_operator_updates_alike_and_cannot_solve() {
+        let (sys, phi, weights) = system_with_inputs();
+        let how = LinearSolve {
+            tolerance: 1e-10,
+            max_iterations: 200,
+            preconditioner: Preconditioner::Multigrid,
+        };
+        let b: Vec<f64> = (0..sys.len()).map(|r| ((r * 7) % 5) as f64 - 2.0).collect();
+        let (p, _) = sys.solve(&b, &how);
+        let pool = SystemPool::default();
+        pool.give(sys.clone());
+        let lean = PressureSystem::build_without_operator_in(
+            pool.take(),
+            &sys.grid,
+            &phi,
+            &weights,
+            sys.params,
+        );
+        assert_eq!(lean.cell_of_row, sys.cell_of_row);
+        assert_eq!(lean.row_of_cell, sys.row_of_cell);
+        assert!(lean.stencil.diag.is_empty() && lean.stencil.nbr.is_empty());
+        let field = |s: &PressureSystem| {
+            let mut u = Mac::zeros(&s.grid);
+            s.update_velocity(&p, &mut u);
+            u.c.map(|c| c.iter().map(|x| x.to_bits()).collect::<Vec<_>>())
+        };
+        assert_eq!(field(&lean), field(&sys));
+        let solved =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| lean.solve(&b, &how)));
+        let message = solved.expect_err("a system without its operator solved");
+        let text = message
+            .downcast_ref::<&str>()
+            .copied()
+            .or_else(|| message.downcast_ref::<String>().map(String::as_str))
+            .unwrap_or("");
+        assert!(text.contains("without its operator"), "{text}");
     }
 
     #[test]

@@ -919,6 +919,7 @@ impl Simulation {
                 theta_min: s.solver.theta_min,
             },
             coupling: s.solver.coupling,
+            solves: true,
         }
     }
 
@@ -1029,7 +1030,9 @@ impl Simulation {
             _ => Vec::new(),
         };
         let memory = self.spare.systems().take();
-        let params = self.step_params(dt);
+        // A replayed step is given its pressures: its system needs no operator.
+        let solves = !matches!(pressures, Pressures::Replay(_));
+        let params = StepParams { solves, ..self.step_params(dt) };
         let sys = StepSystem::assemble(&grid, &self.bodies, geometry, particle_phi, params, memory);
         lap(&mut times.assemble);
 

@@ -107,6 +107,9 @@ pub struct StepParams {
     pub pressure: PressureParams,
     /// Monolithic or weak coupling.
     pub coupling: Coupling,
+    /// Whether the step solves for its pressures: false for a step given them (a
+    /// checkpointed gradient's re-run), whose system is then built without the operator.
+    pub solves: bool,
 }
 
 /// One step's system, built once and shared by every stage that reads it.
@@ -144,8 +147,12 @@ impl StepSystem {
     ) -> StepSystem {
         surface::extend_into_solids(&mut phi, grid, &geometry.centre_in_solid);
         let needed = needed_faces(grid, &phi, &geometry.body_faces);
-        let mut pressure =
-            PressureSystem::build_in(memory, grid, &phi, &geometry.weights, params.pressure);
+        let build = if params.solves {
+            PressureSystem::build_in
+        } else {
+            PressureSystem::build_without_operator_in
+        };
+        let mut pressure = build(memory, grid, &phi, &geometry.weights, params.pressure);
         let coupled: Vec<usize> = (0..bodies.len()).filter(|&i| bodies[i].moves()).collect();
         let dt = params.pressure.dt;
         let couplings: Vec<BodyCoupling> = coupled
