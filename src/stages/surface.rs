@@ -251,17 +251,15 @@ pub fn advect_adjoint(
                     for _ in 0..subs {
                         let mid = x + 0.5 * h * u.velocity(grid, x);
                         let y = x + h * u.velocity(grid, mid);
-                        path.push((x, mid, y));
-                        x = walls.keep(y);
+                        let kept = walls.keep(y);
+                        path.push((x, mid, y, kept == y));
+                        x = kept;
                     }
                     let mut bar = *xb;
-                    for (n, &(x, mid, y)) in path.iter().rev().enumerate() {
+                    for (n, &(x, mid, y, free)) in path.iter().rev().enumerate() {
                         // x' = keep(y): the identity unless the push or the clamp acted.
-                        let ybar = if walls.keep(y) == y {
-                            bar
-                        } else {
-                            jacobian_t(|p| walls.keep(p), y, fd, bar)
-                        };
+                        let ybar =
+                            if free { bar } else { jacobian_t(|p| walls.keep(p), y, fd, bar) };
                         // y = x + h·U(mid), mid = x + h/2·U(x).
                         let (_, jm) = u.velocity_jacobian(grid, mid);
                         let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
