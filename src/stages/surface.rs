@@ -922,7 +922,8 @@ pub fn particle_density_adjoint(
     pbar: &mut [Vec3],
 ) {
     let unit = 1.0 / ppc as f64;
-    for (x, xb) in pos.iter().zip(pbar.iter_mut()) {
+    // Each particle gathers into its own adjoint: in parallel, the same bits.
+    pos.par_iter().zip(pbar.par_iter_mut()).with_min_len(1024).for_each(|(x, xb)| {
         let (idx, w, dw) = deposit_weights(grid, *x);
         let mut g = Vec3::ZERO;
         for c in 0..8 {
@@ -940,7 +941,7 @@ pub fn particle_density_adjoint(
                 );
         }
         *xb += g;
-    }
+    });
 }
 
 /// Liquid volume in m³: the particle density capped at one full cell per cell, times the
