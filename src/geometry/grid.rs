@@ -6,7 +6,7 @@
 //! cube `[i, i+1]·dx × [j, j+1]·dx × [k, k+1]·dx`; the face lattice of axis `a` has one more
 //! sample along `a` and sits on the cell faces normal to `a` (MAC staggering).
 
-use crate::math::{comp, v3, Vec3};
+use crate::math::{v3, Vec3};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -459,103 +459,6 @@ impl Mac {
         }
     }
 
-    /// [`Mac::scatter_velocity`] of each `(x, coef)` of `reads` in turn (a zero `coef` adds
-    /// nothing), in parallel: the same sums to the bit as the reads scattered one after
-    /// another, on any thread count. The field is cut into blocks of z-slabs holding about
-    /// equal shares of the reads; each block takes every read in order and adds what falls
-    /// in its own slabs, so each sample's terms are added in the reads' order, as one after
-    /// another adds them.
-    pub fn scatter_velocities(&mut self, grid: &Grid, reads: &[(Vec3, Vec3)]) {
-        // Two blocks a thread: a block's reads are only roughly its share.
-        let blocks = 2 * rayon::current_num_threads();
-        self.scatter_velocities_in(grid, reads, blocks);
-    }
-
-    /// [`Mac::scatter_velocities`] in at most `blocks` blocks.
-    fn scatter_velocities_in(&mut self, grid: &Grid, reads: &[(Vec3, Vec3)], blocks: usize) {
-        let n2 = grid.n[2];
-        let blocks = blocks.min(n2);
-        if blocks <= 1 || reads.len() < crate::math::par::MIN_LEN / 16 {
-            for &(x, coef) in reads.iter().filter(|(_, c)| *c != Vec3::ZERO) {
-                self.scatter_velocity(grid, x, coef);
-            }
-            return;
-        }
-        // The first cell slab of each block: the reads counted by cell slab, cut into about
-        // equal shares.
-        let slab_of = |x: Vec3| floor_index(x.z / grid.dx).min(n2 - 1);
-        let counts = reads
-            .par_iter()
-            .with_min_len(4096)
-            .fold(
-                || vec![0usize; n2],
-                |mut h, &(x, c)| {
-                    h[slab_of(x)] += usize::from(c != Vec3::ZERO);
-                    h
-                },
-            )
-            .reduce(
-                || vec![0usize; n2],
-                |mut a, b| {
-                    a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-                    a
-                },
-            );
-        let total: usize = counts.iter().sum();
-        let mut first = vec![0usize];
-        let mut before = 0;
-        for (k, &c) in counts.iter().enumerate() {
-            if k > 0 && first.len() < blocks && before * blocks >= total * first.len() {
-                first.push(k);
-            }
-            before += c;
-        }
-        // Each block's share of each component: its slabs, contiguous (z is the slowest
-        // axis); the last block's reach the lattice's end.
-        let mut parts = Vec::with_capacity(first.len());
-        let mut rest: [&mut [f64]; 3] = {
-            let [x, y, z] = &mut self.c;
-            [x.as_mut_slice(), y.as_mut_slice(), z.as_mut_slice()]
-        };
-        for (b, &z0) in first.iter().enumerate() {
-            let mut pieces: [&mut [f64]; 3] = Default::default();
-            let mut slabs = [(0, 0); 3];
-            for (a, r) in rest.iter_mut().enumerate() {
-                let lat = grid.faces(a);
-                let z1 = first.get(b + 1).copied().unwrap_or(lat.n[2]);
-                let (piece, tail) = std::mem::take(r).split_at_mut((z1 - z0) * lat.slab());
-                (pieces[a], slabs[a], *r) = (piece, (z0, z1), tail);
-            }
-            parts.push((pieces, slabs));
-        }
-        parts.into_par_iter().for_each(|(mut pieces, slabs)| {
-            for &(x, coef) in reads.iter().filter(|(_, c)| *c != Vec3::ZERO) {
-                // The slabs along z the read's stencils touch, before the rest of its places.
-                let tz = x.z / grid.dx;
-                let zs = [place(tz - 0.5, n2, grid.dx), place(tz, n2 + 1, grid.dx)];
-                let touches = |a: usize| {
-                    let (z, p) = (slabs[a].0..slabs[a].1, &zs[usize::from(a == 2)]);
-                    comp(coef, a) != 0.0 && (z.contains(&p.lo) || z.contains(&p.hi))
-                };
-                if !(0..3).any(touches) {
-                    continue;
-                }
-                let places = face_stencil_places(grid, x);
-                for (a, piece) in pieces.iter_mut().enumerate().filter(|(a, _)| touches(*a)) {
-                    let (c, offset) = (comp(coef, a), slabs[a].0 * grid.faces(a).slab());
-                    let s = stencil_at(grid.face_dims(a), places[a]);
-                    for k in 0..8 {
-                        // Only the samples of this block's slabs.
-                        if let Some(v) = s.idx[k].checked_sub(offset).and_then(|i| piece.get_mut(i))
-                        {
-                            *v += c * s.w[k];
-                        }
-                    }
-                }
-            }
-        });
-    }
-
     /// Largest |component| over all faces (a cheap bound used in reports).
     pub fn max_abs(&self) -> f64 {
         self.c.iter().map(|c| max_abs(c)).fold(0.0f64, f64::max)
@@ -689,45 +592,6 @@ mod tests {
         {
             let (v, _) = lat.sample_grad(&f, x);
             assert!((lat.sample(&f, x) - v).abs() < 1e-13);
-        }
-    }
-
-    /// The reads scattered in blocks of z-slabs are the reads scattered one after another,
-    /// to the bit, for any number of blocks: points inside, on the walls and beyond them,
-    /// zero coefficients and zero components among them, many on a few slabs (so that a
-    /// sample takes terms from reads far apart in the list).
-    #[test]
-    fn scatter_in_blocks_is_the_scatter_in_order() {
-        let g = Grid { n: [5, 4, 9], dx: 0.1 };
-        let size = g.size();
-        let h = |i: u64, s: u64| {
-            ((i ^ s).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40) as f64 / (1u64 << 24) as f64
-        };
-        let reads: Vec<(Vec3, Vec3)> = (0..6000u64)
-            .map(|i| {
-                let z = if i % 3 == 0 { 0.42 + 0.05 * h(i, 9) } else { 1.3 * h(i, 3) - 0.15 };
-                let x = Vec3::new(1.2 * h(i, 1) - 0.1, 1.2 * h(i, 2) - 0.1, z) * size;
-                let c = Vec3::new(h(i, 4) - 0.5, h(i, 5) - 0.5, h(i, 6) - 0.5);
-                let c = match i % 7 {
-                    0 => Vec3::ZERO,
-                    1 => Vec3::new(0.0, c.y, 0.0),
-                    _ => c,
-                };
-                (x, c)
-            })
-            .chain([(Vec3::ZERO, Vec3::ONE), (size, -Vec3::ONE), (size * 2.0, Vec3::X)])
-            .collect();
-        let mut want = Mac::zeros(&g);
-        for &(x, c) in &reads {
-            if c != Vec3::ZERO {
-                want.scatter_velocity(&g, x, c);
-            }
-        }
-        let bits = |m: &Mac| m.c.clone().map(|c| c.iter().map(|x| x.to_bits()).collect::<Vec<_>>());
-        for blocks in [1, 2, 3, 4, 7, 9, 20] {
-            let mut got = Mac::zeros(&g);
-            got.scatter_velocities_in(&g, &reads, blocks);
-            assert_eq!(bits(&got), bits(&want), "{blocks} blocks");
         }
     }
 

@@ -280,9 +280,8 @@ pub fn advect_adjoint(
 /// `field` a chunk of `PARTICLE_CHUNK` (65,536) particles at a time: `fill(first, pbar, reads)`
 /// sets, in parallel, the `stride` reads (a point, and the coefficient of the velocity
 /// there; zero for none) of the particles `first..first + pbar.len()`, whose adjoints
-/// `pbar` it may update; then the chunk's reads are scattered as in particle order, in
-/// parallel ([`Mac::scatter_velocities`]: the same sums on any thread count). One buffer of
-/// a chunk's reads, not one per particle.
+/// `pbar` it may update; then the chunk's reads are scattered in particle order (the same
+/// sums on any thread count). One buffer of a chunk's reads, not one per particle.
 pub fn scatter_reads_in_chunks(
     pbar: &mut [Vec3],
     stride: usize,
@@ -295,7 +294,12 @@ pub fn scatter_reads_in_chunks(
     for (c, xbs) in pbar.chunks_mut(chunk).enumerate() {
         let reads = &mut reads[..xbs.len() * stride];
         fill(c * chunk, xbs, reads);
-        field.scatter_velocities(grid, reads);
+        for &(x, coef) in reads.iter() {
+            // A zero adds nothing (scatter_velocity skips zero components).
+            if coef != Vec3::ZERO {
+                field.scatter_velocity(grid, x, coef);
+            }
+        }
     }
 }
 
