@@ -797,9 +797,7 @@ impl Simulation {
         while left > 1e-12 * frame_dt {
             let n = (left / self.stable_dt()).ceil().max(1.0);
             let h = left / n;
-            reports.push(on_pool_spinning(self.spins(), || {
-                self.step_inner(h, None, Pressures::Solve)
-            })?);
+            reports.push(self.step_inner(h, None, Pressures::Solve)?);
             left -= h;
         }
         Ok(reports)
@@ -814,19 +812,19 @@ impl Simulation {
     /// Advances one step of the fixed Δt.
     pub fn step(&mut self) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool_spinning(self.spins(), || self.step_inner(dt, None, Pressures::Solve))
+        self.step_inner(dt, None, Pressures::Solve)
     }
 
     /// Advances one step and records on `tape` what the backward pass needs.
     pub fn step_taped(&mut self, tape: &mut Tape) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool_spinning(self.spins(), || self.step_inner(dt, Some(tape), Pressures::Solve))
+        self.step_inner(dt, Some(tape), Pressures::Solve)
     }
 
     /// Advances one step and keeps its pressure solves in `solves` (see [`Solves`]).
     pub(crate) fn step_recording(&mut self, solves: &mut Solves) -> Result<StepReport> {
         let dt = self.settings.dt;
-        on_pool_spinning(self.spins(), || self.step_inner(dt, None, Pressures::Record(solves)))
+        self.step_inner(dt, None, Pressures::Record(solves))
     }
 
     /// [`Simulation::step_taped`] that takes its pressures from `replay` instead of solving:
@@ -835,10 +833,7 @@ impl Simulation {
     /// fastest speed, the liquid volume) is not computed.
     pub(crate) fn step_replayed(&mut self, tape: &mut Tape, replay: &mut Replay) -> Result<()> {
         let dt = self.settings.dt;
-        on_pool_spinning(self.spins(), || {
-            self.step_inner(dt, Some(tape), Pressures::Replay(replay))
-        })
-        .map(drop)
+        self.step_inner(dt, Some(tape), Pressures::Replay(replay)).map(drop)
     }
 
     /// A copy to re-run steps from (a gradient's checkpoint snapshot): with the surface
@@ -928,20 +923,23 @@ impl Simulation {
         self.settings.contact.enabled && contact_possible(&self.bodies, self.grid.size(), dt)
     }
 
-    /// One step of `dt`, taped on `tape` when given, its pressures as `pressures` says. A
-    /// step that fails leaves φ_L that of the particles where they are.
+    /// One step of `dt`, taped on `tape` when given, its pressures as `pressures` says, run
+    /// on the pool (its other workers spinning when [`Simulation::spins`]). A step that fails
+    /// leaves φ_L that of the particles where they are.
     fn step_inner(
         &mut self,
         dt: f64,
         tape: Option<&mut Tape>,
         pressures: Pressures,
     ) -> Result<StepReport> {
-        let report = self.step_stages(dt, tape, pressures);
-        if report.is_err() && self.phi.len() != self.grid.num_cells() {
-            // The step failed while its system held φ_L's memory.
-            self.phi = self.particle_phi();
-        }
-        report
+        on_pool_spinning(self.spins(), || {
+            let report = self.step_stages(dt, tape, pressures);
+            if report.is_err() && self.phi.len() != self.grid.num_cells() {
+                // The step failed while its system held φ_L's memory.
+                self.phi = self.particle_phi();
+            }
+            report
+        })
     }
 
     /// [`Simulation::step_inner`]'s stages.
