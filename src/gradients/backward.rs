@@ -32,7 +32,7 @@ use crate::math::{Rotation, Vec3};
 use crate::stages::advect::{advect_adjoint_into, needed_faces};
 use crate::stages::band::Band;
 use crate::stages::density::{DensityInputs, DensityProjection};
-use crate::stages::extrapolate::{apply_body_velocities_adjoint, correct_velocity_adjoint};
+use crate::stages::extrapolate::correct_with_bodies_adjoint;
 use crate::stages::forces::body_velocity_pose_adjoint;
 use crate::stages::pressure::{projection_pose_adjoint, Coupling, PoseAdjointInputs};
 use crate::stages::surface;
@@ -246,7 +246,7 @@ fn step_adjoint(
     let bodies = bodies_at(initial, rec);
     let geometry = initial.geometry_with(&bodies, rec.body_faces.clone());
     let phi = if rec.phi.is_empty() { initial.particle_phi() } else { rec.phi.clone() };
-    let particle_phi = (live && rec.particles.is_some()).then(|| phi.clone());
+    let live_surface = live && rec.particles.is_some();
     let memory = initial.spare().systems().take();
     let sys = StepSystem::assemble(&grid, &bodies, geometry, phi, initial.step_params(dt), memory);
     // The fractions' derivatives along each body's pose (full gradient only).
@@ -305,24 +305,25 @@ fn step_adjoint(
     let u_hat = predicted_velocity(&rec.u, &grid, dt, gravity, &at_bodies, out_field);
     let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
 
-    // 5ᵀ: walls and static solids, extrapolation layers, then the bodies' velocities on the
-    // faces they cover.
+    // 5ᵀ: the bodies' part on faces in air, extrapolation layers and walls, the bodies' part
+    // on the projected and closed faces.
     let mut ubar = adj.u;
-    let known = sys.known_faces();
-    let layers = settings.solver.extrapolation_layers;
-    correct_velocity_adjoint(&mut ubar, &known, &initial.statics().weights, &grid, layers);
     let mut after = bodies.clone();
     for (b, va) in after.iter_mut().zip(&rec.v_after) {
         b.v = Vec3::new(va[0], va[1], va[2]);
         b.w = Vec3::new(va[3], va[4], va[5]);
     }
-    let bva = apply_body_velocities_adjoint(
+    let bva = correct_with_bodies_adjoint(
         &mut ubar,
         u_corr,
+        &rec.air_body_faces,
+        &sys.projected_mask(),
         &after,
         &sys.geometry.body_faces,
         &sys.geometry.weights,
+        &initial.statics().weights,
         &grid,
+        settings.solver.extrapolation_layers,
     );
     let mut pose_grad = vec![[0.0f64; 6]; bodies.len()];
     for (i, r) in bva.iter().enumerate() {
@@ -360,15 +361,11 @@ fn step_adjoint(
     let adj_v: Vec<[f64; 6]> = sys.coupled.iter().map(|&i| vbar[i]).collect();
     let how = settings.solver.linear();
     let (s, stats) = sys.pressure.adjoint_solve(&ubar, &adj_v, &how);
-    // The surface's part: ∂L/∂φ_L through the ghost-fluid θ (cells whose φ the extension
-    // into solids set carry none).
-    let phi_bar = particle_phi.as_ref().map(|pp| {
+    // The surface's part: ∂L/∂φ_L through the ghost-fluid θ, carried back out of the solids
+    // to the cells the extension read.
+    let phi_bar = live_surface.then(|| {
         let mut g = sys.pressure.phi_adjoint(&sys.phi, &sys.geometry.weights, &s, &rec.p, &ubar);
-        for (c, x) in g.iter_mut().enumerate() {
-            if sys.phi[c] != pp[c] {
-                *x = 0.0;
-            }
-        }
+        sys.extension.transpose(&mut g);
         g
     });
     if !stats.converged {

@@ -35,6 +35,7 @@ use crate::solvers::LinearSolve;
 use crate::stages::band::Band;
 use crate::stages::extrapolate::{correct_velocity, correct_velocity_adjoint};
 use crate::stages::pressure::{has_open_face, PressureParams, PressureSystem, SystemPool};
+use crate::stages::solid_phi::SolidExtension;
 use crate::stages::surface::{self, jacobian_step, jacobian_t, Bins, Walls};
 use rayon::prelude::*;
 
@@ -60,6 +61,8 @@ pub struct DensityInputs<'a> {
     pub node_sdf: &'a NodeSdf,
     /// Cells whose centre is in a solid.
     pub centre_in_solid: &'a [bool],
+    /// Gravity, m/s² (φ_L is carried into the solids across it, see [`SolidExtension`]).
+    pub gravity: [f64; 3],
     /// How φ_L is made from the particles.
     pub surface: surface::SurfaceModel,
     /// Marker particles seeded per cell (the density of a full cell).
@@ -102,6 +105,8 @@ impl DensityInputs<'_> {
 pub struct DensityProjection {
     /// φ_L of P, extended into solids.
     pub phi: Vec<f64>,
+    /// How φ_L was carried into the solids.
+    pub extension: SolidExtension,
     /// The particle each cell's φ is the distance to (see [`surface::liquid_sdf_nearest`];
     /// `NONE` where the extension into the solids set φ). Empty in a forward step's
     /// projection, which has no adjoint.
@@ -145,7 +150,7 @@ impl DensityProjection {
         let grid = g.grid;
         let deep = g.band.map(Band::deep);
         // The bins serve φ_L only, so they are gone before the deposit's arrays are made.
-        let (mut phi, mut nearest) = {
+        let (mut phi, nearest) = {
             let bins = Bins::new(particles, grid);
             if adjoint {
                 surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface, deep)
@@ -153,12 +158,8 @@ impl DensityProjection {
                 (surface::liquid_sdf(particles, &bins, grid, &g.surface, deep), Vec::new())
             }
         };
-        // A cell the extension into the solids sets moves with no particle.
-        for c in surface::extend_into_solids(&mut phi, grid, g.centre_in_solid) {
-            if let Some(n) = nearest.get_mut(c as usize) {
-                *n = crate::geometry::grid::NONE;
-            }
-        }
+        let extension = SolidExtension::new(grid, g.centre_in_solid, g.gravity);
+        extension.apply(&mut phi);
         let base = g.band.map(|b| b.density.as_slice());
         let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
@@ -189,7 +190,7 @@ impl DensityProjection {
             })
             .collect();
         let deep_closed = closed.is_some();
-        let proj = DensityProjection { phi, nearest, dens, sys, b, deep_closed, closed };
+        let proj = DensityProjection { phi, extension, nearest, dens, sys, b, deep_closed, closed };
         if proj.b.par_iter().all(|&x| x == 0.0) {
             proj.give_back(g);
             return None;
@@ -348,7 +349,8 @@ impl DensityProjection {
         }
         surface::particle_density_adjoint(particles, grid, g.particles_per_cell, &dens_bar, pbar);
         // The operator and the update read φ through the ghost-fluid θ.
-        let phi_bar = self.sys.phi_adjoint(&self.phi, self.weights(g), &s, q, &dbar);
+        let mut phi_bar = self.sys.phi_adjoint(&self.phi, self.weights(g), &s, q, &dbar);
+        self.extension.transpose(&mut phi_bar);
         surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &phi_bar, pbar);
         (s, stats)
     }
@@ -589,6 +591,7 @@ mod tests {
                 weights: &self.weights,
                 node_sdf: &self.node_sdf,
                 centre_in_solid: &self.centre_in_solid,
+                gravity: [0.0, -9.81, 0.0],
                 surface: surface::SurfaceModel {
                     radius: surface::particle_radius(self.grid.dx, 2),
                     sparse_cells: true,

@@ -7,6 +7,8 @@
 //! zero. For fixed masks this is a fixed linear map C, so its transpose exists for the
 //! backward pass (paper, eq. 10).
 
+use crate::geometry::body::RigidBody;
+use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::{Grid, Lattice, Mac};
 use crate::geometry::weights::FaceWeights;
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
@@ -233,26 +235,115 @@ pub fn correct_velocity_adjoint(
     }
 }
 
-/// Gives faces that bodies cover the bodies' velocity: a face a body closes (w = 0) takes
-/// that body's rigid velocity e·(v + ω × (p_f − x)) (the last body wins a face two close);
-/// a face bodies cover in part stores the mixture w·u + Σ_b β_b·u_b. The mixture is
-/// continuous as w → 0 and as β → 0: a nearly closed face otherwise kept the full pressure
-/// update of its sliver of fluid, a velocity far from the body's, and jumped to the body's
-/// when it closed, which made the step discontinuous in the body's pose.
-pub fn apply_body_velocities(
+/// The faces bodies cover in part that the projection did not update (air on both sides),
+/// per axis, sorted: (face, the fluid velocity there before the bodies' part was mixed in,
+/// the mean of its lattice neighbours the projection updated or a body closes). The backward
+/// pass reads those values for ∂u/∂β; the tape keeps them.
+pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
+
+/// Stage 5, the velocity correction with bodies, on `u` after the pressure update
+/// (`projected`: the faces the update acted on):
+///
+/// 1. a face a body closes (combined weight `w` = 0) takes that body's rigid velocity
+///    e·(v + ω × (p_f − x)) (the last body wins a face two close); a projected face bodies
+///    cover in part stores the mixture w·u + Σ_b β_b·u_b, which keeps every liquid cell's
+///    flux (fluid and body together) at zero;
+/// 2. a face bodies cover in part that the projection did not update (air on both sides)
+///    takes the same mixture with, for its fluid velocity, the mean of its lattice
+///    neighbours that step 1 set (projected or closed; zero if none);
+/// 3. with every face a body covers and every projected face known, extrapolation into air
+///    and zero in static solids and walls ([`correct_velocity`]).
+///
+/// The mixture is continuous as w → 0 and as β → 0 (a nearly closed face otherwise kept the
+/// full pressure update of its sliver of fluid and jumped to the body's velocity when it
+/// closed), and whether a face is a source of the extrapolation does not change as a body
+/// closes it. Step 2 is what keeps still water still around a body crossing the surface: such
+/// a face used to keep its advected velocity with gravity added, never projected, which grew
+/// by g·Δt a step and was carried into the liquid by the extrapolation and the next
+/// advection (issue 33).
+#[allow(clippy::too_many_arguments)]
+pub fn correct_with_bodies(
     u: &mut Mac,
-    bodies: &[crate::geometry::body::RigidBody],
-    faces: &[crate::geometry::fractions::BodyFaces],
+    projected: &[Vec<u8>; 3],
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
+    weights: &FaceWeights,
+    static_weights: &FaceWeights,
+    grid: &Grid,
+    layers: usize,
+) -> AirBodyFaces {
+    let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
+    mix_body_velocities(u, bodies, faces, weights, grid, set);
+    let air: AirBodyFaces = std::array::from_fn(|a| {
+        let lat = grid.faces(a);
+        air_faces(faces, a, |f| !set(a, f))
+            .into_iter()
+            .map(|f| {
+                let mut nb = [0usize; 6];
+                let n = neighbours(&lat, f, |m| set(a, m), &mut nb);
+                let mean = if n == 0 {
+                    0.0
+                } else {
+                    nb[..n].iter().map(|&m| u.c[a][m]).sum::<f64>() / n as f64
+                };
+                (f as u32, mean)
+            })
+            .collect()
+    });
+    for (a, list) in air.iter().enumerate() {
+        for &(f, e) in list {
+            u.c[a][f as usize] = e;
+        }
+    }
+    mix_body_velocities(u, bodies, faces, weights, grid, |a, f| !set(a, f));
+    let mut valid = projected.clone();
+    mark_body_faces(&mut valid, faces);
+    correct_velocity(u, &mut valid, static_weights, grid, layers);
+    air
+}
+
+/// The faces of `axis` some body covers that `keep` accepts, sorted, each once.
+fn air_faces(faces: &[BodyFaces], axis: usize, keep: impl Fn(usize) -> bool) -> Vec<usize> {
+    let mut out: Vec<usize> = faces
+        .iter()
+        .flat_map(|bf| bf.faces[axis].iter().map(|&(f, _)| f))
+        .filter(|&f| keep(f))
+        .collect();
+    out.sort_unstable();
+    out.dedup();
+    out
+}
+
+/// Marks every face a body covers as known: the extrapolation reads the bodies' velocities
+/// there and never overwrites them. Whether a face next to a moving body is a source then
+/// does not depend on its fluid weight reaching exactly 0, which made the step jump.
+fn mark_body_faces(valid: &mut [Vec<u8>; 3], faces: &[BodyFaces]) {
+    for bf in faces {
+        for a in 0..3 {
+            for &(f, _) in &bf.faces[a] {
+                valid[a][f] = 1;
+            }
+        }
+    }
+}
+
+/// The bodies' part of the faces `on(axis, face)` accepts: a closed face takes the rigid
+/// velocity, a face covered in part w·u + Σ_b β_b·u_b.
+fn mix_body_velocities(
+    u: &mut Mac,
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
     weights: &FaceWeights,
     grid: &Grid,
+    on: impl Fn(usize, usize) -> bool,
 ) {
     let mut touched = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
     for (b, bf) in bodies.iter().zip(faces) {
         for a in 0..3 {
             let lat = grid.faces(a);
-            for &(f, beta) in &bf.faces[a] {
+            for &(f, beta) in bf.faces[a].iter().filter(|&&(f, _)| on(a, f)) {
                 let [i, j, k] = lat.ijk(f);
-                let ub = crate::math::comp(b.velocity_at(lat.position(i, j, k)), a);
+                let ub = crate::math::comp(b.liquid_velocity_at(lat.position(i, j, k)), a);
                 let w = weights.weight(a, f);
                 if w <= 0.0 {
                     u.c[a][f] = ub;
@@ -268,20 +359,7 @@ pub fn apply_body_velocities(
     }
 }
 
-/// Marks every face a body covers as known: the extrapolation reads the bodies' velocities
-/// there and never overwrites them. Whether a face next to a moving body is a source then
-/// does not depend on its fluid weight reaching exactly 0, which made the step jump.
-pub fn mark_body_faces(valid: &mut [Vec<u8>; 3], faces: &[crate::geometry::fractions::BodyFaces]) {
-    for bf in faces {
-        for a in 0..3 {
-            for &(f, _) in &bf.faces[a] {
-                valid[a][f] = 1;
-            }
-        }
-    }
-}
-
-/// What [`apply_body_velocities_adjoint`] returns for one body.
+/// What [`correct_with_bodies_adjoint`] returns for one body.
 #[derive(Clone, Debug, Default)]
 pub struct BodyVelocityAdjoint {
     /// ∂L/∂[v; ω].
@@ -292,16 +370,78 @@ pub struct BodyVelocityAdjoint {
     pub dbeta: Vec<(usize, usize, f64)>,
 }
 
-/// Adjoint of [`apply_body_velocities`], in place on `ubar`: `u_old(axis, face)` is the
-/// field before (needed for ∂/∂β; read on the faces the bodies cover only). Closed faces pass
-/// nothing back to the fluid.
-pub fn apply_body_velocities_adjoint(
+impl BodyVelocityAdjoint {
+    fn add(&mut self, o: BodyVelocityAdjoint) {
+        for d in 0..6 {
+            self.vel[d] += o.vel[d];
+        }
+        self.x += o.x;
+        self.dbeta.extend(o.dbeta);
+    }
+}
+
+/// Adjoint of [`correct_with_bodies`], in place on `ubar` (the adjoint of the corrected
+/// field becomes that of the field after the pressure update): `u_projected(axis, face)` is
+/// the field after the update on the projected faces the bodies cover (for ∂/∂β), `air` what
+/// the forward step returned. Returns each body's part.
+#[allow(clippy::too_many_arguments)]
+pub fn correct_with_bodies_adjoint(
+    ubar: &mut Mac,
+    u_projected: impl Fn(usize, usize) -> f64,
+    air: &AirBodyFaces,
+    projected: &[Vec<u8>; 3],
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
+    weights: &FaceWeights,
+    static_weights: &FaceWeights,
+    grid: &Grid,
+    layers: usize,
+) -> Vec<BodyVelocityAdjoint> {
+    let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
+    // 3ᵀ.
+    let mut valid = projected.clone();
+    mark_body_faces(&mut valid, faces);
+    correct_velocity_adjoint(ubar, &valid, static_weights, grid, layers);
+    // 2ᵀ: the mixture, then each air face's mean back to the faces it read.
+    let extrapolated = |a: usize, f: usize| {
+        let list = &air[a];
+        list.binary_search_by_key(&(f as u32), |e| e.0).map_or(0.0, |i| list[i].1)
+    };
+    let mut out =
+        mix_body_velocities_adjoint(ubar, extrapolated, bodies, faces, weights, grid, |a, f| {
+            !set(a, f)
+        });
+    for (a, list) in air.iter().enumerate() {
+        let lat = grid.faces(a);
+        for &(f, _) in list {
+            let f = f as usize;
+            let g = std::mem::take(&mut ubar.c[a][f]);
+            let mut nb = [0usize; 6];
+            let n = neighbours(&lat, f, |m| set(a, m), &mut nb);
+            for &m in &nb[..n] {
+                ubar.c[a][m] += g / n as f64;
+            }
+        }
+    }
+    // 1ᵀ.
+    let first = mix_body_velocities_adjoint(ubar, u_projected, bodies, faces, weights, grid, set);
+    for (o, f) in out.iter_mut().zip(first) {
+        o.add(f);
+    }
+    out
+}
+
+/// Adjoint of [`mix_body_velocities`] on the faces `on` accepts, in place on `ubar`:
+/// `u_old(axis, face)` is the field before (read on those faces only, for ∂/∂β). Closed
+/// faces pass nothing back to the fluid.
+fn mix_body_velocities_adjoint(
     ubar: &mut Mac,
     u_old: impl Fn(usize, usize) -> f64,
-    bodies: &[crate::geometry::body::RigidBody],
-    faces: &[crate::geometry::fractions::BodyFaces],
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
     weights: &FaceWeights,
     grid: &Grid,
+    on: impl Fn(usize, usize) -> bool,
 ) -> Vec<BodyVelocityAdjoint> {
     let mut out = vec![BodyVelocityAdjoint::default(); bodies.len()];
     let mut claimed = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
@@ -316,7 +456,11 @@ pub fn apply_body_velocities_adjoint(
         for a in 0..3 {
             let lat = grid.faces(a);
             let e = crate::math::unit(a);
+            let turns = b.turns_liquid();
             for (&(f, beta), &g) in faces[i].faces[a].iter().zip(&incoming[i][a]) {
+                if !on(a, f) {
+                    continue;
+                }
                 let closed = weights.closed(a, f);
                 if closed && claimed[a][f] {
                     continue;
@@ -324,17 +468,21 @@ pub fn apply_body_velocities_adjoint(
                 let coef = if closed { 1.0 } else { beta };
                 let [ii, jj, kk] = lat.ijk(f);
                 let r = lat.position(ii, jj, kk) - b.x;
-                let t = r.cross(e);
                 for d in 0..3 {
                     out[i].vel[d] += coef * g * crate::math::comp(e, d);
-                    out[i].vel[3 + d] += coef * g * crate::math::comp(t, d);
                 }
-                out[i].x += coef * g * b.w.cross(e);
+                if turns {
+                    let t = r.cross(e);
+                    for d in 0..3 {
+                        out[i].vel[3 + d] += coef * g * crate::math::comp(t, d);
+                    }
+                    out[i].x += coef * g * b.w.cross(e);
+                }
                 if closed {
                     claimed[a][f] = true;
                     ubar.c[a][f] = 0.0;
                 } else {
-                    let ub = crate::math::comp(b.velocity_at(lat.position(ii, jj, kk)), a);
+                    let ub = crate::math::comp(b.liquid_velocity_at(lat.position(ii, jj, kk)), a);
                     out[i].dbeta.push((a, f, (ub - u_old(a, f)) * g));
                     if !scaled[a][f] {
                         ubar.c[a][f] = weights.weight(a, f) * g;
@@ -379,6 +527,102 @@ mod tests {
         correct_velocity_adjoint(&mut cty, &valid, &weights, &grid, 3);
         let (l, r) = (cx.dot(&y), x.dot(&cty));
         assert!((l - r).abs() <= 1e-12 * l.abs().max(r.abs()), "{l} vs {r}");
+    }
+
+    /// The correction with bodies is linear in the field and the bodies' velocities for fixed
+    /// masks and fractions: ⟨C(u, V), ȳ⟩ = ⟨u, Cᵀȳ⟩ + Σ_b V_b·V̄_b, with a tilted box (which
+    /// turns the liquid) and a ball (which does not) covering faces in part, closing others,
+    /// and both projected and air faces among them.
+    #[test]
+    fn correction_with_bodies_is_the_transpose() {
+        use crate::math::{Pose, Rotation, SharedShape, Vec3};
+        let grid = Grid { n: [9, 8, 7], dx: 0.1 };
+        let pose = |x: Vec3, q: Rotation| Pose::from_parts(x, q);
+        let tilt = Rotation::from_scaled_axis(Vec3::new(0.3, 0.5, -0.2));
+        let mut bodies = vec![
+            RigidBody::new(
+                "box".into(),
+                SharedShape::cuboid(0.17, 0.12, 0.14),
+                pose(Vec3::new(0.33, 0.41, 0.36), tilt),
+                700.0,
+            ),
+            RigidBody::new(
+                "ball".into(),
+                SharedShape::ball(0.16),
+                pose(Vec3::new(0.61, 0.37, 0.33), Rotation::IDENTITY),
+                500.0,
+            ),
+        ];
+        bodies[0].v = Vec3::new(0.3, -0.2, 0.1);
+        bodies[0].w = Vec3::new(0.4, 0.7, -0.5);
+        bodies[1].v = Vec3::new(-0.1, 0.25, 0.2);
+        bodies[1].w = Vec3::new(1.0, -2.0, 0.5);
+        assert!(bodies[0].turns_liquid() && !bodies[1].turns_liquid());
+        let faces: Vec<BodyFaces> = bodies.iter().map(|b| b.face_fractions(&grid)).collect();
+        let mut w = crate::geometry::fractions::face_weights(&grid, &[]);
+        for bf in &faces {
+            for a in 0..3 {
+                for &(f, beta) in &bf.faces[a] {
+                    w[a][f] = (w[a][f] - beta).max(0.0);
+                }
+            }
+        }
+        let statics = FaceWeights::new(&crate::geometry::fractions::face_weights(&grid, &[]));
+        let weights = FaceWeights::new(&w);
+        // The lower half projected (liquid below y = 0.4), every face a body covers in part
+        // above it an air face.
+        let projected = [0, 1, 2].map(|a| {
+            let lat = grid.faces(a);
+            (0..lat.len())
+                .map(|f| {
+                    let [i, j, k] = lat.ijk(f);
+                    u8::from(lat.position(i, j, k).y < 0.4)
+                })
+                .collect::<Vec<u8>>()
+        });
+        let kinds = |on: &dyn Fn(usize, usize) -> bool| -> usize {
+            (0..3)
+                .map(|a| {
+                    faces
+                        .iter()
+                        .flat_map(|bf| bf.faces[a].iter())
+                        .filter(|&&(f, _)| on(a, f))
+                        .count()
+                })
+                .sum()
+        };
+        assert!(kinds(&|a, f| projected[a][f] != 0 && !weights.closed(a, f)) > 10);
+        assert!(kinds(&|a, f| projected[a][f] == 0 && !weights.closed(a, f)) > 10);
+        assert!(kinds(&|a, f| weights.closed(a, f)) > 10);
+        let val = |s: usize| {
+            let mut m = Mac::zeros(&grid);
+            for a in 0..3 {
+                for (f, x) in m.c[a].iter_mut().enumerate() {
+                    *x = ((f * 7919 + a * 13 + s) % 97) as f64 / 48.0 - 1.0;
+                }
+            }
+            m
+        };
+        let (x, y) = (val(1), val(2));
+        let mut cx = x.clone();
+        let air =
+            correct_with_bodies(&mut cx, &projected, &bodies, &faces, &weights, &statics, &grid, 3);
+        let mut cty = y.clone();
+        let u_old = |a: usize, f: usize| x.c[a][f];
+        let bva = correct_with_bodies_adjoint(
+            &mut cty, u_old, &air, &projected, &bodies, &faces, &weights, &statics, &grid, 3,
+        );
+        let gen = |b: &RigidBody| [b.v.x, b.v.y, b.v.z, b.w.x, b.w.y, b.w.z];
+        let l = cx.dot(&y);
+        let r = x.dot(&cty)
+            + bodies
+                .iter()
+                .zip(&bva)
+                .map(|(b, g)| (0..6).map(|d| gen(b)[d] * g.vel[d]).sum::<f64>())
+                .sum::<f64>();
+        assert!((l - r).abs() <= 1e-12 * l.abs().max(r.abs()), "{l} vs {r}");
+        // The ball's spin reaches nothing.
+        assert!(bva[1].vel[3..].iter().all(|&g| g == 0.0));
     }
 
     /// Each layer's front is every never-set face with a lattice neighbour known just before

@@ -6,4 +6,5 @@ pub mod density;
 pub mod extrapolate;
 pub mod forces;
 pub mod pressure;
+pub mod solid_phi;
 pub mod surface;

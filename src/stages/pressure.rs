@@ -1108,8 +1108,9 @@ pub fn projection_pose_adjoint(
                 }
             }
             // δJ columns on the two cells beside the face.
+            let turns = body.turns_liquid();
             let r = lat.position(ijk[0], ijk[1], ijk[2]) - body.x;
-            let t = r.cross(e);
+            let t = if turns { r.cross(e) } else { Vec3::ZERO };
             let col = [e.x, e.y, e.z, t.x, t.y, t.z];
             let (sm, sp) = (row_val(m, g.s), row_val(pl, g.s));
             let (pm, pp) = (row_val(m, g.p), row_val(pl, g.p));
@@ -1119,7 +1120,7 @@ pub fn projection_pose_adjoint(
                     djs[k][c] += ns * beta.d[k] * col[c];
                     djp[k][c] += np * beta.d[k] * col[c];
                 }
-                if k < 3 {
+                if k < 3 && turns {
                     // δr = −e_k: δ(r × e) = −e_k × e.
                     let dt_ = -crate::math::unit(k).cross(e);
                     for c in 0..3 {

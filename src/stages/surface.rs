@@ -14,7 +14,7 @@ use crate::geometry::fractions::NodeSdf;
 use crate::geometry::grid::{floor_index, Grid, Mac};
 use crate::geometry::shape::Solid;
 use crate::math::buffer::refill;
-use crate::math::par::{min_pieces, MIN_LEN};
+use crate::math::par::min_pieces;
 use crate::math::{comp, Pose, SharedShape, Vec3};
 use rayon::prelude::*;
 
@@ -794,32 +794,6 @@ pub fn liquid_sdf_adjoint(
             pbar[p as usize] += g * d / len;
         }
     }
-}
-
-/// Marks cells whose centre is inside a static solid as liquid when a face neighbour is
-/// liquid, so a partly solid cell next to liquid is not mistaken for air (which would put a
-/// spurious p = 0 against the wall and let liquid leak along it). Returns the cells it set
-/// (in increasing order): their φ no longer depends on the particles.
-pub fn extend_into_solids(phi: &mut [f64], grid: &Grid, centre_in_solid: &[bool]) -> Vec<u32> {
-    let cells = grid.cells();
-    let src = &*phi;
-    let wet = |c: usize| {
-        if !centre_in_solid[c] || src[c] < 0.0 {
-            return false;
-        }
-        let p = cells.ijk(c);
-        (0..6).any(|f| cells.neighbour(c, p, f / 2, f % 2).is_some_and(|n| src[n] < 0.0))
-    };
-    let set: Vec<u32> = (0..phi.len())
-        .into_par_iter()
-        .with_min_len(MIN_LEN)
-        .filter(|&c| wet(c))
-        .map(|c| c as u32)
-        .collect();
-    for &c in &set {
-        phi[c as usize] = -0.5 * grid.dx;
-    }
-    set
 }
 
 /// Marker particle number density at cell centres, in full cells (1 = as dense as freshly

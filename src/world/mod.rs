@@ -9,5 +9,5 @@ pub mod tape;
 
 pub use settings::{ContactSettings, Fluid, SolverSettings, WorldSettings};
 pub use simulation::{BodyHandle, Simulation, SimulationBuilder};
-pub use step::{BodyForce, StageSeconds, StepReport, StepSystem};
+pub use step::{BodyForce, Energy, StageSeconds, StepReport, StepSystem};
 pub use tape::{StepRecord, Tape};

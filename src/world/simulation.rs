@@ -25,8 +25,8 @@
 
 use super::settings::{check_finite, check_positive, SettingError, SolverSettings, WorldSettings};
 use super::step::{
-    body_faces, generalized_velocity, kinetic_energy, predicted_velocity, BodyForce, Geometry,
-    Spare, StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
+    body_faces, generalized_velocity, kinetic_energy, predicted_velocity, BodyForce, Energy,
+    Geometry, Spare, StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
 };
 use super::tape::{ParticleRecord, Replay, Solves, StepRecord, Tape};
 use crate::error::{Error, Result};
@@ -40,7 +40,7 @@ use crate::math::{v3, Vec3};
 use crate::stages::band::{self, Band, BandChange};
 use crate::stages::contact::{contact_possible, hold_contact, ContactChange, ContactHold};
 use crate::stages::density::{self, DensityInputs, DensityStats};
-use crate::stages::extrapolate::{apply_body_velocities, correct_velocity};
+use crate::stages::extrapolate::correct_with_bodies;
 use crate::stages::forces::body_velocity;
 use crate::stages::pressure::PressureParams;
 use crate::stages::surface::{self, Bins, SurfaceModel};
@@ -914,6 +914,7 @@ impl Simulation {
                 theta_min: s.solver.theta_min,
             },
             coupling: s.solver.coupling,
+            gravity: s.fluid.gravity,
             solves: true,
         }
     }
@@ -1078,16 +1079,16 @@ impl Simulation {
         // 5. Velocity correction: the bodies' velocity on the faces they cover (which then
         // count as known), extrapolation into air, zero in static solids and walls.
         let mut u = u;
-        apply_body_velocities(
+        let air_body_faces = correct_with_bodies(
             &mut u,
+            &sys.projected_mask(),
             &self.bodies,
             &sys.geometry.body_faces,
             &sys.geometry.weights,
+            &self.statics.weights,
             &grid,
+            self.settings.solver.extrapolation_layers,
         );
-        let mut valid = sys.known_faces();
-        let layers = self.settings.solver.extrapolation_layers;
-        correct_velocity(&mut u, &mut valid, &self.statics.weights, &grid, layers);
         lap(&mut times.correct_velocity);
 
         // Whether rapier integrates the bodies: contact possible at their new velocities.
@@ -1104,6 +1105,7 @@ impl Simulation {
                 p: proj.p.clone(),
                 phi: taped_phi,
                 body_faces: sys.geometry.body_faces.clone(),
+                air_body_faces,
                 contact: contact || contact_moves,
                 particles: particle_record,
             });
@@ -1144,6 +1146,7 @@ impl Simulation {
             (f64::NAN, f64::NAN)
         };
         self.spare.keep_system(sys.geometry, sys.pressure);
+        let energy = if report { self.energy() } else { Energy::default() };
         Ok(StepReport {
             step: self.step,
             time: self.time,
@@ -1155,6 +1158,7 @@ impl Simulation {
             liquid_volume,
             max_speed,
             kinetic_energy,
+            energy,
             bodies,
             contact_iterations: proj.hold.iterations,
             contact_residual: proj.hold.residual,
@@ -1255,6 +1259,7 @@ impl Simulation {
             weights: &geometry.weights,
             node_sdf: &self.statics.node_sdf,
             centre_in_solid: &geometry.centre_in_solid,
+            gravity: self.settings.fluid.gravity,
             surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,
             theta_min: solver.theta_min,
@@ -1430,6 +1435,43 @@ impl Simulation {
             }
         }
         Ok(())
+    }
+
+    /// The mechanical energy of the liquid and the bodies now: the liquid's as the marker
+    /// particles carry it (each its share ρ·dx³/particles-per-cell of mass, moving with the
+    /// grid velocity where it is), the cells of a narrow band's deep region as full cells at
+    /// their centre. Kinetic and potential energy of the liquid are then measured on the same
+    /// mass, which the face-weighted sum of the step report is not.
+    pub fn energy(&self) -> Energy {
+        let g = v3(self.settings.fluid.gravity);
+        let rho = self.settings.fluid.density;
+        let cell = self.grid.dx.powi(3);
+        let grid = &self.grid;
+        let per_particle = rho * cell / self.settings.solver.particles_per_cell as f64;
+        let kinetic = crate::math::par::sum_by(&self.particles, |x| {
+            0.5 * self.u.velocity(grid, *x).length_squared()
+        });
+        let potential = crate::math::par::sum_by(&self.particles, |x| -g.dot(*x));
+        let (deep_kinetic, deep_potential) = self.band.as_ref().map_or((0.0, 0.0), |b| {
+            let cells = grid.cells();
+            (0..b.deep.len()).filter(|&c| b.deep[c]).fold((0.0, 0.0), |(k, p), c| {
+                let [i, j, k3] = cells.ijk(c);
+                let x = cells.position(i, j, k3);
+                (k + 0.5 * self.u.velocity(grid, x).length_squared(), p - g.dot(x))
+            })
+        });
+        let (mut body_kinetic, mut body_potential) = (0.0, 0.0);
+        for b in &self.bodies {
+            body_kinetic +=
+                0.5 * b.mass * b.v.length_squared() + 0.5 * b.w.dot(b.world_inertia() * b.w);
+            body_potential -= b.mass * g.dot(b.x);
+        }
+        Energy {
+            liquid_kinetic: per_particle * kinetic + rho * cell * deep_kinetic,
+            liquid_potential: per_particle * potential + rho * cell * deep_potential,
+            body_kinetic,
+            body_potential,
+        }
     }
 
     /// Largest speed at the centre of a liquid cell (faces averaged per axis).

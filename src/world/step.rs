@@ -15,7 +15,7 @@ use crate::stages::forces::add_gravity;
 use crate::stages::pressure::{
     BodyCoupling, Coupling, PressureParams, PressureSystem, ProjectedFace, SystemMemory, SystemPool,
 };
-use crate::stages::surface;
+use crate::stages::solid_phi::SolidExtension;
 use serde::Serialize;
 use std::sync::Mutex;
 
@@ -107,6 +107,8 @@ pub struct StepParams {
     pub pressure: PressureParams,
     /// Monolithic or weak coupling.
     pub coupling: Coupling,
+    /// Gravity, m/s² (φ_L is carried into the solids across it).
+    pub gravity: [f64; 3],
     /// Whether the step solves for its pressures: false for a step given them (a
     /// checkpointed gradient's re-run), whose system is then built without the operator.
     pub solves: bool,
@@ -119,6 +121,8 @@ pub struct StepSystem {
     pub geometry: Geometry,
     /// φ_L at cell centres, extended into the solids (the pressure stage's liquid).
     pub phi: Vec<f64>,
+    /// How φ_L was carried into the solids (its transpose carries ∂L/∂φ back).
+    pub extension: SolidExtension,
     /// The faces whose advected velocity the step reads.
     pub needed: FaceMask,
     /// The pressure operator; with monolithic coupling its `bodies` are the coupled bodies'
@@ -145,7 +149,8 @@ impl StepSystem {
         params: StepParams,
         memory: SystemMemory,
     ) -> StepSystem {
-        surface::extend_into_solids(&mut phi, grid, &geometry.centre_in_solid);
+        let extension = SolidExtension::new(grid, &geometry.centre_in_solid, params.gravity);
+        extension.apply(&mut phi);
         let needed = needed_faces(grid, &phi, &geometry.body_faces);
         let build = if params.solves {
             PressureSystem::build_in
@@ -159,7 +164,8 @@ impl StepSystem {
             .iter()
             .map(|&i| {
                 let b = &bodies[i];
-                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x);
+                let jac =
+                    fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.turns_liquid());
                 BodyCoupling::new(&pressure.row_of_cell, &jac, dt_minv(b, dt))
             })
             .collect();
@@ -167,7 +173,8 @@ impl StepSystem {
             .filter(|&i| bodies[i].motion == crate::geometry::body::Motion::Kinematic)
             .map(|i| {
                 let b = &bodies[i];
-                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x);
+                let jac =
+                    fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.turns_liquid());
                 (
                     i,
                     BodyCoupling::new(&pressure.row_of_cell, &jac, [[0.0; 6]; 6]),
@@ -182,7 +189,7 @@ impl StepSystem {
             }
             Coupling::Weak => couplings,
         };
-        StepSystem { geometry, phi, needed, pressure, coupled, weak, kinematic }
+        StepSystem { geometry, phi, extension, needed, pressure, coupled, weak, kinematic }
     }
 
     /// The coupled bodies' J and Δt·M⁻¹, in the order of [`StepSystem::coupled`].
@@ -227,17 +234,15 @@ impl StepSystem {
         flux
     }
 
-    /// The faces the velocity correction treats as known: those the projection updated and
-    /// those the bodies cover.
-    pub fn known_faces(&self) -> [Vec<u8>; 3] {
+    /// The faces the pressure update acts on, a byte a face (1: updated).
+    pub fn projected_mask(&self) -> [Vec<u8>; 3] {
         let grid = &self.pressure.grid;
-        let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
+        let mut mask = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
         for a in 0..3 {
             let face = |pf: &ProjectedFace| pf.face as usize;
-            for_each_keyed_mut(&mut valid[a], &self.pressure.faces[a], face, |_, _, v| *v = 1);
+            for_each_keyed_mut(&mut mask[a], &self.pressure.faces[a], face, |_, _, v| *v = 1);
         }
-        crate::stages::extrapolate::mark_body_faces(&mut valid, &self.geometry.body_faces);
-        valid
+        mask
     }
 }
 
@@ -373,6 +378,8 @@ pub struct StepReport {
     pub max_speed: f64,
     /// Kinetic energy of the liquid, ½ Σ ρ·w_f·dx³·u_f² over faces next to liquid, J.
     pub kinetic_energy: f64,
+    /// The mechanical energy of the liquid and the bodies at the end of the step.
+    pub energy: Energy,
     /// Pressure force and torque on each body in the solve.
     pub bodies: Vec<BodyForce>,
     /// Extra pressure solves made to hold contact impulses (0 without contact).
@@ -401,6 +408,29 @@ pub fn kinetic_energy(u: &Mac, sys: &PressureSystem, weights: &FaceWeights, rho:
         })
         .sum();
     0.5 * rho * sys.grid.dx.powi(3) * e
+}
+
+/// The mechanical energy of the liquid and the bodies, J: what a closed system without
+/// forcing may lose (semi-Lagrangian advection dissipates) but never gain. Potential energy
+/// is −m·g·x, zero at the origin.
+#[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
+pub struct Energy {
+    /// Σ ½·m_p·|u(x_p)|² over the marker particles (see `liquid_potential`).
+    pub liquid_kinetic: f64,
+    /// Σ −m_p·g·x_p over the marker particles (m_p = ρ·dx³ per particles per cell), plus
+    /// −ρ·dx³·g·x_c over a narrow band's deep cells (full of liquid without particles).
+    pub liquid_potential: f64,
+    /// Σ ½·m·|v|² + ½·ω·I·ω over the bodies.
+    pub body_kinetic: f64,
+    /// Σ −m·g·x over the bodies.
+    pub body_potential: f64,
+}
+
+impl Energy {
+    /// The sum of the four.
+    pub fn total(&self) -> f64 {
+        self.liquid_kinetic + self.liquid_potential + self.body_kinetic + self.body_potential
+    }
 }
 
 /// `[v; ω]`.

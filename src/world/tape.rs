@@ -10,6 +10,7 @@ use crate::geometry::grid::Mac;
 use crate::math::Vec3;
 use crate::solvers::cg::CgStats;
 use crate::stages::band::BandChange;
+use crate::stages::extrapolate::AirBodyFaces;
 
 /// One forward step's record.
 #[derive(Clone, Debug)]
@@ -33,6 +34,12 @@ pub struct StepRecord {
     /// Each body's face fractions at the start of the step (a few kB; recomputing them cost
     /// 4% of the backward pass).
     pub body_faces: Vec<BodyFaces>,
+    /// The fluid velocity the correction extrapolated onto the faces the bodies cover in part
+    /// that the projection did not update, before it mixed in the bodies' part (see
+    /// [`correct_with_bodies`]).
+    ///
+    /// [`correct_with_bodies`]: crate::stages::extrapolate::correct_with_bodies
+    pub air_body_faces: AirBodyFaces,
     /// Whether rapier contact acted in this step (a kick in the solve, or the contact
     /// integration): the gradient then takes contact as free flight.
     pub contact: bool,
