@@ -51,7 +51,7 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
         &weights,
         PressureParams { dt, density: 1000.0, theta_min: 0.01 },
     );
-    let jac = body_jacobian(&grid, &faces, body.x, body.turns_liquid());
+    let jac = body_jacobian(&grid, &faces, body.x, body.spin());
     sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&body, dt)));
     // Gravity's velocity increment plus a seeded rough field.
     let mut u = Mac::zeros(&grid);

@@ -71,7 +71,7 @@ fn coupled_operator_is_symmetric() {
         &weights,
         PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
     );
-    let jac = body_jacobian(&grid, &faces, body.x, body.turns_liquid());
+    let jac = body_jacobian(&grid, &faces, body.x, body.spin());
     sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&body, 0.01)));
     assert!(sys.bodies[0].rows.len() > 20);
     let n = sys.len();

@@ -206,7 +206,7 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
         &weights,
         PressureParams { dt, density: 1000.0, theta_min: 0.01 },
     );
-    let jac = body_jacobian(&grid, &faces, body.x, body.turns_liquid());
+    let jac = body_jacobian(&grid, &faces, body.x, body.spin());
     sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&body, dt)));
     let mut u = Mac::zeros(&grid);
     for a in 0..3 {

@@ -44,6 +44,55 @@ pub struct RigidBody {
     pub thickness: f64,
 }
 
+/// Which part of a body's rotation reaches the liquid (see [`RigidBody::spin`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Spin {
+    /// All of it.
+    Whole,
+    /// The part across this world axis (a capsule, cylinder or cone about its axis).
+    AcrossAxis(Vec3),
+    /// None (a ball about its centre).
+    None,
+}
+
+impl Spin {
+    /// The part of an angular vector (an angular velocity, or a torque arm r × e) that
+    /// couples: P·x with P = 1, 1 − a·aᵀ or 0. P is symmetric, so the same projection maps
+    /// a torque and an angular velocity.
+    #[inline]
+    pub fn project(&self, x: Vec3) -> Vec3 {
+        match *self {
+            Spin::Whole => x,
+            Spin::AcrossAxis(a) => x - a * a.dot(x),
+            Spin::None => Vec3::ZERO,
+        }
+    }
+
+    /// δ(P·x) for a world rotation δθ of the body: with δa = δθ × a,
+    /// −δa·(a·x) − a·(δa·x). Zero unless the spin is about an axis.
+    #[inline]
+    pub fn rotation_derivative(&self, x: Vec3, dtheta: Vec3) -> Vec3 {
+        match *self {
+            Spin::AcrossAxis(a) => {
+                let da = dtheta.cross(a);
+                -da * a.dot(x) - a * da.dot(x)
+            }
+            _ => Vec3::ZERO,
+        }
+    }
+
+    /// ∂(P·x)/∂θ as it acts on a world rotation δθ of the body, given back as the gradient
+    /// of `g·(P·x)`: with δa = δθ × a, δ(P·x) = −δa·(a·x) − a·(δa·x), and
+    /// g·δ(P·x) = δθ·(−(a·x)·(a × g) − (g·a)·(a × x)). Zero unless the spin is about an axis.
+    #[inline]
+    pub fn rotation_gradient(&self, x: Vec3, g: Vec3) -> Vec3 {
+        match *self {
+            Spin::AcrossAxis(a) => -(a.dot(x)) * a.cross(g) - g.dot(a) * a.cross(x),
+            _ => Vec3::ZERO,
+        }
+    }
+}
+
 /// Who moves a body.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Motion {
@@ -354,31 +403,44 @@ impl RigidBody {
         self.v + self.w.cross(p - self.x)
     }
 
-    /// Whether the body's rotation reaches the liquid: false for a ball turning about its
-    /// centre of mass. Pressure acts along the surface normal, and every normal of a ball
-    /// passes through its centre, so the liquid exerts no torque on such a ball and its spin
-    /// pushes no liquid. The face fractions hold a ball's volume but not the symmetry of its
-    /// surface (their centroid at a given depth is off the ball's axis by about 1e-4 of a
-    /// cell), so the discrete pressure torque J·p is not zero: it spun a ball floating at rest
-    /// and the spin stirred the water around it (issue 33). Such a ball's coupling therefore
-    /// leaves out the angular part: its J has no torque rows, and the faces it covers carry
-    /// its linear velocity only.
-    pub fn turns_liquid(&self) -> bool {
-        let centred =
-            self.local_com.length() <= 1e-12 * self.shape.compute_local_bounding_sphere().radius;
-        !(self.shape.as_ball().is_some() && centred)
+    /// Which part of the body's rotation reaches the liquid ([`Spin`]). Pressure acts along
+    /// the surface normal. Every normal of a ball passes through its centre, and every normal
+    /// of a capsule, cylinder or cone meets its axis, so the liquid exerts no torque on a
+    /// ball about its centre nor on those about their axis, and that spin pushes no liquid.
+    /// The face fractions hold such a body's volume but not the symmetry of its surface (at
+    /// a given depth their centroid is off the axis by about 1e-4 of a cell), so the discrete
+    /// pressure torque J·p along a symmetry axis is not zero; nothing resists that spin, so
+    /// it grew without end (a ball floating at rest spun up and stirred the water, issue
+    /// 33). The coupling therefore leaves it out: J's torque rows are projected off the
+    /// symmetry axes, and the faces the body covers carry the rest of its rigid velocity.
+    /// A body whose centre of mass is off the axis keeps its whole rotation.
+    pub fn spin(&self) -> Spin {
+        let radius = self.shape.compute_local_bounding_sphere().radius;
+        let on_axis = |point: Vec3, axis: Vec3| {
+            (self.local_com - point).cross(axis).length() <= 1e-12 * radius
+        };
+        if self.shape.as_ball().is_some() && self.local_com.length() <= 1e-12 * radius {
+            return Spin::None;
+        }
+        let local = if let Some(c) = self.shape.as_capsule() {
+            let axis = (c.segment.b - c.segment.a).normalize_or_zero();
+            (axis != Vec3::ZERO && on_axis(c.segment.a, axis)).then_some(axis)
+        } else if self.shape.as_cylinder().is_some() || self.shape.as_cone().is_some() {
+            on_axis(Vec3::ZERO, Vec3::Y).then_some(Vec3::Y)
+        } else {
+            None
+        };
+        match local {
+            Some(l) => Spin::AcrossAxis(self.q * l),
+            None => Spin::Whole,
+        }
     }
 
     /// The velocity the liquid sees on the body's surface at a world point: the rigid
-    /// velocity, without the spin of a body whose rotation does not reach the liquid
-    /// ([`RigidBody::turns_liquid`]).
+    /// velocity with the spin [`RigidBody::spin`] leaves out removed.
     #[inline]
     pub fn liquid_velocity_at(&self, p: Vec3) -> Vec3 {
-        if self.turns_liquid() {
-            self.velocity_at(p)
-        } else {
-            self.v
-        }
+        self.v + self.spin().project(self.w).cross(p - self.x)
     }
 
     /// World bounds of the shape.

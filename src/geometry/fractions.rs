@@ -663,13 +663,15 @@ pub fn body_faces_generic<T: Scalar + Send + Sync>(
 /// − face, and `r_f` from the centre of mass to the face centre. `J·p` is then the pressure
 /// force and torque on the body (−∇p integrated over the solid part of each face), and
 /// `(Jᵀ·[v; ω])_i` the volume flux the body's motion pushes out of cell i. Sorted by cell.
-/// Without `turns` (a body whose rotation does not reach the liquid, see
-/// [`crate::geometry::body::RigidBody::turns_liquid`]) the torque rows are zero.
+/// The torque rows are projected by the body's [`Spin`] (`P·(r_f × e_f)`: what of its
+/// rotation reaches the liquid, see [`crate::geometry::body::RigidBody::spin`]).
+///
+/// [`Spin`]: crate::geometry::body::Spin
 pub fn body_jacobian(
     grid: &Grid,
     faces: &BodyFaces,
     com: crate::math::Vec3,
-    turns: bool,
+    spin: crate::geometry::body::Spin,
 ) -> Vec<(usize, [f64; 6])> {
     let area = grid.dx * grid.dx;
     let mut acc: std::collections::BTreeMap<usize, [f64; 6]> = Default::default();
@@ -679,7 +681,7 @@ pub fn body_jacobian(
         for &(f, beta) in &faces.faces[axis] {
             let ijk = lat.ijk(f);
             let r = lat.position(ijk[0], ijk[1], ijk[2]) - com;
-            let t = if turns { r.cross(e) } else { crate::math::Vec3::ZERO };
+            let t = spin.project(r.cross(e));
             let col = [e.x, e.y, e.z, t.x, t.y, t.z].map(|x| x * area * beta);
             let (minus, plus) = grid.face_cells(axis, ijk);
             for (cell, sign) in [(minus, 1.0), (plus, -1.0)] {

@@ -342,6 +342,9 @@ fn step_adjoint(
         }
         if mode == GradientMode::Full {
             out[i].x += r.x;
+            for d in 0..3 {
+                pose_grad[i][3 + d] += crate::math::comp(r.q, d);
+            }
             // ∂L/∂β_f · ∂β_f/∂pose on the faces the body covers in part.
             let lookup: std::collections::HashMap<(usize, usize), [f64; 6]> = (0..3)
                 .flat_map(|a| dual_faces[i][a].iter().map(move |(f, b)| ((a, *f), b.d)))

@@ -366,6 +366,9 @@ pub struct BodyVelocityAdjoint {
     pub vel: [f64; 6],
     /// ∂L/∂x through the torque arms p_f − x.
     pub x: crate::math::Vec3,
+    /// ∂L/∂θ (world rotation) through the symmetry axis the liquid's share of the spin is
+    /// taken across (see [`RigidBody::spin`]).
+    pub q: crate::math::Vec3,
     /// (axis, face, ∂L/∂β_f) on the faces the body covers in part: `(u_b − u)·ū`.
     pub dbeta: Vec<(usize, usize, f64)>,
 }
@@ -376,6 +379,7 @@ impl BodyVelocityAdjoint {
             self.vel[d] += o.vel[d];
         }
         self.x += o.x;
+        self.q += o.q;
         self.dbeta.extend(o.dbeta);
     }
 }
@@ -456,7 +460,8 @@ fn mix_body_velocities_adjoint(
         for a in 0..3 {
             let lat = grid.faces(a);
             let e = crate::math::unit(a);
-            let turns = b.turns_liquid();
+            let spin = b.spin();
+            let w_liquid = spin.project(b.w);
             for (&(f, beta), &g) in faces[i].faces[a].iter().zip(&incoming[i][a]) {
                 if !on(a, f) {
                     continue;
@@ -468,16 +473,14 @@ fn mix_body_velocities_adjoint(
                 let coef = if closed { 1.0 } else { beta };
                 let [ii, jj, kk] = lat.ijk(f);
                 let r = lat.position(ii, jj, kk) - b.x;
+                // u_b = e·(v + (P·ω) × r) = e·v + (P·(r × e))·ω.
+                let t = spin.project(r.cross(e));
                 for d in 0..3 {
                     out[i].vel[d] += coef * g * crate::math::comp(e, d);
+                    out[i].vel[3 + d] += coef * g * crate::math::comp(t, d);
                 }
-                if turns {
-                    let t = r.cross(e);
-                    for d in 0..3 {
-                        out[i].vel[3 + d] += coef * g * crate::math::comp(t, d);
-                    }
-                    out[i].x += coef * g * b.w.cross(e);
-                }
+                out[i].x += coef * g * w_liquid.cross(e);
+                out[i].q += coef * g * spin.rotation_gradient(b.w, r.cross(e));
                 if closed {
                     claimed[a][f] = true;
                     ubar.c[a][f] = 0.0;
@@ -557,7 +560,8 @@ mod tests {
         bodies[0].w = Vec3::new(0.4, 0.7, -0.5);
         bodies[1].v = Vec3::new(-0.1, 0.25, 0.2);
         bodies[1].w = Vec3::new(1.0, -2.0, 0.5);
-        assert!(bodies[0].turns_liquid() && !bodies[1].turns_liquid());
+        assert_eq!(bodies[0].spin(), crate::geometry::body::Spin::Whole);
+        assert_eq!(bodies[1].spin(), crate::geometry::body::Spin::None);
         let faces: Vec<BodyFaces> = bodies.iter().map(|b| b.face_fractions(&grid)).collect();
         let mut w = crate::geometry::fractions::face_weights(&grid, &[]);
         for bf in &faces {

@@ -1082,6 +1082,7 @@ pub fn projection_pose_adjoint(
         _ => 0.0,
     };
     let bc = &sys.bodies[coupling];
+    let spin = body.spin();
     let (js, jp) = (bc.force(g.s), bc.force(g.p));
     let mi = bc.dt_minv;
     let mi_jp = bc.dt_minv_times(&jp);
@@ -1108,9 +1109,8 @@ pub fn projection_pose_adjoint(
                 }
             }
             // δJ columns on the two cells beside the face.
-            let turns = body.turns_liquid();
             let r = lat.position(ijk[0], ijk[1], ijk[2]) - body.x;
-            let t = if turns { r.cross(e) } else { Vec3::ZERO };
+            let t = spin.project(r.cross(e));
             let col = [e.x, e.y, e.z, t.x, t.y, t.z];
             let (sm, sp) = (row_val(m, g.s), row_val(pl, g.s));
             let (pm, pp) = (row_val(m, g.p), row_val(pl, g.p));
@@ -1120,13 +1120,16 @@ pub fn projection_pose_adjoint(
                     djs[k][c] += ns * beta.d[k] * col[c];
                     djp[k][c] += np * beta.d[k] * col[c];
                 }
-                if k < 3 && turns {
-                    // δr = −e_k: δ(r × e) = −e_k × e.
-                    let dt_ = -crate::math::unit(k).cross(e);
-                    for c in 0..3 {
-                        djs[k][3 + c] += ns * beta.v * crate::math::comp(dt_, c);
-                        djp[k][3 + c] += np * beta.v * crate::math::comp(dt_, c);
-                    }
+                // δr = −e_k: δ(P·(r × e)) = −P·(e_k × e); a rotation δθ = e_k turns the
+                // symmetry axis of P: δP·(r × e).
+                let dt_ = if k < 3 {
+                    spin.project(-crate::math::unit(k).cross(e))
+                } else {
+                    spin.rotation_derivative(r.cross(e), crate::math::unit(k - 3))
+                };
+                for c in 0..3 {
+                    djs[k][3 + c] += ns * beta.v * crate::math::comp(dt_, c);
+                    djp[k][3 + c] += np * beta.v * crate::math::comp(dt_, c);
                 }
             }
         }

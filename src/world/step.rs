@@ -164,8 +164,7 @@ impl StepSystem {
             .iter()
             .map(|&i| {
                 let b = &bodies[i];
-                let jac =
-                    fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.turns_liquid());
+                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.spin());
                 BodyCoupling::new(&pressure.row_of_cell, &jac, dt_minv(b, dt))
             })
             .collect();
@@ -173,8 +172,7 @@ impl StepSystem {
             .filter(|&i| bodies[i].motion == crate::geometry::body::Motion::Kinematic)
             .map(|i| {
                 let b = &bodies[i];
-                let jac =
-                    fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.turns_liquid());
+                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.spin());
                 (
                     i,
                     BodyCoupling::new(&pressure.row_of_cell, &jac, [[0.0; 6]; 6]),
