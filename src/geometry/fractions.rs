@@ -393,6 +393,12 @@ fn volume_weights(grid: &Grid, solids: &[Solid]) -> [Vec<f64>; 3] {
 
 /// True where a cell's centre lies inside a static solid (mean of its corner distances < 0).
 pub fn cell_centre_in_solid(grid: &Grid, node_sdf: &NodeSdf) -> Vec<bool> {
+    cells_within(grid, node_sdf, 0.0)
+}
+
+/// Cells whose centre lies within `reach` of a static solid (or inside it): the distance at
+/// the centre, the mean of its 8 corner distances, under `reach`.
+pub fn cells_within(grid: &Grid, node_sdf: &NodeSdf, reach: f64) -> Vec<bool> {
     let nodes = grid.nodes();
     let cells = grid.cells();
     let Some(node_sdf) = node_sdf.values() else {
@@ -405,7 +411,7 @@ pub fn cell_centre_in_solid(grid: &Grid, node_sdf: &NodeSdf) -> Vec<bool> {
             for d in 0..8 {
                 s += node_sdf[nodes.index(i + (d & 1), j + ((d >> 1) & 1), k + ((d >> 2) & 1))];
             }
-            s < 0.0
+            s / 8.0 < reach
         })
         .collect()
 }

@@ -26,7 +26,7 @@
 use super::settings::{check_finite, check_positive, SettingError, SolverSettings, WorldSettings};
 use super::step::{
     body_faces, generalized_velocity, kinetic_energy, predicted_velocity, BodyForce, Energy,
-    Geometry, Spare, StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem,
+    Geometry, Spare, StageSeconds, StaticGeometry, StepParams, StepReport, StepSystem, NEAR_SOLID,
 };
 use super::tape::{ParticleRecord, Replay, Solves, StepRecord, Tape};
 use crate::error::{Error, Result};
@@ -381,6 +381,7 @@ impl SimulationBuilder {
             pressure: vec![0.0; grid.num_cells()],
             phi: vec![0.0; grid.num_cells()],
             statics: Arc::new(StaticGeometry {
+                near_solid: fractions::cells_within(&grid, &node_sdf, NEAR_SOLID * grid.dx),
                 node_sdf,
                 weights: FaceWeights::new(&weights),
                 centre_in_solid,
@@ -1259,6 +1260,7 @@ impl Simulation {
             weights: &geometry.weights,
             node_sdf: &self.statics.node_sdf,
             centre_in_solid: &geometry.centre_in_solid,
+            near_solid: &geometry.near_solid,
             gravity: self.settings.fluid.gravity,
             surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,

@@ -28,7 +28,14 @@ pub struct StaticGeometry {
     pub weights: FaceWeights,
     /// Cells whose centre lies inside an obstacle.
     pub centre_in_solid: Vec<bool>,
+    /// Cells whose centre is within [`NEAR_SOLID`] cells of an obstacle.
+    pub near_solid: Vec<bool>,
 }
+
+/// How near a solid (in cells) a cell centre counts as near it: √3, half the diagonal of
+/// the box between the centres of the cell's neighbours, which the particle density
+/// deposited on the cell reads (see `stages::density`).
+pub const NEAR_SOLID: f64 = 1.732_050_807_568_877_2;
 
 /// Where the solids are this step: combined face weights and the bodies' faces.
 #[derive(Clone, Debug)]
@@ -37,6 +44,8 @@ pub struct Geometry {
     pub weights: FaceWeights,
     /// Cells whose centre is inside a static solid or a body.
     pub centre_in_solid: Vec<bool>,
+    /// Cells whose centre is within [`NEAR_SOLID`] cells of a static solid or a body.
+    pub near_solid: Vec<bool>,
     /// Faces covered by each body.
     pub body_faces: Vec<BodyFaces>,
 }
@@ -68,35 +77,47 @@ impl Geometry {
         faces: Vec<BodyFaces>,
     ) -> Geometry {
         assert_eq!(bodies.len(), faces.len());
-        let (mut weights, mut centre_in_solid) = match old {
-            Some(Geometry { mut weights, mut centre_in_solid, .. })
-                if centre_in_solid.len() == statics.centre_in_solid.len() =>
+        let (mut weights, mut centre_in_solid, mut near_solid) = match old {
+            Some(Geometry { mut weights, mut centre_in_solid, mut near_solid, .. })
+                if centre_in_solid.len() == statics.centre_in_solid.len()
+                    && near_solid.len() == statics.near_solid.len() =>
             {
                 weights.copy_from(&statics.weights);
                 centre_in_solid.copy_from_slice(&statics.centre_in_solid);
-                (weights, centre_in_solid)
+                near_solid.copy_from_slice(&statics.near_solid);
+                (weights, centre_in_solid, near_solid)
             }
-            _ => (statics.weights.clone(), statics.centre_in_solid.clone()),
+            _ => (
+                statics.weights.clone(),
+                statics.centre_in_solid.clone(),
+                statics.near_solid.clone(),
+            ),
         };
         let cells = grid.cells();
+        let reach = NEAR_SOLID * grid.dx;
         for (b, faces) in bodies.iter().zip(&faces) {
             // β is already snapped to 0 or 1 where it is within round-off of them, so
             // w + β = 1 holds exactly on every face a body alone covers.
             weights.subtract(&faces.faces);
             let (lo, hi) = b.bounds();
-            let lo = lo.to_array().map(|x| ((x / grid.dx).floor().max(0.0)) as usize);
-            let hi = hi.to_array();
-            for k in lo[2]..grid.n[2].min((hi[2] / grid.dx).ceil() as usize + 1) {
-                for j in lo[1]..grid.n[1].min((hi[1] / grid.dx).ceil() as usize + 1) {
-                    for i in lo[0]..grid.n[0].min((hi[0] / grid.dx).ceil() as usize + 1) {
-                        if b.sdf(cells.position(i, j, k)) < 0.0 {
-                            centre_in_solid[grid.cell(i, j, k)] = true;
+            let lo = lo.to_array().map(|x| (((x - reach) / grid.dx).floor().max(0.0)) as usize);
+            let hi = hi.to_array().map(|x| ((x + reach) / grid.dx).ceil() as usize + 1);
+            for k in lo[2]..grid.n[2].min(hi[2]) {
+                for j in lo[1]..grid.n[1].min(hi[1]) {
+                    for i in lo[0]..grid.n[0].min(hi[0]) {
+                        let d = b.sdf(cells.position(i, j, k));
+                        let c = grid.cell(i, j, k);
+                        if d < 0.0 {
+                            centre_in_solid[c] = true;
+                        }
+                        if d < reach {
+                            near_solid[c] = true;
                         }
                     }
                 }
             }
         }
-        Geometry { weights, centre_in_solid, body_faces: faces }
+        Geometry { weights, centre_in_solid, near_solid, body_faces: faces }
     }
 }
 
