@@ -40,8 +40,9 @@ enum Command {
     /// the map, where the one-sided differences disagree: unless the adjoint is one of them).
     Gradcheck(GradcheckArgs),
     /// Speed against accuracy: sweeps of resolution and solver tolerance, the stability map
-    /// of the monolithic and the weak coupling, thin plates, and time per step against liquid
-    /// cells. Writes CSV tables and PNG charts.
+    /// of the monolithic and the weak coupling, thin plates, time per step against liquid
+    /// cells, an energy audit, and smoothness over long horizons. Writes CSV tables and PNG
+    /// charts.
     Bench(BenchArgs),
     /// Draw a run's frames (a folder `run` wrote with output.surface = true): the liquid's
     /// shaded surface and the bodies, seen from the side or from above, as DIR/render.gif,
@@ -364,7 +365,7 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
 
 fn bench(args: BenchArgs) -> Outcome {
     let bar = bar(
-        if args.only.is_some() { 1 } else { 5 },
+        if args.only.is_some() { 1 } else { 6 },
         false,
         "{bar:30} {pos}/{len} {msg} [{elapsed}]",
     );

@@ -3,6 +3,12 @@
 //! CFL ≤ 1, and the weak (partitioned) coupling blows up for the lightest body (ratio 0.01:
 //! its added mass is fifty times its own). The smoothness study's live-surface adjoint
 //! agrees with central differences on the surge scene's first steps.
+//!
+//! The energy audit checks that a rest state stays at rest: still water, and a ball
+//! floating at its Archimedes height in it, are equilibria of the continuous problem, so
+//! nothing may set the liquid moving (its kinetic energy stays at round-off) and, with no
+//! forcing, the total mechanical energy (kinetic plus potential, liquid and ball) may fall
+//! through dissipation but never rise above where it started.
 
 use std::process::Command;
 
@@ -15,7 +21,7 @@ fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
         .status()
         .expect("runs");
     assert!(status.success());
-    for f in ["accuracy", "stability", "thin", "cost"] {
+    for f in ["accuracy", "stability", "thin", "cost", "energy"] {
         for ext in ["csv", "png"] {
             let p = out.join(format!("{f}.{ext}"));
             assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{p:?}");
@@ -82,4 +88,31 @@ fn quick_scale_study_writes_its_table_and_charts() {
         assert!(at(1, name) > 2.0 * at(0, name), "{name}: {} then {}", at(0, name), at(1, name));
     }
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The quick energy audit (0.5 s of each scene): still water and the ball floating at rest
+/// stay still, their liquid's kinetic energy under 1e-9 J (measured about 1e-17 J) and
+/// their total energy never more than 1e-6 J above its start (measured 1e-11 J). The
+/// dropped ball and the sloshing tank are only run here: every step leaves a finite row.
+#[test]
+fn quick_energy_audit_keeps_rest_states_at_rest() {
+    use diffluid::experiments::bench::{energy, ENERGY_SCENES};
+    let rows = energy(true).unwrap();
+    for name in ENERGY_SCENES {
+        let scene: Vec<_> = rows.iter().filter(|r| r.scene == name).collect();
+        assert_eq!(scene.len(), 51, "{name}: the initial state and 50 steps");
+        for (n, r) in scene.iter().enumerate() {
+            assert_eq!(r.step, n, "{name}");
+            let parts = [r.liquid_kinetic, r.liquid_potential, r.body_kinetic, r.body_potential];
+            assert!(parts.iter().chain([&r.total_change]).all(|x| x.is_finite()), "{name} {n}");
+        }
+    }
+    for name in ["still_water", "ball_at_rest"] {
+        let scene = rows.iter().filter(|r| r.scene == name);
+        let kinetic = scene.clone().map(|r| r.liquid_kinetic).fold(0.0, f64::max);
+        let gain = scene.map(|r| r.total_change).fold(0.0, f64::max);
+        eprintln!("{name}: liquid kinetic energy at most {kinetic:.3e} J, gain {gain:.3e} J");
+        assert!(kinetic < 1e-9, "{name}: the liquid gained {kinetic:e} J of kinetic energy");
+        assert!(gain < 1e-6, "{name}: the total energy rose {gain:e} J above its start");
+    }
 }

@@ -329,8 +329,9 @@ fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> 
 }
 
 /// One study of `diffluid bench` (see [`mod@bench`]): [`bench::accuracy`],
-/// [`bench::stability`], [`bench::thin_plates`], [`bench::cost`], [`bench::smoothness`] and
-/// [`bench::scale`]. (The variants' own docs are the CLI's help, so they name no item.)
+/// [`bench::stability`], [`bench::thin_plates`], [`bench::cost`], [`bench::energy`],
+/// [`bench::smoothness`] and [`bench::scale`]. (The variants' own docs are the CLI's help,
+/// so they name no item.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Study {
@@ -342,6 +343,9 @@ pub enum Study {
     Thin,
     /// Time per step against liquid cells.
     Cost,
+    /// The mechanical energy of still water, a floating ball at rest, a dropped ball and a
+    /// sloshing tank, step by step.
+    Energy,
     /// Smoothness over long horizons.
     Smoothness,
     /// Time per step and peak memory against grid size up to 8.4M cells: run only when
@@ -349,7 +353,7 @@ pub enum Study {
     Scale,
 }
 
-/// The studies of `diffluid bench` (all five, or `only` one), run and written into `out` as
+/// The studies of `diffluid bench` (all six but the scale study, or `only` one), run and written into `out` as
 /// CSV tables and PNG charts; `progress` hears each study's name as it starts. Returns a few
 /// lines of summary.
 pub fn write_bench(
@@ -372,6 +376,9 @@ pub fn write_bench(
     }
     if runs(Study::Cost) {
         lines.extend(write_cost(out, quick, &mut progress)?);
+    }
+    if runs(Study::Energy) {
+        lines.extend(write_energy(out, quick, &mut progress)?);
     }
     if only == Some(Study::Scale) {
         lines.extend(write_scale(out, quick, &mut progress)?);
@@ -471,7 +478,6 @@ fn write_thin(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Resul
     )
 }
 
-/// The cost study, and a line saying what doubling the air costs.
 /// The scale study: its table, a chart of time per step and one of peak memory against
 /// cells, and a line per size.
 fn write_scale(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Result<Vec<String>> {
@@ -519,6 +525,7 @@ fn write_scale(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Resu
         .collect())
 }
 
+/// The cost study, and a line saying what doubling the air costs.
 fn write_cost(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Result<Vec<String>> {
     let at = |name: &str| out.join(name);
     progress("cost against liquid cells");
@@ -546,5 +553,39 @@ fn write_cost(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Resul
             air[1].cells
         ));
     }
+    Ok(lines)
+}
+
+/// The energy audit: `energy.csv`, `energy.png`, and a line per scene with the largest gain
+/// of the total energy over its start, the change at the end, and the largest kinetic energy
+/// of the liquid.
+fn write_energy(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Result<Vec<String>> {
+    let at = |name: &str| out.join(name);
+    progress("energy audit");
+    let rows = bench::energy(quick)?;
+    write_csv(&at("energy.csv"), &rows)?;
+    let mut curves = Vec::new();
+    let mut lines = Vec::new();
+    for name in bench::ENERGY_SCENES {
+        let scene: Vec<&bench::EnergyRow> = rows.iter().filter(|r| r.scene == name).collect();
+        let Some(last) = scene.last() else { continue };
+        let pick = |f: fn(&bench::EnergyRow) -> f64| -> Vec<(f64, f64)> {
+            scene.iter().map(|r| (r.time, f(r))).collect()
+        };
+        curves.push(plot::EnergyCurves {
+            label: name.replace('_', " "),
+            change: pick(|r| r.total_change),
+            liquid_kinetic: pick(|r| r.liquid_kinetic),
+            body_kinetic: pick(|r| r.body_kinetic),
+        });
+        let gain = scene.iter().map(|r| r.total_change).fold(0.0, f64::max);
+        let kinetic = scene.iter().map(|r| r.liquid_kinetic).fold(0.0, f64::max);
+        lines.push(format!(
+            "{name}: total energy at most {gain:+.3e} J over its start, {:+.3e} J at {:.2} s; \
+             liquid kinetic energy at most {kinetic:.3e} J",
+            last.total_change, last.time
+        ));
+    }
+    plot::energy_chart(&at("energy.png"), &curves)?;
     Ok(lines)
 }

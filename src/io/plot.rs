@@ -406,6 +406,116 @@ pub fn stability_chart(path: &Path, panels: &[StabilityPanel]) -> Result<()> {
     root.present().map_err(|e| err(path, e))
 }
 
+/// One scene's curves in the energy chart, as (time in s, energy in J) points.
+#[derive(Clone, Debug, Default)]
+pub struct EnergyCurves {
+    /// Legend label.
+    pub label: String,
+    /// The total energy less its start.
+    pub change: Vec<(f64, f64)>,
+    /// The liquid's kinetic energy.
+    pub liquid_kinetic: Vec<(f64, f64)>,
+    /// The bodies' kinetic energy (empty, or all zero, for a scene without bodies: not drawn).
+    pub body_kinetic: Vec<(f64, f64)>,
+}
+
+/// The energy audit's chart: above, each scene's total energy less its start against time
+/// (linear, with a zero line); below, the liquid's (solid) and the bodies' (dashed) kinetic
+/// energy on a log scale (zeros left out), each scene in one colour in both panels.
+pub fn energy_chart(path: &Path, scenes: &[EnergyCurves]) -> Result<()> {
+    font();
+    let root = BitMapBackend::new(path, (900, 1000)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(path, e))?;
+    let (top, bottom) = root.split_vertically(520);
+    let times = || scenes.iter().flat_map(|s| s.change.iter().map(|p| p.0));
+    let t1 = times().filter(|t| t.is_finite()).fold(0.0, f64::max).max(1e-3);
+    let finite = |pts: &[(f64, f64)]| -> Vec<(f64, f64)> {
+        pts.iter().copied().filter(|p| p.0.is_finite() && p.1.is_finite()).collect()
+    };
+
+    // The change of the total, the zero line always in view.
+    let (y0, y1) =
+        span(scenes.iter().flat_map(|s| s.change.iter().map(|p| p.1)).chain([0.0]), false);
+    let mut chart = ChartBuilder::on(&top)
+        .caption("total energy less its start", ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(80)
+        .build_cartesian_2d(0.0..t1, y0..y1)
+        .map_err(|e| err(path, e))?;
+    chart
+        .configure_mesh()
+        .x_desc("time, s")
+        .y_desc("E(t) - E(0), J")
+        .x_label_formatter(&|x| short(*x))
+        .y_label_formatter(&|y| short(*y))
+        .draw()
+        .map_err(|e| err(path, e))?;
+    chart
+        .draw_series(LineSeries::new([(0.0, 0.0), (t1, 0.0)], BLACK.mix(0.6)))
+        .map_err(|e| err(path, e))?;
+    for (k, s) in scenes.iter().enumerate() {
+        let c = PALETTE[k % PALETTE.len()];
+        chart
+            .draw_series(LineSeries::new(finite(&s.change), c.stroke_width(2)))
+            .map_err(|e| err(path, e))?
+            .label(s.label.as_str())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| err(path, e))?;
+
+    // The kinetic energies, drawn as log10 on a linear axis labelled in J: plotters' log
+    // axis leaves out its key points (grid lines and labels) below f64::EPSILON, and a rest
+    // state's kinetic energy is round-off, 1e-21 to 1e-15 J.
+    let positive = |pts: &[(f64, f64)]| -> Vec<(f64, f64)> {
+        pts.iter()
+            .filter(|p| p.0.is_finite() && p.1.is_finite() && p.1 > 0.0)
+            .map(|p| (p.0, p.1.log10()))
+            .collect()
+    };
+    let logs: Vec<f64> = scenes
+        .iter()
+        .flat_map(|s| positive(&s.liquid_kinetic).into_iter().chain(positive(&s.body_kinetic)))
+        .map(|p| p.1)
+        .collect();
+    let (k0, k1) = span(logs.into_iter(), false);
+    let mut chart = ChartBuilder::on(&bottom)
+        .caption("kinetic energy: liquid (solid), bodies (dashed)", ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(80)
+        .build_cartesian_2d(0.0..t1, k0..k1)
+        .map_err(|e| err(path, e))?;
+    chart
+        .configure_mesh()
+        .x_desc("time, s")
+        .y_desc("kinetic energy, J")
+        .y_labels(12)
+        .x_label_formatter(&|x| short(*x))
+        .y_label_formatter(&|y| short(10f64.powf(*y)))
+        .draw()
+        .map_err(|e| err(path, e))?;
+    for (k, s) in scenes.iter().enumerate() {
+        let c = PALETTE[k % PALETTE.len()];
+        chart
+            .draw_series(LineSeries::new(positive(&s.liquid_kinetic), c.stroke_width(2)))
+            .map_err(|e| err(path, e))?;
+        let body = positive(&s.body_kinetic);
+        if !body.is_empty() {
+            chart
+                .draw_series(DashedLineSeries::new(body, 8, 5, c.stroke_width(2)))
+                .map_err(|e| err(path, e))?;
+        }
+    }
+    root.present().map_err(|e| err(path, e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
