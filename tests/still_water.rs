@@ -51,3 +51,27 @@ fn still_water_stays_still_with_hydrostatic_pressure() {
     eprintln!("worst relative pressure error {worst:.2e}");
     assert!((sim.liquid_volume() - v0).abs() <= 1e-6 * v0);
 }
+
+/// `Simulation::stable_dt` reads the liquid's faces, not the air the extrapolation fills:
+/// a fast face high in the air changes nothing, the same speed on a face of a liquid cell
+/// shortens the step to cfl·dx over it.
+#[test]
+fn the_stable_step_reads_the_liquid_not_the_air() {
+    let scene = Scene::builtin("still_water").unwrap();
+    let mut sim = scene.build().unwrap();
+    sim.step().unwrap();
+    let dt = sim.dt();
+    assert_eq!(sim.stable_dt(), dt, "still water steps at the fixed Δt");
+    let grid = *sim.grid();
+    let faces = grid.faces(1);
+    // A face 0.3 m above the surface (0.5 m), then one 0.2 m under it.
+    let air = faces.index(10, 16, 10);
+    let water = faces.index(10, 6, 10);
+    sim.u.c[1][air] = 50.0;
+    assert_eq!(sim.stable_dt(), dt, "a fast face in the air set the step");
+    sim.u.c[1][air] = 0.0;
+    sim.u.c[1][water] = 50.0;
+    let g = 9.81f64;
+    let expect = sim.settings().solver.cfl * grid.dx / (50.0 + (grid.dx * g).sqrt());
+    assert!((sim.stable_dt() - expect).abs() < 1e-12 * expect, "{} vs {expect}", sim.stable_dt());
+}
