@@ -3,7 +3,10 @@
 use std::path::PathBuf;
 
 /// Everything that can go wrong in diffluid, with a message that names the problem.
+/// Non-exhaustive: a match needs a catch-all arm, so a new kind of error is not a breaking
+/// change.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum Error {
     /// A scene file that cannot be read.
     #[error("cannot read scene file {path}: {source}")]
@@ -49,14 +52,17 @@ pub enum Error {
     },
     /// A gradient asked of a forward map the backward pass cannot differentiate.
     #[error("gradient not available: {0}")]
-    Gradient(String),
-    /// The pressure solve did not reach its tolerance.
+    Gradient(#[from] GradientError),
+    /// A linear solve did not reach its tolerance.
     #[error(
-        "pressure solve did not converge at step {step}: relative residual {residual:.3e} after \
+        "{solve} did not converge at step {step}: relative residual {residual:.3e} after \
          {iterations} iterations (tolerance {tolerance:.1e}); raise solver.max_iterations or \
-         loosen solver.tolerance"
+         loosen {key}",
+        key = solve.key()
     )]
     NotConverged {
+        /// Which solve.
+        solve: Solve,
         /// The step that failed.
         step: usize,
         /// Iterations done.
@@ -102,6 +108,81 @@ pub enum Error {
         path: PathBuf,
         /// Why.
         source: std::io::Error,
+    },
+}
+
+/// A linear solve of a step or of its adjoint.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Solve {
+    /// The coupled pressure solve (stage `pressure`).
+    Pressure,
+    /// The particle density projection (stage `density`).
+    Density,
+    /// The pressure solve's adjoint (the backward pass).
+    PressureAdjoint,
+    /// The density projection's adjoint (the backward pass, live surface).
+    DensityAdjoint,
+}
+
+impl Solve {
+    /// The scene key whose tolerance the solve works to.
+    pub fn key(self) -> &'static str {
+        match self {
+            Solve::Pressure | Solve::PressureAdjoint => "solver.tolerance",
+            Solve::Density | Solve::DensityAdjoint => "solver.density_tolerance",
+        }
+    }
+}
+
+impl std::fmt::Display for Solve {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Solve::Pressure => "the pressure solve",
+            Solve::Density => "the density projection",
+            Solve::PressureAdjoint => "the adjoint pressure solve",
+            Solve::DensityAdjoint => "the adjoint density projection",
+        })
+    }
+}
+
+/// Why a gradient is not available.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum GradientError {
+    /// Bodies were added or removed inside the taped steps.
+    #[error(
+        "taped step {step} has {taped} bodies, the initial state {initial}: bodies were added \
+         or removed inside the taped steps"
+    )]
+    BodiesChanged {
+        /// The taped step (from 1).
+        step: usize,
+        /// Its bodies.
+        taped: usize,
+        /// The initial state's bodies.
+        initial: usize,
+    },
+    /// The partitioned coupling has no adjoint.
+    #[error("gradients are only available for solver.coupling = \"monolithic\"")]
+    WeakCoupling,
+    /// rapier contact acted and the options do not accept it as free flight.
+    #[error(
+        "rapier contact acted in the taped steps and gradients do not pass through it: set \
+         [contact] enabled = false, or accept contact as free flight in the gradient \
+         (optimize.through_contact = true)"
+    )]
+    ThroughContact,
+    /// A checkpointed segment's re-run did not repeat its forward pass.
+    #[error(
+        "re-running step {step} from its checkpoint {what}: the forward map is not \
+         deterministic"
+    )]
+    NotDeterministic {
+        /// The step re-run.
+        step: usize,
+        /// What differed.
+        what: String,
     },
 }
 

@@ -123,6 +123,6 @@ pub mod solvers;
 pub mod stages;
 pub mod world;
 
-pub use error::{Error, Result};
+pub use error::{Error, GradientError, Result, Solve};
 pub use experiments::scene::Scene;
 pub use world::{BodyHandle, Simulation, StepReport};

@@ -16,7 +16,7 @@ use diffluid::geometry::weights::FaceWeights;
 use diffluid::solvers::{LinearSolve, Preconditioner};
 use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
 use diffluid::world::step::{dt_minv, generalized_velocity};
-use diffluid::{Error, Scene};
+use diffluid::{Error, Scene, Solve};
 use nalgebra::{DMatrix, DVector};
 
 /// A tank with a ball obstacle (partial weights) and a sloped free surface at height `level`.
@@ -276,9 +276,11 @@ fn failure_to_converge_is_an_error() {
     scene.solver.max_iterations = 2;
     let mut sim = scene.build().unwrap();
     match sim.step() {
-        Err(Error::NotConverged { step, iterations, residual, .. }) => {
+        Err(e @ Error::NotConverged { solve: Solve::Pressure, step, iterations, residual, .. }) => {
             assert_eq!((step, iterations), (1, 2));
             assert!(residual > 1e-8);
+            let m = e.to_string();
+            assert!(m.contains("the pressure solve") && m.contains("solver.tolerance"), "{m}");
         }
         other => panic!("expected NotConverged, got {other:?}"),
     }
@@ -286,4 +288,23 @@ fn failure_to_converge_is_an_error() {
     // back, that of the particles where the failed step left them.
     assert_eq!(sim.liquid_phi().len(), sim.grid().num_cells());
     assert_eq!(sim.liquid_phi(), sim.particle_phi());
+}
+
+/// A density projection that fails says so, and names the key that loosens it.
+#[test]
+fn a_density_projection_that_fails_names_its_own_key() {
+    // At 1/20 m cells the pressure needs at most 20 iterations and the projection at 1e-15
+    // up to 36.
+    let mut scene = Scene::builtin("dam_break").unwrap();
+    scene.domain.dx = 0.05;
+    scene.solver.density_tolerance = 1e-15;
+    scene.solver.max_iterations = 24;
+    let mut sim = scene.build().unwrap();
+    let err = (0..50).find_map(|_| sim.step().err()).expect("the density projection converged");
+    match &err {
+        Error::NotConverged { solve: Solve::Density, .. } => {}
+        other => panic!("expected the density projection to fail, got {other:?}"),
+    }
+    let m = err.to_string();
+    assert!(m.contains("density projection") && m.contains("solver.density_tolerance"), "{m}");
 }

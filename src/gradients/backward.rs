@@ -20,7 +20,7 @@
 //! [`GradientMode::Paper`] drops it, as the paper does.
 
 use super::loss::{AdjointState, BodyAdjoint, BodyGradient, Gradient};
-use crate::error::{Error, Result};
+use crate::error::{Error, GradientError, Result, Solve};
 use crate::geometry::body::{
     carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, Motion, RigidBody,
 };
@@ -127,13 +127,12 @@ pub fn check_differentiable(
     check_settings(initial, tape.through_contact(), options)?;
     for (t, rec) in tape.steps.iter().enumerate() {
         if rec.bodies.len() != initial.bodies().len() {
-            return Err(Error::Gradient(format!(
-                "taped step {} has {} bodies, the initial state {}: bodies were added or removed \
-                 inside the taped steps",
-                t + 1,
-                rec.bodies.len(),
-                initial.bodies().len()
-            )));
+            return Err(GradientError::BodiesChanged {
+                step: t + 1,
+                taped: rec.bodies.len(),
+                initial: initial.bodies().len(),
+            }
+            .into());
         }
     }
     Ok(())
@@ -148,17 +147,10 @@ pub fn check_settings(
     options: &GradientOptions,
 ) -> Result<()> {
     if initial.settings().solver.coupling != Coupling::Monolithic {
-        return Err(Error::Gradient(
-            "gradients are only available for solver.coupling = \"monolithic\"".into(),
-        ));
+        return Err(GradientError::WeakCoupling.into());
     }
     if through_contact && !options.through_contact {
-        return Err(Error::Gradient(
-            "rapier contact acted in the taped steps and gradients do not pass through it: set \
-             [contact] enabled = false, or accept contact as free flight in the gradient \
-             (optimize.through_contact = true)"
-                .into(),
-        ));
+        return Err(GradientError::ThroughContact.into());
     }
     Ok(())
 }
@@ -373,6 +365,7 @@ fn step_adjoint(
     });
     if !stats.converged {
         return Err(Error::NotConverged {
+            solve: Solve::PressureAdjoint,
             step,
             iterations: stats.iterations,
             residual: stats.relative_residual,
@@ -545,6 +538,7 @@ impl ParticleAdjoint<'_> {
                 let (s, stats) = proj.adjoint_with(&advected, q, disp, &mut pbar, g);
                 if !stats.converged {
                     return Err(Error::NotConverged {
+                        solve: Solve::DensityAdjoint,
                         step,
                         iterations: stats.iterations,
                         residual: stats.relative_residual,

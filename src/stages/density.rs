@@ -291,6 +291,7 @@ impl DensityProjection {
         let (q, stats) = self.sys.solve(&self.b, &g.solve);
         if !stats.converged {
             return Err(Error::NotConverged {
+                solve: crate::error::Solve::Density,
                 step,
                 iterations: stats.iterations,
                 residual: stats.relative_residual,
@@ -578,10 +579,11 @@ pub fn correct_replayed(
             if let Some(p) = proj {
                 p.give_back(g);
             }
-            Err(Error::Gradient(format!(
-                "re-running step {step} from its checkpoint built another density projection \
-                 than its forward pass: the forward map is not deterministic"
-            )))
+            Err(crate::error::GradientError::NotDeterministic {
+                step,
+                what: "built another density projection than its forward pass".into(),
+            }
+            .into())
         }
     }
 }

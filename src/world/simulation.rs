@@ -1315,6 +1315,7 @@ impl Simulation {
             }
             if !stats.converged {
                 return Err(Error::NotConverged {
+                    solve: crate::error::Solve::Pressure,
                     step: self.step + 1,
                     iterations: stats.iterations,
                     residual: stats.relative_residual,
@@ -1496,7 +1497,8 @@ impl Simulation {
                 // Cell c's −side faces (see `max_liquid_speed`), and the +side ones a row, a
                 // slab or a face further on.
                 let (row, slab) = (c / n0, c / (n0 * n1));
-                let most = |a: usize, lo: usize, step: usize| u[a][lo].abs().max(u[a][lo + step].abs());
+                let most =
+                    |a: usize, lo: usize, step: usize| u[a][lo].abs().max(u[a][lo + step].abs());
                 most(0, c + row, 1).max(most(1, c + n0 * slab, n0)).max(most(2, c, n0 * n1))
             })
             .reduce(|| 0.0, f64::max)

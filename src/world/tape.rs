@@ -3,7 +3,7 @@
 //! same [`crate::world::StepSystem::assemble`] the forward step used; the pressure needs a
 //! solve, so it is stored.
 
-use crate::error::{Error, Result};
+use crate::error::{Error, GradientError, Result};
 use crate::geometry::body::BodyState;
 use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::Mac;
@@ -167,25 +167,28 @@ impl Replay<'_> {
                 self.next += 1;
                 Ok((p.clone(), *stats))
             }
-            found => Err(Error::Gradient(format!(
-                "re-running step {step} from its checkpoint asked for pressure solve {} ({rows} \
-                 unknowns), which its forward pass {}: the forward map is not deterministic",
-                self.next + 1,
-                match found {
-                    Some((p, _)) => format!("made with {} unknowns", p.len()),
-                    None => "did not make".into(),
-                }
-            ))),
+            found => Err(GradientError::NotDeterministic {
+                step,
+                what: format!(
+                    "asked for pressure solve {} ({rows} unknowns), which its forward pass {}",
+                    self.next + 1,
+                    match found {
+                        Some((p, _)) => format!("made with {} unknowns", p.len()),
+                        None => "did not make".into(),
+                    }
+                ),
+            }
+            .into()),
         }
     }
 
     /// The next density projection's potential and iterations, for step `step`.
     pub(crate) fn next_density(&mut self, step: usize) -> Result<(Option<Vec<f64>>, usize)> {
         let found = self.solves.density.get(self.next_density).cloned().ok_or_else(|| {
-            Error::Gradient(format!(
-                "re-running step {step} from its checkpoint made a density projection its \
-                 forward pass did not: the forward map is not deterministic"
-            ))
+            Error::from(GradientError::NotDeterministic {
+                step,
+                what: "made a density projection its forward pass did not".into(),
+            })
         })?;
         self.next_density += 1;
         Ok(found)
