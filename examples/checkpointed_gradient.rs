@@ -1,6 +1,6 @@
 //! A long checkpointed gradient on the 1M-cell `large_tank`, with its forward and backward
 //! times, the backward pass split into re-running segments and the adjoint sweep, and the
-//! sweep per stage adjoint (the figures of the README's "Gradients at 1M cells"):
+//! sweep per stage adjoint (the figures of docs/performance.md, "Gradients at 1M cells"):
 //!
 //! ```sh
 //! cargo run --release --example checkpointed_gradient -- 50 7

@@ -131,7 +131,7 @@ fn settled_draft(ratio: f64) -> (f64, f64) {
     let mut scene =
         tank_scene(size, dx, depth, [hw, hh, hw], [0.4, y0, 0.4], 1000.0 * ratio, 0.01, 300);
     // The particle density projection pumps energy into the sloshing around a floating
-    // body (it lifts the surface where particles bunch against the body); see README.
+    // body (it lifts the surface where particles bunch against the body); see docs/method.md.
     scene.solver.density_correction = false;
     let mut sim = scene.build().unwrap();
     let (mut sum, mut n) = (0.0, 0);
