@@ -8,7 +8,6 @@
 
 use crate::math::{v3, Vec3};
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Marks "no such index" in compact index maps.
 pub const NONE: u32 = u32::MAX;
@@ -16,54 +15,6 @@ pub const NONE: u32 = u32::MAX;
 /// Chunk length for deterministic parallel reductions: partial sums are formed over fixed
 /// chunks and then added in order, so a sum never depends on the number of threads.
 pub const REDUCE_CHUNK: usize = 4096;
-
-/// Runs `f` on a thread of rayon's pool. A step makes dozens of short parallel loops; called
-/// from a thread outside the pool, each one would hand its work over and put the caller to
-/// sleep until it is done (a pair of context switches, tens of microseconds, per loop: on
-/// block_drop that was half the time of a step). Inside the pool, the caller takes part in
-/// its own loops. Cheap when already on the pool.
-pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
-    rayon::scope(|_| f())
-}
-
-/// [`on_pool`], with the pool's other workers kept busy while `f` runs when `spin` (and the
-/// pool has more than one thread): a job on each other worker takes pending work as soon as
-/// `f`'s loops split it off ([`rayon::yield_now`]) and spins when there is none, so no loop
-/// waits for a sleeping worker to wake. The job that lands on `f`'s own thread returns at
-/// once, so `f` never waits on a spinner. Nothing changes but when the work is taken:
-/// every loop's result is the same bits.
-pub fn on_pool_spinning<R: Send>(spin: bool, f: impl FnOnce() -> R + Send) -> R {
-    if !spin || rayon::current_num_threads() < 2 {
-        return on_pool(f);
-    }
-    let done = AtomicBool::new(false);
-    rayon::scope(|s| {
-        let caller = rayon::current_thread_index();
-        let done = &done;
-        for _ in 1..rayon::current_num_threads() {
-            s.spawn(move |_| {
-                if rayon::current_thread_index() == caller {
-                    return;
-                }
-                while !done.load(Ordering::Acquire) {
-                    if rayon::yield_now() != Some(rayon::Yield::Executed) {
-                        std::hint::spin_loop();
-                    }
-                }
-            });
-        }
-        // Set when `f` returns or unwinds: a panic in `f` must not leave the spinners (and
-        // the scope, which waits for them) running.
-        struct Done<'a>(&'a AtomicBool);
-        impl Drop for Done<'_> {
-            fn drop(&mut self) {
-                self.0.store(true, Ordering::Release);
-            }
-        }
-        let _done = Done(done);
-        f()
-    })
-}
 
 /// The simulation grid: `n` cells of side `dx`, the domain `[0, n·dx]`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -495,38 +446,6 @@ pub fn dot(a: &[f64], b: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// With spinning workers, a parallel sum on a pool of two threads is the same bits as
-    /// without, nested calls return, and a panic in the work reaches the caller instead of
-    /// leaving the spinners running (the call would never return).
-    #[test]
-    fn spinning_workers_change_nothing_and_stop_on_a_panic() {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
-        let x: Vec<f64> = (0..1_000_000).map(|i| (i as f64 * 0.37).sin()).collect();
-        let sum = |x: &[f64]| x.par_chunks(4096).map(|c| c.iter().sum::<f64>()).collect::<Vec<_>>();
-        pool.install(|| {
-            let plain = on_pool(|| sum(&x));
-            for spin in [false, true] {
-                let nested = on_pool_spinning(spin, || on_pool_spinning(spin, || sum(&x)));
-                assert_eq!(nested, plain);
-            }
-        });
-        // On a thread of its own, so that spinners left running fail the test, not hang it.
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let caught = pool.install(|| {
-                std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    on_pool_spinning(true, || {
-                        let _ = sum(&x);
-                        panic!("in the work")
-                    })
-                }))
-            });
-            tx.send(caught.is_err()).unwrap();
-        });
-        let panicked = rx.recv_timeout(std::time::Duration::from_secs(60));
-        assert_eq!(panicked, Ok(true), "the panic reached the caller and the spinners stopped");
-    }
 
     fn grid() -> Grid {
         Grid { n: [5, 4, 3], dx: 0.25 }

@@ -24,7 +24,7 @@ use crate::error::{Error, GradientError, Result, Solve};
 use crate::geometry::body::{
     carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, Motion, RigidBody,
 };
-use crate::geometry::grid::on_pool_spinning;
+use crate::math::pool::on_pool_spinning;
 use crate::geometry::grid::Mac;
 use crate::math::dual::Dual;
 use crate::math::so3;

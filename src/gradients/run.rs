@@ -8,7 +8,7 @@ use super::backward::{
 };
 use super::loss::{AdjointState, Gradient, Loss};
 use crate::error::Result;
-use crate::geometry::grid::on_pool;
+use crate::math::pool::on_pool;
 use crate::world::tape::Solves;
 use crate::world::{Simulation, Tape};
 

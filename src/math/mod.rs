@@ -8,6 +8,7 @@ pub mod buffer;
 pub mod dual;
 pub mod memory;
 pub mod par;
+pub mod pool;
 pub mod runs;
 pub mod so3;
 
