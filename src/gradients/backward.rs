@@ -24,9 +24,9 @@ use crate::error::{Error, GradientError, Result, Solve};
 use crate::geometry::body::{
     carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, Motion, RigidBody,
 };
-use crate::math::pool::on_pool_spinning;
 use crate::geometry::grid::Mac;
 use crate::math::dual::Dual;
+use crate::math::pool::on_pool_spinning;
 use crate::math::so3;
 use crate::math::{Rotation, Vec3};
 use crate::stages::advect::{advect_adjoint_into, needed_faces};
