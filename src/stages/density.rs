@@ -79,8 +79,9 @@ fn interior_cells(sys: &PressureSystem, g: &DensityInputs<'_>) -> Vec<bool> {
     let not_row: Vec<bool> = sys
         .row_of_cell
         .par_iter()
+        .enumerate()
         .with_min_len(crate::math::par::MIN_LEN)
-        .map(|&r| r == crate::geometry::grid::NONE)
+        .map(|(c, &r)| r == crate::geometry::grid::NONE || !g.counts_excess(c))
         .collect();
     surface::linf_distance(grid, &not_row, 2)
         .into_par_iter()
