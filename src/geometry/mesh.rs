@@ -61,8 +61,10 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
 
 /// The meshes of `assets/meshes/`, built into the library: the built-in scenes name them by
 /// their path in the source tree, which an installed or moved binary no longer has.
-const SHIPPED_MESHES: &[(&str, &[u8])] =
-    &[("cube.obj", include_bytes!("../../assets/meshes/cube.obj"))];
+const SHIPPED_MESHES: &[(&str, &[u8])] = &[
+    ("cube.obj", include_bytes!("../../assets/meshes/cube.obj")),
+    ("hull.obj", include_bytes!("../../assets/meshes/hull.obj")),
+];
 
 /// The built-in copy of the mesh at `path`, if `path` (with its `.` and `..` resolved
 /// lexically) is one of [`SHIPPED_MESHES`] in the source tree's `assets/meshes/`.
