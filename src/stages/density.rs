@@ -17,7 +17,7 @@
 //! θ) and of the interpolated displacement.
 //!
 //! The excess is two-sided in the liquid's interior and one-sided elsewhere
-//! ([`excess`]): a cell whose 3×3×3 block holds liquid only (no air, no solid, every face
+//! (`excess`): a cell whose 3×3×3 block holds liquid only (no air, no solid, every face
 //! open) should hold exactly one cell of particles, so it pushes out what it holds over that
 //! and draws in what it lacks; a cell next to air or a solid is legitimately part empty, and
 //! only pushes out an excess. With the excess alone (Kugelstadt et al. correct compressions
@@ -165,7 +165,7 @@ pub struct DensityProjection {
     pub nearest: Vec<u32>,
     /// Particle density at cell centres.
     pub dens: Vec<f64>,
-    /// The cells of the liquid's interior, whose deficit counts too (see [`excess`]).
+    /// The cells of the liquid's interior, whose deficit counts too (see the module notes).
     pub interior: Vec<bool>,
     /// The operator (unit Δt and density: its velocity update is a displacement in metres).
     pub sys: PressureSystem,

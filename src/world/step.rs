@@ -391,7 +391,7 @@ pub struct StepReport {
     pub density_cg_iterations: usize,
     /// Largest |∇·u| over liquid cells after projection, 1/s.
     pub max_divergence: f64,
-    /// Liquid volume from the marker particles, m³ (see [`surface::liquid_volume`]).
+    /// Liquid volume from the marker particles, m³ (see [`crate::stages::surface::liquid_volume`]).
     pub liquid_volume: f64,
     /// Largest liquid speed at a liquid cell centre, m/s.
     pub max_speed: f64,
