@@ -58,8 +58,8 @@ fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
 }
 
 /// `diffluid bench --only scale --quick`: the scale study's table and charts, for the two
-/// smallest grids, with time and memory growing with the cells (8× the cells: measured 4.2×
-/// the time and 4.2× the memory of a forward run).
+/// smallest grids, with memory growing with the cells (8× the cells: measured 4.2× the memory
+/// of a forward run; its time, 4.2× when the machine is idle, is the study's to report).
 #[test]
 fn quick_scale_study_writes_its_table_and_charts() {
     let out = std::env::temp_dir().join(format!("diffluid-scale-{}", std::process::id()));
@@ -84,7 +84,9 @@ fn quick_scale_study_writes_its_table_and_charts() {
     assert_eq!(rows.len(), 2);
     let at = |r: usize, name: &str| rows[r][col(name) - 1];
     assert_eq!((at(0, "cells"), at(1, "cells")), (16384.0, 131072.0));
-    for name in ["forward_seconds_per_step", "forward_peak_mb", "gradient_peak_mb"] {
+    // Memory only: a time per step is a benchmark's to measure, not a test's to assert (a
+    // loaded machine made the smaller grid as slow as the larger one).
+    for name in ["forward_peak_mb", "gradient_peak_mb"] {
         assert!(at(1, name) > 2.0 * at(0, name), "{name}: {} then {}", at(0, name), at(1, name));
     }
     let _ = std::fs::remove_dir_all(&out);

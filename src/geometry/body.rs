@@ -403,6 +403,18 @@ impl RigidBody {
         self.v + self.w.cross(p - self.x)
     }
 
+    /// The external force and torque, [f; τ] (world frame, N and N·m).
+    pub fn load(&self) -> [f64; 6] {
+        let (f, t) = (self.force, self.torque);
+        [f.x, f.y, f.z, t.x, t.y, t.z]
+    }
+
+    /// Sets the external force and torque from [f; τ].
+    pub fn set_load(&mut self, load: &[f64; 6]) {
+        self.force = Vec3::new(load[0], load[1], load[2]);
+        self.torque = Vec3::new(load[3], load[4], load[5]);
+    }
+
     /// Which part of the body's rotation reaches the liquid ([`Spin`]). Pressure acts along
     /// the surface normal. Every normal of a ball passes through its centre, and every normal
     /// of a capsule, cylinder or cone meets its axis, so the liquid exerts no torque on a

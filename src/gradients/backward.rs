@@ -34,7 +34,9 @@ use crate::stages::band::Band;
 use crate::stages::density::{DensityInputs, DensityProjection};
 use crate::stages::extrapolate::correct_with_bodies_adjoint;
 use crate::stages::forces::body_velocity_pose_adjoint;
-use crate::stages::pressure::{projection_pose_adjoint, Coupling, PoseAdjointInputs};
+use crate::stages::pressure::{
+    kinematic_pose_adjoint, projection_pose_adjoint, Coupling, PoseAdjointInputs,
+};
 use crate::stages::surface;
 use crate::world::step::{predicted_velocity, Geometry};
 use crate::world::tape::ParticleRecord;
@@ -187,15 +189,42 @@ pub fn backward_adjoint(
     final_adjoint: AdjointState,
     options: &GradientOptions,
 ) -> Result<(AdjointState, AdjointSeconds)> {
+    backward_adjoint_hooked(initial, tape, final_adjoint, options, 0, &mut |_, _| {})
+}
+
+/// [`backward_adjoint`] that hands the adjoint at every boundary between steps to
+/// `at_boundary` as the sweep passes it: after the adjoint of the tape's step t + 1 (counted
+/// from 0), `at_boundary(first + t, adj)` with `adj` the adjoint of the state that step
+/// started from. A trajectory loss adds its terms there, and a per-step action reads its
+/// gradient there ([`super::control`]). The boundary after the tape's last step is the
+/// caller's (it hands in `final_adjoint`).
+pub fn backward_adjoint_hooked(
+    initial: &Simulation,
+    tape: &Tape,
+    final_adjoint: AdjointState,
+    options: &GradientOptions,
+    first: usize,
+    at_boundary: &mut (dyn FnMut(usize, &mut AdjointState) + Send),
+) -> Result<(AdjointState, AdjointSeconds)> {
     check_differentiable(initial, tape, options)?;
     on_pool_spinning(initial.spins(), || {
         let mut times = AdjointSeconds::default();
         let mut adj = final_adjoint;
         for (t, rec) in tape.steps.iter().enumerate().rev() {
-            adj = step_adjoint(initial, rec, adj, options, t + 1, &mut times)?;
+            adj = step_adjoint(initial, rec, adj, options, first + t + 1, &mut times)?;
+            at_boundary(first + t, &mut adj);
         }
         Ok((adj, times))
     })
+}
+
+/// The bodies whose pose a step's adjoint differentiates: the coupled ones and the
+/// kinematic ones (a control moves those), in order.
+fn posed(sys: &StepSystem) -> Vec<usize> {
+    let mut out: Vec<usize> =
+        sys.coupled.iter().copied().chain(sys.kinematic.iter().map(|k| k.0)).collect();
+    out.sort_unstable();
+    out
 }
 
 /// a + b, component-wise (two adjoints in the quaternion embedding).
@@ -203,11 +232,13 @@ fn add_quat(a: Rotation, b: Rotation) -> Rotation {
     Rotation::from_xyzw(a.x + b.x, a.y + b.y, a.z + b.z, a.w + b.w)
 }
 
-/// The bodies of `initial` in the states `rec` recorded at the start of its step.
+/// The bodies of `initial` in the states and with the loads `rec` recorded at the start of
+/// its step.
 fn bodies_at(initial: &Simulation, rec: &StepRecord) -> Vec<RigidBody> {
     let mut bodies = initial.bodies().to_vec();
-    for (b, s) in bodies.iter_mut().zip(&rec.bodies) {
+    for ((b, s), load) in bodies.iter_mut().zip(&rec.bodies).zip(&rec.loads) {
         b.set_state(s);
+        b.set_load(load);
     }
     bodies
 }
@@ -319,14 +350,9 @@ fn step_adjoint(
     );
     let mut pose_grad = vec![[0.0f64; 6]; bodies.len()];
     for (i, r) in bva.iter().enumerate() {
-        if bodies[i].motion == Motion::Kinematic {
-            // A prescribed motion: its velocity's adjoint, not its pose's.
-            for d in 0..6 {
-                vbar[i][d] += r.vel[d];
-            }
-            continue;
-        }
-        if !bodies[i].moves() {
+        // A fixed body's pose and velocity are constants; a kinematic one's are the
+        // prescribed motion's (a control's).
+        if !(bodies[i].moves() || bodies[i].motion == Motion::Kinematic) {
             continue;
         }
         for d in 0..6 {
@@ -416,7 +442,14 @@ fn step_adjoint(
                 pose_grad[i][3 + d] += crate::math::comp(gw, d);
             }
         }
-        for &i in &sys.coupled {
+        // Kinematic bodies: J and the fractions move with the prescribed pose.
+        for (i, bc, v) in &sys.kinematic {
+            let gr = kinematic_pose_adjoint(&inputs, &bodies[*i], &dual_faces[*i], bc, v);
+            for d in 0..6 {
+                pose_grad[*i][d] += gr[d];
+            }
+        }
+        for i in posed(&sys) {
             let gr = pose_grad[i];
             out[i].x += Vec3::new(gr[0], gr[1], gr[2]);
             let gq = so3::from_tangent_gradient(bodies[i].q, Vec3::new(gr[3], gr[4], gr[5]));
@@ -445,7 +478,7 @@ fn step_adjoint(
         let mut pose = vec![[0.0f64; 6]; bodies.len()];
         particles = ctx.run(pr, adj.particles, &phi_bar, &mut u0, &mut pose, step)?;
         if mode == GradientMode::Full {
-            for &i in &sys.coupled {
+            for i in posed(&sys) {
                 let gr = pose[i];
                 out[i].x += Vec3::new(gr[0], gr[1], gr[2]);
                 let gq = so3::from_tangent_gradient(bodies[i].q, Vec3::new(gr[3], gr[4], gr[5]));

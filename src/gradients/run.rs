@@ -3,11 +3,13 @@
 //! re-run in the backward pass.
 
 use super::backward::{
-    backward_adjoint, check_differentiable, check_settings, to_gradient, AdjointSeconds,
+    backward_adjoint_hooked, check_differentiable, check_settings, to_gradient, AdjointSeconds,
     GradientOptions,
 };
+use super::control::Schedule;
 use super::loss::{AdjointState, Gradient, Loss};
 use crate::error::Result;
+use crate::geometry::body::{BodyState, RigidBody};
 use crate::math::pool::on_pool;
 use crate::world::tape::Solves;
 use crate::world::{Simulation, Tape};
@@ -44,6 +46,11 @@ impl From<GradientOptions> for GradientSettings {
 pub struct Rollout {
     segments: Vec<Segment>,
     last: Simulation,
+    /// The actions applied before each step, if any.
+    schedule: Option<Schedule>,
+    /// Every body's state at every boundary between steps, before that step's actions:
+    /// `states[b]` after b steps, b = 0 ..= steps.
+    states: Vec<Vec<BodyState>>,
 }
 
 /// A stretch of a [`Rollout`].
@@ -51,6 +58,8 @@ pub struct Rollout {
 struct Segment {
     /// The state it starts from (without the particles when the surface is frozen).
     start: Simulation,
+    /// The run's step its first step is (from 0).
+    first: usize,
     steps: usize,
     kept: Kept,
 }
@@ -69,6 +78,18 @@ impl Rollout {
     /// ask (the whole tape, or checkpoints; see [`GradientSettings`]). `initial` is not
     /// changed.
     pub fn run(initial: &Simulation, steps: usize, settings: &GradientSettings) -> Result<Rollout> {
+        Rollout::run_with(initial, steps, settings, None)
+    }
+
+    /// [`Rollout::run`] with `schedule`'s actions set before each step (its steps, or
+    /// `steps` when there is none).
+    pub fn run_with(
+        initial: &Simulation,
+        steps: usize,
+        settings: &GradientSettings,
+        schedule: Option<&Schedule>,
+    ) -> Result<Rollout> {
+        let steps = schedule.map_or(steps, Schedule::steps);
         on_pool(|| {
             let every = settings.checkpoint_every.unwrap_or(steps).max(1);
             // Segments end at the last step: the first is the short one, and the last is
@@ -77,7 +98,14 @@ impl Rollout {
                 if settings.checkpoint_every.is_some() { steps.saturating_sub(every) } else { 0 };
             let mut sim = initial.clone();
             let mut segments = Vec::new();
+            let mut states = Vec::with_capacity(steps + 1);
             let mut done = 0;
+            let mut before = |sim: &mut Simulation, t: usize| {
+                states.push(sim.bodies().iter().map(RigidBody::state).collect());
+                if let Some(s) = schedule {
+                    s.apply(sim, t);
+                }
+            };
             while done < steps || segments.is_empty() {
                 let start = sim.replay_copy();
                 let (len, kept) = if done < tail {
@@ -86,7 +114,8 @@ impl Rollout {
                         short => short,
                     };
                     let mut solves = (!settings.re_solve).then(Solves::default);
-                    for _ in 0..len {
+                    for t in done..done + len {
+                        before(&mut sim, t);
                         match solves.as_mut() {
                             Some(solves) => sim.step_recording(solves)?,
                             None => sim.step()?,
@@ -95,16 +124,24 @@ impl Rollout {
                     (len, Kept::Rerun(solves))
                 } else {
                     let mut tape = Tape::default();
-                    for _ in done..steps {
+                    for t in done..steps {
+                        before(&mut sim, t);
                         sim.step_taped(&mut tape)?;
                     }
                     (steps - done, Kept::Tape(tape))
                 };
-                segments.push(Segment { start, steps: len, kept });
+                segments.push(Segment { start, first: done, steps: len, kept });
                 done += len;
             }
-            Ok(Rollout { segments, last: sim })
+            states.push(sim.bodies().iter().map(RigidBody::state).collect());
+            Ok(Rollout { segments, last: sim, schedule: schedule.cloned(), states })
         })
+    }
+
+    /// Every body's state at every boundary between steps, before that step's actions:
+    /// `states()[b]` after b steps, b = 0 ..= [`Rollout::steps`].
+    pub fn states(&self) -> &[Vec<BodyState>] {
+        &self.states
     }
 
     /// The state the run started from (without the particles when the surface is frozen).
@@ -143,9 +180,21 @@ impl Rollout {
         adj: AdjointState,
         options: &GradientOptions,
     ) -> Result<(AdjointState, AdjointSeconds)> {
+        self.backward_hooked(adj, options, &mut |_, _| {})
+    }
+
+    /// [`Rollout::backward`] that hands the adjoint at every boundary b < steps to
+    /// `at_boundary(b, adj)` as the sweep passes it (see
+    /// [`super::backward::backward_adjoint_hooked`]).
+    pub fn backward_hooked(
+        &self,
+        adj: AdjointState,
+        options: &GradientOptions,
+        at_boundary: &mut (dyn FnMut(usize, &mut AdjointState) + Send),
+    ) -> Result<(AdjointState, AdjointSeconds)> {
         let mut out = (adj, AdjointSeconds::default(), 0);
         for seg in self.segments.iter().rev() {
-            out = seg.backward(out, options)?;
+            out = seg.backward(out, options, self.schedule.as_ref(), at_boundary)?;
         }
         Ok((out.0, out.1))
     }
@@ -159,7 +208,7 @@ impl Rollout {
     ) -> Result<(AdjointState, AdjointSeconds, usize, Simulation)> {
         let mut out = (adj, AdjointSeconds::default(), 0);
         while let Some(seg) = self.segments.pop() {
-            out = seg.backward(out, options)?;
+            out = seg.backward(out, options, self.schedule.as_ref(), &mut |_, _| {})?;
         }
         Ok((out.0, out.1, out.2, self.last))
     }
@@ -172,6 +221,8 @@ impl Segment {
         &self,
         (adj, mut seconds, bytes): (AdjointState, AdjointSeconds, usize),
         options: &GradientOptions,
+        schedule: Option<&Schedule>,
+        at_boundary: &mut (dyn FnMut(usize, &mut AdjointState) + Send),
     ) -> Result<(AdjointState, AdjointSeconds, usize)> {
         let rerun;
         let tape = match &self.kept {
@@ -180,7 +231,10 @@ impl Segment {
                 let mut sim = self.start.clone();
                 let mut tape = Tape::default();
                 let mut replay = solves.as_ref().map(Solves::replay);
-                for _ in 0..self.steps {
+                for t in self.first..self.first + self.steps {
+                    if let Some(s) = schedule {
+                        s.apply(&mut sim, t);
+                    }
                     match replay.as_mut() {
                         Some(replay) => sim.step_replayed(&mut tape, replay)?,
                         None => sim.step_taped(&mut tape).map(drop)?,
@@ -190,7 +244,8 @@ impl Segment {
                 &rerun
             }
         };
-        let (adj, t) = backward_adjoint(&self.start, tape, adj, options)?;
+        let (adj, t) =
+            backward_adjoint_hooked(&self.start, tape, adj, options, self.first, at_boundary)?;
         seconds += t;
         Ok((adj, seconds, bytes.max(tape.bytes_per_step())))
     }

@@ -1074,6 +1074,33 @@ pub fn projection_pose_adjoint(
     v_hat: &[f64; 6],
     adj_v: &[f64; 6],
 ) -> [f64; 6] {
+    body_pose_adjoint(g, body, faces, &g.sys.bodies[coupling], true, v_hat, adj_v)
+}
+
+/// [`projection_pose_adjoint`] of a kinematic body (`sys.kinematic`'s coupling `bc`, its
+/// prescribed [v; ω]): its J pushes the right-hand side and its fractions take the fluid's
+/// weights, but nothing of the solve moves it (no M⁻¹ terms).
+pub fn kinematic_pose_adjoint(
+    g: &PoseAdjointInputs<'_>,
+    body: &crate::geometry::body::RigidBody,
+    faces: &[Vec<(usize, crate::math::dual::Dual<6>)>; 3],
+    bc: &BodyCoupling,
+    v: &[f64; 6],
+) -> [f64; 6] {
+    body_pose_adjoint(g, body, faces, bc, false, v, &[0.0; 6])
+}
+
+/// The pose part of the projection adjoint of a body whose coupling is `bc`, in the
+/// operator (`coupled`, a dynamic body) or only in the right-hand side (a kinematic one).
+fn body_pose_adjoint(
+    g: &PoseAdjointInputs<'_>,
+    body: &crate::geometry::body::RigidBody,
+    faces: &[Vec<(usize, crate::math::dual::Dual<6>)>; 3],
+    bc: &BodyCoupling,
+    coupled: bool,
+    v_hat: &[f64; 6],
+    adj_v: &[f64; 6],
+) -> [f64; 6] {
     let sys = g.sys;
     let grid = sys.grid;
     let area = grid.dx * grid.dx;
@@ -1081,7 +1108,6 @@ pub fn projection_pose_adjoint(
         Some(r) if r != crate::geometry::grid::NONE => x[r as usize],
         _ => 0.0,
     };
-    let bc = &sys.bodies[coupling];
     let spin = body.spin();
     let (js, jp) = (bc.force(g.s), bc.force(g.p));
     let mi = bc.dt_minv;
@@ -1144,7 +1170,7 @@ pub fn projection_pose_adjoint(
         std::array::from_fn(|r| std::array::from_fn(|c| inv.col(c).to_array()[r]));
     for k in 0..6 {
         let mut dmi = [[0.0; 6]; 6];
-        if k >= 3 {
+        if k >= 3 && coupled {
             let ax = crate::math::unit(k - 3);
             let cross = |v: [f64; 3]| {
                 let w = ax.cross(Vec3::new(v[0], v[1], v[2]));

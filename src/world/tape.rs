@@ -34,6 +34,9 @@ pub struct StepRecord {
     /// Each body's face fractions at the start of the step (a few kB; recomputing them cost
     /// 4% of the backward pass).
     pub body_faces: Vec<BodyFaces>,
+    /// Each body's external force and torque in the step, [f; τ] (stage `forces` reads
+    /// them; a per-step action changes them from step to step).
+    pub loads: Vec<[f64; 6]>,
     /// The fluid velocity the correction extrapolated onto the faces the bodies cover in part
     /// that the projection did not update, before it mixed in the bodies' part (see
     /// [`correct_with_bodies`]).

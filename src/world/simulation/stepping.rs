@@ -353,6 +353,7 @@ impl Simulation {
                 p: proj.p.clone(),
                 phi: taped_phi,
                 body_faces: sys.geometry.body_faces.clone(),
+                loads: self.bodies.iter().map(RigidBody::load).collect(),
                 air_body_faces,
                 contact: contact || contact_moves,
                 particles: particle_record,

@@ -1,0 +1,288 @@
+//! Control through the water: actions at every step, losses on whole trajectories, and the
+//! gradient of such a loss with respect to every action and the initial state in one
+//! backward sweep.
+//!
+//! An action acts on one body for one step, held for `steps_per_action` steps:
+//!
+//! - on a dynamic body, an external force and torque `[f; τ]` (world frame, N and N·m): stage
+//!   `forces` adds Δt·(g + f/m) to its velocity and Δt·I_w⁻¹·τ to its angular velocity, so
+//!   ∂L/∂f = Δt/m·v̂̄ and ∂L/∂τ = Δt·I_w⁻¹·ω̂̄, with v̂̄ and ω̂̄ the adjoint of the velocities
+//!   that stage hands to the pressure solve;
+//! - on a kinematic body (`dynamic = false`, a moving boundary of the solve), its velocity
+//!   and angular velocity `[v; ω]`, which replace the ones it had: the adjoint of its
+//!   velocity at the start of the step is the action's gradient, and nothing of it flows to
+//!   the steps before (they set a velocity the action overwrote).
+//!
+//! Both are read off the adjoint as the backward sweep passes the boundary before the step
+//! ([`super::backward::backward_adjoint_hooked`]), where a trajectory loss also adds its
+//! derivative with respect to that boundary's state: one sweep, whatever the number of
+//! actions.
+
+use super::backward::{to_gradient, AdjointSeconds};
+use super::loss::{AdjointState, BodyAdjoint, Gradient};
+use super::run::{GradientSettings, Rollout};
+use crate::error::{Error, Result};
+use crate::geometry::body::{BodyState, Motion};
+use crate::geometry::grid::Mac;
+use crate::math::Vec3;
+use crate::world::{BodyHandle, Simulation};
+
+/// What an action sets on a body, from its motion.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ActionKind {
+    /// External force and torque `[f; τ]` (a dynamic body).
+    Load,
+    /// Velocity and angular velocity `[v; ω]` (a kinematic body).
+    Velocity,
+}
+
+/// Actions on some bodies, one per `steps_per_action` steps.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Schedule {
+    /// The controlled bodies (indices into [`Simulation::bodies`]) and what their actions set.
+    pub bodies: Vec<(usize, ActionKind)>,
+    /// How many steps each action is held.
+    pub steps_per_action: usize,
+    /// `actions[k][j]`: the action on `bodies[j]` for steps `k·steps_per_action` to
+    /// `(k + 1)·steps_per_action − 1`.
+    pub actions: Vec<Vec<[f64; 6]>>,
+}
+
+impl Schedule {
+    /// Actions on the bodies `controlled` of `sim` (a dynamic body takes a force and torque,
+    /// a kinematic one a velocity), each held `steps_per_action` steps. An error names what
+    /// is wrong: a handle of no body, a body that is fixed or moved by the caller, a
+    /// `steps_per_action` of 0, no actions, a row of the wrong length, a NaN or infinity.
+    pub fn new(
+        sim: &Simulation,
+        controlled: &[BodyHandle],
+        steps_per_action: usize,
+        actions: Vec<Vec<[f64; 6]>>,
+    ) -> Result<Schedule> {
+        let bad = |key: &str, message: String| Error::InvalidSettings {
+            key: format!("control.{key}"),
+            message,
+        };
+        if steps_per_action == 0 {
+            return Err(bad("steps_per_action", "must be at least 1".into()));
+        }
+        let mut bodies = Vec::with_capacity(controlled.len());
+        for &h in controlled {
+            let i = sim.index_of(h).ok_or(Error::UnknownBody { handle: h.id() })?;
+            let b = &sim.bodies()[i];
+            let kind = match b.motion {
+                Motion::Dynamic => ActionKind::Load,
+                Motion::Kinematic => ActionKind::Velocity,
+                Motion::Fixed => {
+                    return Err(bad(
+                        "bodies",
+                        format!("body {} is fixed: it cannot be steered", b.name),
+                    ))
+                }
+                Motion::External => {
+                    return Err(bad(
+                        "bodies",
+                        format!("body {} is moved by the caller's engine: steer it there", b.name),
+                    ))
+                }
+            };
+            if bodies.iter().any(|&(j, _)| j == i) {
+                return Err(bad("bodies", format!("body {} is controlled twice", b.name)));
+            }
+            bodies.push((i, kind));
+        }
+        if bodies.is_empty() {
+            return Err(bad("bodies", "no body is controlled".into()));
+        }
+        if actions.is_empty() {
+            return Err(bad("actions", "there are no actions".into()));
+        }
+        for (k, row) in actions.iter().enumerate() {
+            if row.len() != bodies.len() {
+                return Err(bad(
+                    "actions",
+                    format!("action {k} has {} entries for {} bodies", row.len(), bodies.len()),
+                ));
+            }
+            if row.iter().flatten().any(|x| !x.is_finite()) {
+                return Err(bad("actions", format!("action {k} is not finite: {row:?}")));
+            }
+        }
+        Ok(Schedule { bodies, steps_per_action, actions })
+    }
+
+    /// The steps the schedule covers.
+    pub fn steps(&self) -> usize {
+        self.actions.len() * self.steps_per_action
+    }
+
+    /// The action index of step `t` (from 0).
+    pub fn action_of(&self, t: usize) -> usize {
+        t / self.steps_per_action
+    }
+
+    /// Sets step `t`'s actions (from 0) on `sim`'s bodies.
+    pub fn apply(&self, sim: &mut Simulation, t: usize) {
+        let row = &self.actions[self.action_of(t).min(self.actions.len() - 1)];
+        let bodies = sim.bodies_mut();
+        for (&(i, kind), a) in self.bodies.iter().zip(row) {
+            let b = &mut bodies[i];
+            match kind {
+                ActionKind::Load => b.set_load(a),
+                ActionKind::Velocity => {
+                    b.v = Vec3::new(a[0], a[1], a[2]);
+                    b.w = Vec3::new(a[3], a[4], a[5]);
+                }
+            }
+        }
+    }
+
+    /// Zero actions of the same shape.
+    pub fn zeros_like(&self) -> Vec<Vec<[f64; 6]>> {
+        vec![vec![[0.0; 6]; self.bodies.len()]; self.actions.len()]
+    }
+}
+
+/// A forward run under a schedule, as a trajectory loss sees it.
+#[derive(Clone, Copy, Debug)]
+pub struct Trajectory<'a> {
+    /// Every body's state at every boundary, before that step's action: `states[b]` after
+    /// b steps, b = 0 ..= steps.
+    pub states: &'a [Vec<BodyState>],
+    /// The simulation at the end (its liquid: velocity, particles).
+    pub final_state: &'a Simulation,
+    /// The actions.
+    pub schedule: &'a Schedule,
+}
+
+/// What a trajectory loss's derivative holds.
+#[derive(Clone, Debug)]
+pub struct TrajectorySeed {
+    /// ∂L/∂states[b], per body.
+    pub states: Vec<Vec<BodyAdjoint>>,
+    /// ∂L/∂actions that the loss reads directly (an effort term).
+    pub actions: Vec<Vec<[f64; 6]>>,
+    /// ∂L/∂(the final liquid): its velocity and particles.
+    pub liquid: Option<AdjointState>,
+}
+
+impl TrajectorySeed {
+    /// A zero derivative for `t`'s shapes.
+    pub fn zero(t: &Trajectory<'_>) -> TrajectorySeed {
+        let bodies = t.states.first().map_or(0, Vec::len);
+        TrajectorySeed {
+            states: vec![vec![BodyAdjoint::zero(); bodies]; t.states.len()],
+            actions: t.schedule.zeros_like(),
+            liquid: None,
+        }
+    }
+}
+
+/// A loss on a whole trajectory: its states at every step, its actions and its final liquid.
+pub trait TrajectoryLoss: Sync {
+    /// L of the trajectory.
+    fn value(&self, t: &Trajectory<'_>) -> f64;
+    /// ∂L of the trajectory ([`TrajectorySeed`]).
+    fn gradient(&self, t: &Trajectory<'_>) -> TrajectorySeed;
+}
+
+/// A loss and its gradient with respect to every action and the initial state.
+#[derive(Clone, Debug)]
+pub struct ControlRun {
+    /// L.
+    pub loss: f64,
+    /// ∂L/∂actions, shaped as the schedule's actions.
+    pub actions: Vec<Vec<[f64; 6]>>,
+    /// ∂L/∂(initial state).
+    pub initial: Gradient,
+    /// Every body's state at every boundary (see [`Trajectory::states`]).
+    pub states: Vec<Vec<BodyState>>,
+    /// The final state.
+    pub final_state: Simulation,
+    /// Wall time of the forward pass, s.
+    pub forward_seconds: f64,
+    /// Wall time of the backward pass, s.
+    pub backward_seconds: f64,
+    /// The backward pass's time per stage adjoint.
+    pub adjoint_seconds: AdjointSeconds,
+}
+
+/// Runs `schedule` from `initial`, evaluates `loss` on the trajectory, and its gradient with
+/// respect to every action and the initial state, in one backward sweep.
+pub fn value_and_gradient_controlled(
+    initial: &Simulation,
+    schedule: &Schedule,
+    loss: &dyn TrajectoryLoss,
+    settings: &GradientSettings,
+) -> Result<ControlRun> {
+    let clock = std::time::Instant::now();
+    let rollout = Rollout::run_with(initial, 0, settings, Some(schedule))?;
+    let forward_seconds = clock.elapsed().as_secs_f64();
+    let clock = std::time::Instant::now();
+    let traj =
+        Trajectory { states: rollout.states(), final_state: rollout.final_state(), schedule };
+    let value = loss.value(&traj);
+    let seed = loss.gradient(&traj);
+    let steps = schedule.steps();
+    let mut adj = seed.liquid.clone().unwrap_or_else(|| AdjointState {
+        u: Mac::zeros(initial.grid()),
+        bodies: Vec::new(),
+        particles: Vec::new(),
+    });
+    adj.bodies = seed.states[steps].clone();
+    let mut actions = seed.actions.clone();
+    let dt = initial.dt();
+    let model = initial.bodies().to_vec();
+    let states = rollout.states().to_vec();
+    let mut at_boundary = |b: usize, adj: &mut AdjointState| {
+        let k = schedule.action_of(b);
+        for (j, &(i, kind)) in schedule.bodies.iter().enumerate() {
+            let a = &mut adj.bodies[i];
+            let g = &mut actions[k][j];
+            match kind {
+                ActionKind::Load => {
+                    let mut body = model[i].clone();
+                    body.set_state(&states[b][i]);
+                    let f = a.v * (dt / body.mass);
+                    let t = body.world_inertia().inverse() * a.w * dt;
+                    for d in 0..3 {
+                        g[d] += f.to_array()[d];
+                        g[3 + d] += t.to_array()[d];
+                    }
+                }
+                ActionKind::Velocity => {
+                    for d in 0..3 {
+                        g[d] += a.v.to_array()[d];
+                        g[3 + d] += a.w.to_array()[d];
+                    }
+                    // The action replaced the velocity the state had.
+                    a.v = Vec3::ZERO;
+                    a.w = Vec3::ZERO;
+                }
+            }
+        }
+        for (a, s) in adj.bodies.iter_mut().zip(&seed.states[b]) {
+            a.x += s.x;
+            a.v += s.v;
+            a.w += s.w;
+            a.q = crate::math::Rotation::from_xyzw(
+                a.q.x + s.q.x,
+                a.q.y + s.q.y,
+                a.q.z + s.q.z,
+                a.q.w + s.q.w,
+            );
+        }
+    };
+    let (adj, adjoint_seconds) =
+        rollout.backward_hooked(adj, &settings.options, &mut at_boundary)?;
+    Ok(ControlRun {
+        loss: value,
+        actions,
+        initial: to_gradient(initial, adj),
+        states: rollout.states().to_vec(),
+        final_state: rollout.final_state().clone(),
+        forward_seconds,
+        backward_seconds: clock.elapsed().as_secs_f64(),
+        adjoint_seconds,
+    })
+}
