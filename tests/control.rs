@@ -162,3 +162,56 @@ fn bad_schedules_are_refused() {
     let gone = other.remove_body(other.handles()[1]).map(|_| h[1]).unwrap();
     assert!(err(Schedule::new(&other, &[gone], 1, vec![vec![[0.0; 6]]])).contains("no body"));
 }
+
+/// Closed loop: a run stepped one action at a time ([`Stepper`], what a policy trained
+/// through the simulator drives) and taken back one action at a time, the liquid's adjoint
+/// carried inside, gives the gradients of the whole-schedule sweep (to round-off in the
+/// order the loss's own effort term is added).
+#[test]
+fn one_action_at_a_time_matches_the_whole_schedule() {
+    use diffluid::gradients::{BodyAdjoint, Stepper, TrajectorySeed};
+    let sim = scene(false);
+    let schedule = schedule(&sim);
+    // Waypoints on action boundaries only (a closed loop sees the states there).
+    let mut loss = loss();
+    loss.waypoints[0].step = 10;
+    loss.speed = None;
+    let options = GradientOptions {
+        surface: diffluid::gradients::backward::SurfaceGradient::Live,
+        ..Default::default()
+    };
+    let settings = GradientSettings { options, ..Default::default() };
+    let whole = value_and_gradient_controlled(&sim, &schedule, &loss, &settings).unwrap();
+    let h = sim.handles().to_vec();
+    let mut stepper = Stepper::new(&sim, &h, 5, options).unwrap();
+    for a in &schedule.actions {
+        stepper.step(a).unwrap();
+    }
+    assert_eq!(stepper.states(), whole.states[schedule.steps()]);
+    let seed: TrajectorySeed = loss.gradient(&Trajectory {
+        states: &whole.states,
+        final_state: &whole.final_state,
+        schedule: &schedule,
+    });
+    let mut after: Vec<BodyAdjoint> = seed.states[schedule.steps()].clone();
+    for k in (0..schedule.actions.len()).rev() {
+        let (g, before) = stepper.backward(&after).unwrap();
+        for (j, gj) in g.iter().enumerate() {
+            for d in 0..6 {
+                // The sweep started from the loss's own (effort) term; the stepper adds it last.
+                let (got, want) = (gj[d] + seed.actions[k][j][d], whole.actions[k][j][d]);
+                assert!(
+                    (got - want).abs() <= 1e-12 * want.abs(),
+                    "action {k} body {j} [{d}]: {got} vs {want}"
+                );
+            }
+        }
+        after = before;
+        for (a, s) in after.iter_mut().zip(&seed.states[k * 5]) {
+            a.x += s.x;
+            a.v += s.v;
+            a.w += s.w;
+        }
+    }
+    assert!(stepper.backward(&after).is_err(), "more actions taken back than taken");
+}

@@ -236,42 +236,8 @@ pub fn value_and_gradient_controlled(
     let states = rollout.states().to_vec();
     let mut at_boundary = |b: usize, adj: &mut AdjointState| {
         let k = schedule.action_of(b);
-        for (j, &(i, kind)) in schedule.bodies.iter().enumerate() {
-            let a = &mut adj.bodies[i];
-            let g = &mut actions[k][j];
-            match kind {
-                ActionKind::Load => {
-                    let mut body = model[i].clone();
-                    body.set_state(&states[b][i]);
-                    let f = a.v * (dt / body.mass);
-                    let t = body.world_inertia().inverse() * a.w * dt;
-                    for d in 0..3 {
-                        g[d] += f.to_array()[d];
-                        g[3 + d] += t.to_array()[d];
-                    }
-                }
-                ActionKind::Velocity => {
-                    for d in 0..3 {
-                        g[d] += a.v.to_array()[d];
-                        g[3 + d] += a.w.to_array()[d];
-                    }
-                    // The action replaced the velocity the state had.
-                    a.v = Vec3::ZERO;
-                    a.w = Vec3::ZERO;
-                }
-            }
-        }
-        for (a, s) in adj.bodies.iter_mut().zip(&seed.states[b]) {
-            a.x += s.x;
-            a.v += s.v;
-            a.w += s.w;
-            a.q = crate::math::Rotation::from_xyzw(
-                a.q.x + s.q.x,
-                a.q.y + s.q.y,
-                a.q.z + s.q.z,
-                a.q.w + s.q.w,
-            );
-        }
+        read_action_gradients(&schedule.bodies, &model, &states[b], dt, adj, &mut actions[k]);
+        add_bodies(adj, &seed.states[b]);
     };
     let (adj, adjoint_seconds) =
         rollout.backward_hooked(adj, &settings.options, &mut at_boundary)?;
@@ -285,4 +251,185 @@ pub fn value_and_gradient_controlled(
         backward_seconds: clock.elapsed().as_secs_f64(),
         adjoint_seconds,
     })
+}
+
+/// At a boundary before a step that an action acted on: adds that action's gradient, read
+/// off `adj` (the adjoint of the state the step started from), into `grads` (one per
+/// controlled body), and takes out of `adj` what the action overwrote (a kinematic body's
+/// velocity). `model` gives each body's mass and inertia, `states` the bodies at the
+/// boundary.
+fn read_action_gradients(
+    controlled: &[(usize, ActionKind)],
+    model: &[crate::geometry::body::RigidBody],
+    states: &[BodyState],
+    dt: f64,
+    adj: &mut AdjointState,
+    grads: &mut [[f64; 6]],
+) {
+    for (&(i, kind), g) in controlled.iter().zip(grads) {
+        let a = &mut adj.bodies[i];
+        let (lin, ang) = match kind {
+            ActionKind::Load => {
+                let mut body = model[i].clone();
+                body.set_state(&states[i]);
+                (a.v * (dt / body.mass), body.world_inertia().inverse() * a.w * dt)
+            }
+            ActionKind::Velocity => {
+                let out = (a.v, a.w);
+                // The action replaced the velocity the state had.
+                a.v = Vec3::ZERO;
+                a.w = Vec3::ZERO;
+                out
+            }
+        };
+        for d in 0..3 {
+            g[d] += lin.to_array()[d];
+            g[3 + d] += ang.to_array()[d];
+        }
+    }
+}
+
+/// Adds `extra` to the bodies' part of `adj`.
+fn add_bodies(adj: &mut AdjointState, extra: &[BodyAdjoint]) {
+    for (a, s) in adj.bodies.iter_mut().zip(extra) {
+        a.x += s.x;
+        a.v += s.v;
+        a.w += s.w;
+        a.q = crate::math::Rotation::from_xyzw(
+            a.q.x + s.q.x,
+            a.q.y + s.q.y,
+            a.q.z + s.q.z,
+            a.q.w + s.q.w,
+        );
+    }
+}
+
+/// A run driven one action at a time, each held `steps_per_action` steps, and taken back
+/// one action at a time: what a closed-loop policy trained through the simulator needs. The
+/// caller sees the bodies' states only; the liquid's adjoint is carried from one action's
+/// backward step to the one before, inside.
+///
+/// [`Stepper::backward`] must be called for the actions in reverse order (the last first),
+/// as an autograd engine does.
+#[derive(Debug)]
+pub struct Stepper {
+    /// The state the run started from (static data for the backward pass).
+    start: Simulation,
+    sim: Simulation,
+    controlled: Vec<(usize, ActionKind)>,
+    steps_per_action: usize,
+    options: super::backward::GradientOptions,
+    /// Per action taken and not yet taken back: its tape and its first step.
+    blocks: Vec<(crate::world::Tape, usize)>,
+    /// The liquid's adjoint at the start of the last action taken back.
+    carried: Option<AdjointState>,
+}
+
+impl Stepper {
+    /// A run from `sim` steering `controlled` (see [`Schedule::new`] for what is refused).
+    pub fn new(
+        sim: &Simulation,
+        controlled: &[BodyHandle],
+        steps_per_action: usize,
+        options: super::backward::GradientOptions,
+    ) -> Result<Stepper> {
+        let probe = Schedule::new(
+            sim,
+            controlled,
+            steps_per_action,
+            vec![vec![[0.0; 6]; controlled.len()]],
+        )?;
+        Ok(Stepper {
+            start: sim.clone(),
+            sim: sim.clone(),
+            controlled: probe.bodies,
+            steps_per_action,
+            options,
+            blocks: Vec::new(),
+            carried: None,
+        })
+    }
+
+    /// The simulation now.
+    pub fn simulation(&self) -> &Simulation {
+        &self.sim
+    }
+
+    /// The bodies' states now.
+    pub fn states(&self) -> Vec<BodyState> {
+        self.sim.bodies().iter().map(|b| b.state()).collect()
+    }
+
+    /// Takes `action` (one [f; τ] or [v; ω] per controlled body) for `steps_per_action` taped
+    /// steps; returns the bodies' states after them.
+    pub fn step(&mut self, action: &[[f64; 6]]) -> Result<Vec<BodyState>> {
+        let schedule = Schedule {
+            bodies: self.controlled.clone(),
+            steps_per_action: self.steps_per_action,
+            actions: vec![action.to_vec()],
+        };
+        if action.len() != self.controlled.len() || action.iter().flatten().any(|x| !x.is_finite())
+        {
+            return Err(Error::InvalidSettings {
+                key: "control.actions".into(),
+                message: format!(
+                    "an action takes {} finite entries of 6, got {action:?}",
+                    self.controlled.len()
+                ),
+            });
+        }
+        let first = self.blocks.len() * self.steps_per_action;
+        let mut tape = crate::world::Tape::default();
+        for t in 0..self.steps_per_action {
+            schedule.apply(&mut self.sim, t);
+            self.sim.step_taped(&mut tape)?;
+        }
+        self.blocks.push((tape, first));
+        Ok(self.states())
+    }
+
+    /// Takes back the last action not yet taken back: from ∂L/∂(the bodies' states after it)
+    /// (with the liquid's adjoint carried from the action after it), the gradient of that
+    /// action and ∂L/∂(the bodies' states before it).
+    pub fn backward(&mut self, after: &[BodyAdjoint]) -> Result<(Vec<[f64; 6]>, Vec<BodyAdjoint>)> {
+        let (tape, first) = self.blocks.pop().ok_or_else(|| Error::InvalidSettings {
+            key: "control".into(),
+            message: "backward asked for more actions than were taken".into(),
+        })?;
+        if after.len() != self.start.bodies().len() {
+            return Err(Error::InvalidSettings {
+                key: "control".into(),
+                message: format!(
+                    "{} body adjoints for {} bodies",
+                    after.len(),
+                    self.start.bodies().len()
+                ),
+            });
+        }
+        let mut adj = self.carried.take().unwrap_or_else(|| AdjointState {
+            u: Mac::zeros(self.start.grid()),
+            bodies: Vec::new(),
+            particles: Vec::new(),
+        });
+        adj.bodies = after.to_vec();
+        let mut grads = vec![[0.0; 6]; self.controlled.len()];
+        let dt = self.start.dt();
+        let model = self.start.bodies().to_vec();
+        let states: Vec<Vec<BodyState>> = tape.steps.iter().map(|r| r.bodies.clone()).collect();
+        let controlled = self.controlled.clone();
+        let mut at_boundary = |b: usize, adj: &mut AdjointState| {
+            read_action_gradients(&controlled, &model, &states[b - first], dt, adj, &mut grads);
+        };
+        let (adj, _) = super::backward::backward_adjoint_hooked(
+            &self.start,
+            &tape,
+            adj,
+            &self.options,
+            first,
+            &mut at_boundary,
+        )?;
+        let bodies = adj.bodies.clone();
+        self.carried = Some(AdjointState { bodies: Vec::new(), ..adj });
+        Ok((grads, bodies))
+    }
 }
