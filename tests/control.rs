@@ -197,6 +197,7 @@ fn one_action_at_a_time_matches_the_whole_schedule() {
     for k in (0..schedule.actions.len()).rev() {
         let (g, before) = stepper.backward(&after).unwrap();
         for (j, gj) in g.iter().enumerate() {
+            #[allow(clippy::needless_range_loop)]
             for d in 0..6 {
                 // The sweep started from the loss's own (effort) term; the stepper adds it last.
                 let (got, want) = (gj[d] + seed.actions[k][j][d], whole.actions[k][j][d]);

@@ -207,6 +207,77 @@ pub struct ControlRun {
     pub adjoint_seconds: AdjointSeconds,
 }
 
+/// A forward run under a schedule, kept for its backward pass: what an autograd engine holds
+/// between its forward and backward calls.
+#[derive(Debug)]
+pub struct ControlledRun {
+    initial: Simulation,
+    schedule: Schedule,
+    rollout: Rollout,
+}
+
+impl ControlledRun {
+    /// Runs `schedule` from `initial` (checkpointed as `settings` ask).
+    pub fn run(
+        initial: &Simulation,
+        schedule: &Schedule,
+        settings: &GradientSettings,
+    ) -> Result<ControlledRun> {
+        let rollout = Rollout::run_with(initial, 0, settings, Some(schedule))?;
+        Ok(ControlledRun { initial: initial.clone(), schedule: schedule.clone(), rollout })
+    }
+
+    /// The trajectory, as a loss sees it.
+    pub fn trajectory(&self) -> Trajectory<'_> {
+        Trajectory {
+            states: self.rollout.states(),
+            final_state: self.rollout.final_state(),
+            schedule: &self.schedule,
+        }
+    }
+
+    /// From ∂L of the trajectory, the gradient with respect to every action and the initial
+    /// state, and what each stage's adjoint cost. The run is kept: it can go backward again.
+    pub fn backward(
+        &self,
+        seed: &TrajectorySeed,
+        options: &super::backward::GradientOptions,
+    ) -> Result<(Vec<Vec<[f64; 6]>>, Gradient, AdjointSeconds)> {
+        let schedule = &self.schedule;
+        let steps = schedule.steps();
+        let check = |what: &str, got: usize, want: usize| {
+            (got != want).then(|| Error::InvalidSettings {
+                key: "control".into(),
+                message: format!("the loss's derivative has {got} {what}, the run {want}"),
+            })
+        };
+        let bodies = self.initial.bodies().len();
+        if let Some(e) = check("boundaries", seed.states.len(), steps + 1)
+            .or_else(|| check("actions", seed.actions.len(), schedule.actions.len()))
+            .or_else(|| seed.states.iter().find_map(|s| check("bodies", s.len(), bodies)))
+        {
+            return Err(e);
+        }
+        let mut adj = seed.liquid.clone().unwrap_or_else(|| AdjointState {
+            u: Mac::zeros(self.initial.grid()),
+            bodies: Vec::new(),
+            particles: Vec::new(),
+        });
+        adj.bodies = seed.states[steps].clone();
+        let mut actions = seed.actions.clone();
+        let dt = self.initial.dt();
+        let model = self.initial.bodies().to_vec();
+        let states = self.rollout.states();
+        let mut at_boundary = |b: usize, adj: &mut AdjointState| {
+            let k = schedule.action_of(b);
+            read_action_gradients(&schedule.bodies, &model, &states[b], dt, adj, &mut actions[k]);
+            add_bodies(adj, &seed.states[b]);
+        };
+        let (adj, seconds) = self.rollout.backward_hooked(adj, options, &mut at_boundary)?;
+        Ok((actions, to_gradient(&self.initial, adj), seconds))
+    }
+}
+
 /// Runs `schedule` from `initial`, evaluates `loss` on the trajectory, and its gradient with
 /// respect to every action and the initial state, in one backward sweep.
 pub fn value_and_gradient_controlled(
@@ -216,37 +287,19 @@ pub fn value_and_gradient_controlled(
     settings: &GradientSettings,
 ) -> Result<ControlRun> {
     let clock = std::time::Instant::now();
-    let rollout = Rollout::run_with(initial, 0, settings, Some(schedule))?;
+    let run = ControlledRun::run(initial, schedule, settings)?;
     let forward_seconds = clock.elapsed().as_secs_f64();
     let clock = std::time::Instant::now();
-    let traj =
-        Trajectory { states: rollout.states(), final_state: rollout.final_state(), schedule };
+    let traj = run.trajectory();
     let value = loss.value(&traj);
     let seed = loss.gradient(&traj);
-    let steps = schedule.steps();
-    let mut adj = seed.liquid.clone().unwrap_or_else(|| AdjointState {
-        u: Mac::zeros(initial.grid()),
-        bodies: Vec::new(),
-        particles: Vec::new(),
-    });
-    adj.bodies = seed.states[steps].clone();
-    let mut actions = seed.actions.clone();
-    let dt = initial.dt();
-    let model = initial.bodies().to_vec();
-    let states = rollout.states().to_vec();
-    let mut at_boundary = |b: usize, adj: &mut AdjointState| {
-        let k = schedule.action_of(b);
-        read_action_gradients(&schedule.bodies, &model, &states[b], dt, adj, &mut actions[k]);
-        add_bodies(adj, &seed.states[b]);
-    };
-    let (adj, adjoint_seconds) =
-        rollout.backward_hooked(adj, &settings.options, &mut at_boundary)?;
+    let (actions, gradient, adjoint_seconds) = run.backward(&seed, &settings.options)?;
     Ok(ControlRun {
         loss: value,
         actions,
-        initial: to_gradient(initial, adj),
-        states: rollout.states().to_vec(),
-        final_state: rollout.final_state().clone(),
+        initial: gradient,
+        states: run.rollout.states().to_vec(),
+        final_state: run.rollout.final_state().clone(),
         forward_seconds,
         backward_seconds: clock.elapsed().as_secs_f64(),
         adjoint_seconds,
