@@ -27,6 +27,9 @@ use crate::geometry::grid::Mac;
 use crate::math::Vec3;
 use crate::world::{BodyHandle, Simulation};
 
+/// Actions (or their gradients): `[k][j]` the k-th action on the j-th controlled body.
+pub type Actions = Vec<Vec<[f64; 6]>>;
+
 /// What an action sets on a body, from its motion.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ActionKind {
@@ -242,7 +245,7 @@ impl ControlledRun {
         &self,
         seed: &TrajectorySeed,
         options: &super::backward::GradientOptions,
-    ) -> Result<(Vec<Vec<[f64; 6]>>, Gradient, AdjointSeconds)> {
+    ) -> Result<(Actions, Gradient, AdjointSeconds)> {
         let schedule = &self.schedule;
         let steps = schedule.steps();
         let check = |what: &str, got: usize, want: usize| {
