@@ -3,7 +3,7 @@
 use clap::{Parser, Subcommand};
 use diffluid::experiments::optimize::{Checkpoint, Optimization};
 use diffluid::experiments::outputs::{
-    render_run, write_bench, write_optimization, RenderRequest, Study,
+    render_run, write_bench, write_control, write_optimization, RenderRequest, Study,
 };
 use diffluid::gradients::{gradcheck, GradcheckSettings};
 use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
@@ -33,6 +33,12 @@ enum Command {
     /// Optimise a body's initial state so it reaches the scene's loss targets; writes
     /// loss.csv, result.json, a checkpoint after every epoch, and pictures.
     Optimize(OptimizeArgs),
+    /// Steer bodies over time: optimise the scene's [control] actions (a force and torque on
+    /// a dynamic body, a velocity on a `dynamic = false` one, at every step) against its
+    /// [loss] on the whole trajectory, with gradients from one backward sweep; with --swarm,
+    /// also without gradients (argmin's particle swarm) for the same simulator calls. Writes
+    /// control.csv, actions.csv, result.json, control.png and trajectory.png.
+    Control(ControlArgs),
     /// Compare adjoint gradients with central finite differences for every body parameter,
     /// with the full gradient and with the paper's approximation, on the scene's own map (its
     /// surface moving unless the scene freezes it; --frozen holds it fixed in both passes).
@@ -106,6 +112,66 @@ struct RunArgs {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+}
+
+#[derive(clap::Args)]
+struct ControlArgs {
+    /// Scene file or built-in name with [control] and [loss] sections.
+    scene: PathBuf,
+    /// Output folder [default: out/<scene name>-control].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Epochs [default: the scene's control.epochs].
+    #[arg(long)]
+    epochs: Option<usize>,
+    /// Also solve it without gradients: argmin's particle swarm for as many simulator calls as
+    /// the gradient run made.
+    #[arg(long)]
+    swarm: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn control(args: ControlArgs) -> Outcome {
+    use diffluid::experiments::control::{optimise, particle_swarm, ControlProblem};
+    let scene = load_scene(Some(&args.scene))?;
+    let out =
+        args.out.unwrap_or_else(|| PathBuf::from("out").join(format!("{}-control", scene.name)));
+    let problem = ControlProblem::new(scene)?;
+    let epochs = match args.epochs {
+        Some(0) => return Err(Failure("--epochs must be at least 1".into())),
+        Some(n) => n,
+        None => problem.epochs,
+    };
+    let start = Instant::now();
+    let bar = bar(epochs + 1, args.quiet, "{msg} [{bar:30}] epoch {pos}/{len} ({elapsed} < {eta})");
+    let outcome = optimise(&problem, epochs, |r| {
+        bar.set_message(format!("loss {:.4e} |g| {:.3e}", r.loss, r.grad_norm));
+        bar.inc(1);
+    })?;
+    bar.finish_and_clear();
+    let calls = outcome.history.last().map_or(0, |r| r.calls);
+    let swarm = if args.swarm { Some(particle_swarm(&problem, calls)?) } else { None };
+    write_control(&problem, &outcome, swarm.as_deref(), &out, start.elapsed().as_secs_f64())?;
+    if let Some(reason) = &outcome.stopped {
+        return Err(Failure(format!("control stopped at {reason}; wrote {}", out.display())));
+    }
+    let initial = outcome.history.first().map_or(f64::NAN, |r| r.loss);
+    println!(
+        "{}: {epochs} epochs ({calls} simulator calls), loss {initial:.4e} -> {:.4e} ({:.0}x){} in {:.1} s; wrote {}",
+        problem.scene.name,
+        outcome.best.1,
+        initial / outcome.best.1,
+        swarm
+            .as_ref()
+            .and_then(|s| s.last())
+            .map(|s| format!("; particle swarm {:.4e} after {} calls", s.1, s.0))
+            .unwrap_or_default(),
+        start.elapsed().as_secs_f64(),
+        out.display()
+    );
+    Ok(())
 }
 
 #[derive(clap::Args, Default)]
@@ -392,6 +458,7 @@ fn main() -> ExitCode {
         Some(Command::Run(args)) => run(args),
         Some(Command::Gradcheck(args)) => gradcheck_cmd(args),
         Some(Command::Optimize(args)) => optimize(args),
+        Some(Command::Control(args)) => control(args),
         Some(Command::Bench(args)) => bench(args),
         Some(Command::Render(args)) => render(args),
         // The main job: the embedded block drop forward, then its optimisation.

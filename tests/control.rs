@@ -216,3 +216,81 @@ fn one_action_at_a_time_matches_the_whole_schedule() {
     }
     assert!(stepper.backward(&after).is_err(), "more actions taken back than taken");
 }
+
+/// A scene's `[control]` section and the trajectory terms of its `[loss]`: each mistake is
+/// an error naming its key, nothing run.
+#[test]
+fn bad_control_sections_are_refused() {
+    let base = include_str!("../assets/scenes/paddle_push.toml");
+    let cases = [
+        (r#"bodies = ["paddle"]"#, r#"bodies = ["oar"]"#, "control.bodies"),
+        ("steps_per_action = 10", "steps_per_action = 0", "control.steps_per_action"),
+        ("steps_per_action = 10", "steps_per_action = 7", "multiple"),
+        ("bound = 0.4", "bound = -1.0", "control.bound"),
+        ("epochs = 100", "epochs = 0", "control.epochs"),
+        (
+            r#"optimizer = { kind = "adam", learning_rate = 0.03 }"#,
+            r#"optimizer = { kind = "lbfgs" }"#,
+            "control.optimizer",
+        ),
+        (
+            "initial = [[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]]",
+            "initial = [[0.1, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]]",
+            "control.initial",
+        ),
+        ("effort = 1e-4", "effort = -1.0", "loss.effort"),
+        (r#"free = ["vx", "vz", "wy"]"#, r#"free = ["vx", "spin"]"#, "control.free"),
+        (
+            "effort = 1e-4",
+            "effort = 1e-4\nwaypoint = [{ step = 151, position = [0.5, 0.24, 0.4] }]",
+            "loss.waypoint[0].step",
+        ),
+    ];
+    for (from, to, key) in cases {
+        assert!(base.contains(from), "{from}");
+        let text = base.replacen(from, to, 1);
+        let err = Scene::from_toml(&text, "<bad>").unwrap_err().to_string();
+        assert!(err.contains(key), "{to}: {err}");
+    }
+    // Trajectory terms need actions to act on.
+    let text = base.replacen("[control]", "[unused]", 1);
+    let cut = text.find("[unused]").unwrap();
+    let end = text.find("[loss]").unwrap();
+    let without = format!("{}{}", &text[..cut], &text[end..]);
+    let err = Scene::from_toml(&without, "<bad>").unwrap_err().to_string();
+    assert!(err.contains("need a [control] section"), "{err}");
+}
+
+/// `diffluid control` on a small version of `paddle_push` (frozen surface, 2 epochs): the
+/// table, the actions, the result and both pictures are written, and the particle swarm
+/// runs for the same calls.
+#[test]
+fn the_control_command_writes_its_files() {
+    let base = include_str!("../assets/scenes/paddle_push.toml");
+    let text = base.replacen("steps = 150", "steps = 20", 1).replacen(
+        "[output]",
+        "[solver]\nfreeze_surface = true\n\n[output]",
+        1,
+    );
+    let dir = std::env::temp_dir().join(format!("diffluid-control-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene = dir.join("small.toml");
+    std::fs::write(&scene, text).unwrap();
+    let out = dir.join("out");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_diffluid"))
+        .args(["control", scene.to_str().unwrap(), "--epochs", "2", "--swarm", "--quiet", "--out"])
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    for f in ["control.csv", "actions.csv", "result.json", "control.png", "trajectory.png"] {
+        let p = out.join(f);
+        assert!(std::fs::metadata(&p).map(|m| m.len() > 50).unwrap_or(false), "{p:?}");
+    }
+    let result: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("result.json")).unwrap()).unwrap();
+    assert_eq!(result["calls"], 6, "three gradients, two calls each");
+    assert!(result["best_loss"].as_f64().unwrap() <= result["initial_loss"].as_f64().unwrap());
+    assert!(result["particle_swarm_loss"].as_f64().unwrap().is_finite());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -4,6 +4,7 @@
 //! `csv` and `plots`).
 
 pub mod bench;
+pub mod control;
 #[cfg(feature = "lbfgs")]
 mod lbfgs;
 pub mod optimize;

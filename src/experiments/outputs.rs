@@ -589,3 +589,136 @@ fn write_energy(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Res
     plot::energy_chart(&at("energy.png"), &curves)?;
     Ok(lines)
 }
+
+/// One action of `diffluid control`'s best schedule, as `actions.csv` writes it.
+#[derive(Serialize)]
+struct ActionRow<'a> {
+    action: usize,
+    first_step: usize,
+    body: &'a str,
+    a0: f64,
+    a1: f64,
+    a2: f64,
+    a3: f64,
+    a4: f64,
+    a5: f64,
+}
+
+/// What `result.json` of `diffluid control` holds.
+#[derive(Serialize)]
+struct ControlResult<'a> {
+    scene: &'a str,
+    epochs: usize,
+    calls: usize,
+    initial_loss: f64,
+    best_loss: f64,
+    loss_reduction: f64,
+    /// The particle swarm's best loss after as many calls, if it ran.
+    particle_swarm_loss: Option<f64>,
+    /// The calls the gradient run took to reach the swarm's final loss, if it did.
+    calls_to_match_swarm: Option<usize>,
+    /// Why the gradient run stopped early, if it did.
+    stopped: Option<&'a str>,
+    wall_seconds: f64,
+}
+
+/// `diffluid control`'s files: `control.csv` (every epoch), `actions.csv` (the best
+/// actions), `result.json`, `control.png` (the best loss against simulator calls, and the
+/// particle swarm's when it ran) and `trajectory.png` (the bodies' paths under the starting
+/// and the best actions, over the liquid at the start).
+pub fn write_control(
+    problem: &super::control::ControlProblem,
+    outcome: &super::control::ControlOutcome,
+    swarm: Option<&[(usize, f64)]>,
+    out: &Path,
+    wall_seconds: f64,
+) -> Result<()> {
+    std::fs::create_dir_all(out)
+        .map_err(|source| Error::Write { path: out.to_path_buf(), source })?;
+    write_csv(&out.join("control.csv"), &outcome.history)?;
+    let names: Vec<String> = problem.sim.bodies().iter().map(|b| b.name.clone()).collect();
+    let spa = problem.schedule.steps_per_action;
+    let rows: Vec<ActionRow> = outcome
+        .best
+        .0
+        .iter()
+        .enumerate()
+        .flat_map(|(k, row)| {
+            let names = &names;
+            row.iter().zip(&problem.schedule.bodies).map(move |(a, &(i, _))| ActionRow {
+                action: k,
+                first_step: k * spa,
+                body: &names[i],
+                a0: a[0],
+                a1: a[1],
+                a2: a[2],
+                a3: a[3],
+                a4: a[4],
+                a5: a[5],
+            })
+        })
+        .collect();
+    write_csv(&out.join("actions.csv"), &rows)?;
+    let mut best = f64::INFINITY;
+    let gradient: Vec<(f64, f64)> = outcome
+        .history
+        .iter()
+        .map(|r| {
+            best = best.min(r.loss);
+            (r.calls as f64, best)
+        })
+        .collect();
+    let mut series: Vec<Series> = vec![("gradients (the adjoint)".into(), gradient.clone())];
+    if let Some(s) = swarm {
+        series.push((
+            "particle swarm (argmin, no gradients)".into(),
+            s.iter().map(|&(c, l)| (c as f64, l)).collect(),
+        ));
+    }
+    plot::line_chart(
+        &out.join("control.png"),
+        &format!("{}: best loss against simulator calls", problem.scene.name),
+        ("simulator calls (a gradient counts two)", "best loss"),
+        (false, true),
+        &series,
+    )?;
+    let swarm_final = swarm.and_then(|s| s.last()).map(|s| s.1);
+    let calls_to_match = swarm_final
+        .and_then(|target| gradient.iter().find(|(_, l)| *l <= target).map(|(c, _)| *c as usize));
+    let initial = outcome.history.first().map_or(f64::NAN, |r| r.loss);
+    write_json(
+        &out.join("result.json"),
+        &ControlResult {
+            scene: &problem.scene.name,
+            epochs: outcome.history.len().saturating_sub(1),
+            calls: outcome.history.last().map_or(0, |r| r.calls),
+            initial_loss: initial,
+            best_loss: outcome.best.1,
+            loss_reduction: initial / outcome.best.1,
+            particle_swarm_loss: swarm_final,
+            calls_to_match_swarm: calls_to_match,
+            stopped: outcome.stopped.as_deref(),
+            wall_seconds,
+        },
+    )?;
+    let track = |label: String, states: &[Vec<BodyState>], i: usize| Track {
+        label,
+        points: states.iter().map(|s| s[i].x).collect(),
+    };
+    let mut tracks = Vec::new();
+    for (i, name) in names.iter().enumerate() {
+        tracks.push(track(format!("{name}, starting actions"), &outcome.start_states, i));
+        tracks.push(track(format!("{name}, optimised"), &outcome.states, i));
+    }
+    let target = problem.loss.target.and_then(|t| t.position);
+    let shot = frame(&problem.sim, problem.scene.output.surface_samples, String::new());
+    let picture =
+        Picture { domain: problem.sim.grid().size(), liquid: &shot.liquid, bodies: &shot.bodies };
+    plot::trajectory_plot(
+        &out.join("trajectory.png"),
+        problem.sim.grid().size(),
+        &tracks,
+        target.map(|t| t.0),
+        Some(("liquid and bodies at the start", &picture)),
+    )
+}

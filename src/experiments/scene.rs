@@ -4,7 +4,9 @@
 use super::shapes::{AxisAngle, Placed, ShapeSpec};
 use crate::error::{Error, Result};
 use crate::geometry::body::{Motion, Param, RigidBody};
-use crate::gradients::BodyTargetLoss;
+use crate::gradients::{
+    BodyTargetLoss, FinalTarget, LiquidInBox, Schedule, TrajectoryTerms, Waypoint,
+};
 pub use crate::io::output::MeshFormat;
 use crate::math::{v3, Arr3, Rotation};
 use crate::world::settings::{check_finite, check_positive, SettingError};
@@ -29,6 +31,7 @@ pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("gradcheck_live", include_str!("../../assets/scenes/gradcheck_live.toml")),
     ("surge_ball", include_str!("../../assets/scenes/surge_ball.toml")),
     ("surge_target", include_str!("../../assets/scenes/surge_target.toml")),
+    ("paddle_push", include_str!("../../assets/scenes/paddle_push.toml")),
     ("large_tank", include_str!("../../assets/scenes/large_tank.toml")),
 ];
 
@@ -65,9 +68,12 @@ pub struct Scene {
     /// What to optimise and how (for `diffluid optimize`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub optimize: Option<OptimizeSpec>,
-    /// A loss on the final state (for gradients and optimisation).
+    /// A loss on the final state or the whole trajectory (for gradients and optimisation).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub loss: Option<LossSpec>,
+    /// Actions at every step on some bodies, and how `diffluid control` optimises them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub control: Option<ControlSpec>,
     /// What to write out.
     #[serde(default)]
     pub output: Output,
@@ -183,6 +189,92 @@ pub struct LossSpec {
     /// Final velocity target.
     #[serde(default)]
     pub velocity: Option<Target3>,
+    /// Positions the body passes after given steps (with `[control]`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub waypoint: Vec<WaypointSpec>,
+    /// weight·Σ|a|² over every action of `[control]`. Default 0.
+    #[serde(default)]
+    pub effort: f64,
+    /// weight·Δt·Σ|v|² of the body after every step (a running cost). Default 0.
+    #[serde(default)]
+    pub speed: f64,
+    /// The liquid's volume inside a box at the end, against a target (with `[control]`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub liquid_in_box: Option<BoxTarget>,
+}
+
+/// A position the loss body passes after `step` steps: weight·|x − position|².
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WaypointSpec {
+    /// Steps taken (1 ..= time.steps).
+    pub step: usize,
+    /// Where the body should be, m.
+    pub position: Arr3,
+    /// Weight (≥ 0). Default 1.
+    #[serde(default = "one_f")]
+    pub weight: f64,
+}
+
+/// The liquid's volume inside an axis-aligned box at the end: weight·(V − target)².
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoxTarget {
+    /// Lower corner, m.
+    pub min: Arr3,
+    /// Upper corner, m.
+    pub max: Arr3,
+    /// The volume wanted inside, m³ (0: keep the liquid out).
+    pub target: f64,
+    /// Weight (≥ 0), per m⁶. Default 1.
+    #[serde(default = "one_f")]
+    pub weight: f64,
+}
+
+/// Actions at every step (`diffluid control`): a dynamic body takes an external force and
+/// torque `[fx, fy, fz, τx, τy, τz]` (world frame, N and N·m), a body with `dynamic = false`
+/// a velocity and angular velocity `[vx, vy, vz, ωx, ωy, ωz]` (it moves along them, from
+/// rest if it has no `velocity`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControlSpec {
+    /// The steered bodies, by name.
+    pub bodies: Vec<String>,
+    /// Steps each action is held; time.steps must be a multiple of it. Default 1.
+    #[serde(default = "one_usize")]
+    pub steps_per_action: usize,
+    /// Every action's starting value, one per body (default zeros).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub initial: Vec<[f64; 6]>,
+    /// The largest magnitude of an action's entry: the optimiser clips to it. Optional.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bound: Option<f64>,
+    /// The entries the optimiser changes, by name: `vx vy vz wx wy wz` for a body with
+    /// `dynamic = false`, `fx fy fz tx ty tz` for a dynamic one (the others keep their
+    /// `initial` values). Default: all six.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub free: Vec<String>,
+    /// The optimiser (`gd` or `adam`).
+    pub optimizer: OptimizerSpec,
+    /// Epochs (forward + backward + update each).
+    pub epochs: usize,
+}
+
+fn one_usize() -> usize {
+    1
+}
+
+/// The index in an action of an entry named in `control.free`.
+pub fn action_entry(name: &str) -> Option<usize> {
+    ["vx", "vy", "vz", "wx", "wy", "wz"]
+        .iter()
+        .position(|n| *n == name)
+        .or_else(|| ["fx", "fy", "fz", "tx", "ty", "tz"].iter().position(|n| *n == name))
+}
+
+/// The name body `i` goes by.
+fn key_name(i: usize, b: &BodySpec) -> String {
+    b.name_or_default(i)
 }
 
 /// The optimiser.
@@ -597,7 +689,9 @@ impl Scene {
         body.w = v3(b.angular_velocity);
         // A body that is not dynamic but has a velocity moves along it: a prescribed motion
         // (a paddle, a wave maker) the pressure solve sees.
-        let still = b.velocity == [0.0; 3] && b.angular_velocity == [0.0; 3];
+        // A steered body that is not dynamic starts from rest when it has no velocity.
+        let steered = self.control.as_ref().is_some_and(|c| c.bodies.contains(&key_name(i, b)));
+        let still = b.velocity == [0.0; 3] && b.angular_velocity == [0.0; 3] && !steered;
         body.motion = match (b.dynamic, still) {
             (true, _) => Motion::Dynamic,
             (false, true) => Motion::Fixed,
@@ -624,6 +718,56 @@ impl Scene {
     /// The index of the body named `name`.
     pub fn body_index(&self, name: &str) -> Option<usize> {
         (0..self.body.len()).find(|&i| self.body[i].name_or_default(i) == name)
+    }
+
+    /// The loss of the `[loss]` section on a whole trajectory (its final target, waypoints,
+    /// effort, speed and liquid box); None without one.
+    pub fn trajectory_loss(&self) -> Option<TrajectoryTerms> {
+        let l = self.loss.as_ref()?;
+        let target = self.loss()?;
+        let body = target.body;
+        let final_target = (target.position.is_some()
+            || target.orientation.is_some()
+            || target.velocity.is_some())
+        .then_some(FinalTarget {
+            body,
+            position: target.position,
+            orientation: target.orientation,
+            velocity: target.velocity,
+        });
+        Some(TrajectoryTerms {
+            waypoints: l
+                .waypoint
+                .iter()
+                .map(|w| Waypoint {
+                    body,
+                    step: w.step,
+                    position: v3(w.position),
+                    weight: w.weight,
+                })
+                .collect(),
+            target: final_target,
+            effort: l.effort,
+            speed: (l.speed != 0.0).then_some((body, l.speed)),
+            liquid_in_box: l.liquid_in_box.as_ref().map(|b| LiquidInBox {
+                min: v3(b.min),
+                max: v3(b.max),
+                target: b.target,
+                weight: b.weight,
+            }),
+        })
+    }
+
+    /// The schedule of the `[control]` section on `sim` (built from this scene), its actions
+    /// at their starting values; None without one.
+    pub fn schedule(&self, sim: &Simulation) -> Option<Result<Schedule>> {
+        let c = self.control.as_ref()?;
+        let handles: Vec<_> =
+            c.bodies.iter().filter_map(|n| self.body_index(n)).map(|i| sim.handles()[i]).collect();
+        let row: Vec<[f64; 6]> =
+            if c.initial.is_empty() { vec![[0.0; 6]; c.bodies.len()] } else { c.initial.clone() };
+        let actions = vec![row; self.time.steps / c.steps_per_action.max(1)];
+        Some(Schedule::new(sim, &handles, c.steps_per_action, actions))
     }
 
     fn validate(&self) -> std::result::Result<(), Problem> {
@@ -680,11 +824,143 @@ impl Scene {
                     }
                 }
             }
-            if l.position.is_none() && l.orientation.is_none() && l.velocity.is_none() {
+            for (k, w) in l.waypoint.iter().enumerate() {
+                let key = format!("loss.waypoint[{k}]");
+                if !(1..=self.time.steps).contains(&w.step) {
+                    return Err(problem(
+                        format!("{key}.step"),
+                        format!("must be in 1..={}, got {}", self.time.steps, w.step),
+                    ));
+                }
+                check_finite(&format!("{key}.position"), &w.position)?;
+                if !(w.weight.is_finite() && w.weight >= 0.0) {
+                    return Err(problem(format!("{key}.weight"), "must be a non-negative number"));
+                }
+            }
+            for (key, w) in [("loss.effort", l.effort), ("loss.speed", l.speed)] {
+                if !(w.is_finite() && w >= 0.0) {
+                    return Err(problem(key, format!("must be a non-negative number, got {w}")));
+                }
+            }
+            if let Some(b) = &l.liquid_in_box {
+                check_finite("loss.liquid_in_box.min", &b.min)?;
+                check_finite("loss.liquid_in_box.max", &b.max)?;
+                if (0..3).any(|d| b.max[d] <= b.min[d]) {
+                    return Err(problem(
+                        "loss.liquid_in_box",
+                        "max must be above min on every axis",
+                    ));
+                }
+                for (key, x) in [
+                    ("loss.liquid_in_box.target", b.target),
+                    ("loss.liquid_in_box.weight", b.weight),
+                ] {
+                    if !(x.is_finite() && x >= 0.0) {
+                        return Err(problem(
+                            key,
+                            format!("must be a non-negative number, got {x}"),
+                        ));
+                    }
+                }
+            }
+            let trajectory_terms = !l.waypoint.is_empty()
+                || l.effort > 0.0
+                || l.speed > 0.0
+                || l.liquid_in_box.is_some();
+            if trajectory_terms && self.control.is_none() {
+                return Err(problem(
+                    "loss",
+                    "waypoint, effort, speed and liquid_in_box are terms on a trajectory: they \
+                     need a [control] section",
+                ));
+            }
+            if l.position.is_none()
+                && l.orientation.is_none()
+                && l.velocity.is_none()
+                && !trajectory_terms
+            {
                 return Err(problem(
                     "loss",
                     "give at least one of position, orientation, velocity",
                 ));
+            }
+        }
+        if let Some(c) = &self.control {
+            let names: Vec<String> =
+                self.body.iter().enumerate().map(|(i, b)| b.name_or_default(i)).collect();
+            if c.bodies.is_empty() {
+                return Err(problem("control.bodies", "name at least one body"));
+            }
+            for n in &c.bodies {
+                if !names.contains(n) {
+                    return Err(problem(
+                        "control.bodies",
+                        format!("no body named {n:?} (bodies: {names:?})"),
+                    ));
+                }
+            }
+            if c.steps_per_action == 0 {
+                return Err(problem("control.steps_per_action", "must be at least 1"));
+            }
+            if self.time.steps % c.steps_per_action != 0 {
+                return Err(problem(
+                    "control.steps_per_action",
+                    format!(
+                        "time.steps ({}) must be a multiple of it ({})",
+                        self.time.steps, c.steps_per_action
+                    ),
+                ));
+            }
+            if !c.initial.is_empty() && c.initial.len() != c.bodies.len() {
+                return Err(problem(
+                    "control.initial",
+                    format!(
+                        "one action per body: {} for {} bodies",
+                        c.initial.len(),
+                        c.bodies.len()
+                    ),
+                ));
+            }
+            if c.initial.iter().flatten().any(|x| !x.is_finite()) {
+                return Err(problem("control.initial", "must be finite"));
+            }
+            if let Some(b) = c.bound {
+                if !(b.is_finite() && b > 0.0) {
+                    return Err(problem(
+                        "control.bound",
+                        format!("must be a positive number, got {b}"),
+                    ));
+                }
+            }
+            if c.epochs == 0 {
+                return Err(problem("control.epochs", "must be at least 1"));
+            }
+            for f in &c.free {
+                if action_entry(f).is_none() {
+                    return Err(problem(
+                        "control.free",
+                        format!(
+                            "unknown entry {f:?}: use vx vy vz wx wy wz (a velocity) or fx fy fz \
+                             tx ty tz (a force and torque)"
+                        ),
+                    ));
+                }
+            }
+            match &c.optimizer {
+                OptimizerSpec::Gd { learning_rate } | OptimizerSpec::Adam { learning_rate, .. } => {
+                    if !(learning_rate.is_finite() && *learning_rate > 0.0) {
+                        return Err(problem(
+                            "control.optimizer.learning_rate",
+                            format!("must be a positive number, got {learning_rate}"),
+                        ));
+                    }
+                }
+                OptimizerSpec::Lbfgs { .. } => {
+                    return Err(problem("control.optimizer", "control takes gd or adam"))
+                }
+            }
+            if self.loss.is_none() {
+                return Err(problem("control", "needs a [loss] section"));
             }
         }
         if let Some(o) = &self.optimize {
