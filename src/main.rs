@@ -216,6 +216,10 @@ struct GradcheckArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     json: bool,
+    /// With a [control] section: how many action entries to check (spread evenly over the
+    /// actions, bodies and entries; all of them if there are fewer).
+    #[arg(long, default_value_t = 12)]
+    actions: usize,
 }
 
 #[derive(clap::Args)]
@@ -392,10 +396,19 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
         eps: args.eps,
         rtol: args.rtol,
         atol: args.atol,
-        compare_paper: true,
+        compare_paper: scene.control.is_none(),
         ..Default::default()
     };
-    let report = gradcheck(&sim, scene.time.steps, &loss, &settings)?;
+    let report = match (scene.schedule(&sim), scene.trajectory_loss()) {
+        (Some(schedule), Some(terms)) => diffluid::gradients::gradcheck_controlled(
+            &sim,
+            &schedule?,
+            &terms,
+            &settings,
+            args.actions,
+        )?,
+        _ => gradcheck(&sim, scene.time.steps, &loss, &settings)?,
+    };
     if args.json {
         let mut json = report.to_json();
         json["scene"] = scene.name.clone().into();

@@ -62,3 +62,28 @@ fn gradcheck_live_follows_the_moving_surface() {
         .fold(0.0, f64::max);
     assert!(worst_paper > 1.0, "the frozen surface should be far off here: {worst_paper}");
 }
+
+/// `diffluid gradcheck gradcheck_control --frozen --json`: per-step actions on a kinematic
+/// paddle and a pushed ball, a loss on the whole trajectory. Every checked action entry and
+/// initial coordinate passes, and every one whose derivative is not at round-off (|fd| >
+/// 1e-5) is within 1e-6 of central differences (measured worst 5.9e-8).
+#[test]
+fn gradcheck_control_checks_actions_and_the_initial_state() {
+    let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+        .args(["gradcheck", "gradcheck_control", "--frozen", "--json", "--actions", "24"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let params = v["params"].as_array().unwrap();
+    let actions = params.iter().filter(|p| p["name"].as_str().unwrap().contains(".a")).count();
+    assert_eq!(actions, 24, "the asked sample of action entries");
+    assert_eq!(params.len(), 24 + 12, "and v, ω, x, q of the ball");
+    for p in params {
+        assert!(p["pass"].as_bool().unwrap(), "{}", p["name"]);
+        if p["fd"].as_f64().unwrap().abs() > 1e-5 {
+            let rel = p["rel_error"].as_f64().unwrap();
+            assert!(rel <= 1e-6, "{}: rel_error {rel}", p["name"]);
+        }
+    }
+}

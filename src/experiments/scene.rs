@@ -32,6 +32,7 @@ pub const BUILTIN_SCENES: &[(&str, &str)] = &[
     ("surge_ball", include_str!("../../assets/scenes/surge_ball.toml")),
     ("surge_target", include_str!("../../assets/scenes/surge_target.toml")),
     ("paddle_push", include_str!("../../assets/scenes/paddle_push.toml")),
+    ("gradcheck_control", include_str!("../../assets/scenes/gradcheck_control.toml")),
     ("large_tank", include_str!("../../assets/scenes/large_tank.toml")),
 ];
 

@@ -12,10 +12,13 @@ pub mod run;
 pub mod trajectory;
 
 pub use backward::{backward, backward_adjoint, GradientMode, GradientOptions};
-pub use check::{central_difference, gradcheck, Coordinate, GradcheckReport, GradcheckSettings};
+pub use check::{
+    central_difference, gradcheck, gradcheck_controlled, Coordinate, GradcheckReport,
+    GradcheckSettings,
+};
 pub use control::{
-    value_and_gradient_controlled, ActionKind, ControlRun, ControlledRun, Schedule, Stepper,
-    Trajectory, TrajectoryLoss, TrajectorySeed,
+    value_and_gradient_controlled, ActionKind, Actions, ControlRun, ControlledRun, Schedule,
+    Stepper, Trajectory, TrajectoryLoss, TrajectorySeed,
 };
 pub use loss::{AdjointState, BodyAdjoint, BodyGradient, BodyTargetLoss, Gradient, Loss};
 pub use run::{value_and_gradient, GradientRun, GradientSettings, Rollout};
