@@ -161,7 +161,7 @@ pub struct Trajectory<'a> {
 /// What a trajectory loss's derivative holds.
 #[derive(Clone, Debug)]
 pub struct TrajectorySeed {
-    /// ∂L/∂states[b], per body.
+    /// ∂L/∂`states[b]`, per body.
     pub states: Vec<Vec<BodyAdjoint>>,
     /// ∂L/∂actions that the loss reads directly (an effort term).
     pub actions: Vec<Vec<[f64; 6]>>,
