@@ -9,7 +9,10 @@ Rust library seen from Python:
   world in code) and :class:`Simulation`
   (``step``, ``advance``, bodies and fields as NumPy arrays);
 - :func:`value_and_grad` and :class:`BodyTargetLoss`; :func:`optimize`, the Rust optimiser;
-- :mod:`diffluid.torch`: ``rollout`` as a ``torch.autograd.Function`` (needs torch);
+- :mod:`diffluid.torch`: ``rollout`` as a ``torch.autograd.Function``, and control through
+  the water: ``trajectory`` (actions at every step, losses on the whole trajectory) and
+  ``Stepper`` (a closed-loop policy trained through the simulator) (needs torch);
+  :func:`controlled_run` and :class:`Stepper` are their NumPy halves;
 - :mod:`diffluid.ray`: N independent rollouts or gradients as Ray tasks (needs ray).
 
 Every diffluid error is a Python exception with the CLI's message: ``ValueError`` for a bad
@@ -22,6 +25,7 @@ million cells and more: a lower, steadier peak).
 
 from ._diffluid import (
     BodyTargetLoss,
+    ControlledRun,
     GradientError,
     InternalError,
     Rollout,
@@ -29,7 +33,9 @@ from ._diffluid import (
     Simulation,
     SimulationError,
     SolverError,
+    Stepper,
     __version__,
+    controlled_run,
     optimize,
     rollout,
     tune_memory,
@@ -39,6 +45,7 @@ from .builder import WorldBuilder
 
 __all__ = [
     "BodyTargetLoss",
+    "ControlledRun",
     "GradientError",
     "InternalError",
     "Rollout",
@@ -46,7 +53,9 @@ __all__ = [
     "Simulation",
     "SimulationError",
     "SolverError",
+    "Stepper",
     "__version__",
+    "controlled_run",
     "optimize",
     "rollout",
     "tune_memory",

@@ -161,6 +161,12 @@ class Simulation:
     ) -> None: ...
     def set_external_force(self, body: Body, force: F64, torque: Optional[F64] = None) -> None: ...
     @property
+    def motions(self) -> list[str]:
+        """Per body: "dynamic", "kinematic", "fixed" or "external"."""
+    def set_kinematic(self, body: Body) -> None:
+        """Makes a body (e.g. a paddle a scene holds at rest, "fixed") kinematic: moved along
+        its own velocity, which control actions set."""
+    @property
     def particles(self) -> F64:
         """(particles, 3)"""
     @property
@@ -241,6 +247,68 @@ def rollout(
     through_contact: bool = False,
     checkpoint_every: Optional[int] = None,
 ) -> Rollout: ...
+@final
+class ControlledRun:
+    """A run under a schedule of actions, kept; backward() is the vector–Jacobian product
+    from a gradient on the states at the action boundaries to the actions and initial state."""
+
+    @property
+    def num_actions(self) -> int: ...
+    @property
+    def steps_per_action(self) -> int: ...
+    @property
+    def controlled(self) -> list[int]: ...
+    def states(self) -> F64:
+        """(T + 1, bodies, 13): x, q [w, x, y, z], v, ω at every action boundary."""
+    def step_states(self) -> F64:
+        """(T·steps_per_action + 1, bodies, 13): after every step."""
+    def final_simulation(self) -> Simulation: ...
+    def backward(self, grad: F64) -> Tuple[F64, F64]:
+        """grad (T + 1, bodies, 13) -> (∂L/∂actions (T, bodies, 6), ∂L/∂state0 (bodies, 13))."""
+
+def controlled_run(
+    sim: Simulation,
+    actions: F64,
+    state0: Optional[F64] = None,
+    *,
+    steps_per_action: int = 1,
+    surface: str = "live",
+    mode: str = "full",
+    through_contact: bool = False,
+    checkpoint_every: Optional[int] = None,
+    bodies: Optional[Sequence[Body]] = None,
+) -> ControlledRun:
+    """actions (T, bodies, 6): [force, torque] of a dynamic body, [v, ω] of a kinematic one
+    (other rows ignored); state0 (bodies, 13)."""
+
+@final
+class Stepper:
+    """A run driven one action at a time and taken back one action at a time (last first,
+    each once), the liquid's adjoint carried inside; what diffluid.torch.Stepper builds on."""
+
+    def __new__(
+        cls,
+        sim: Simulation,
+        *,
+        steps_per_action: int = 1,
+        surface: str = "live",
+        mode: str = "full",
+        through_contact: bool = False,
+        bodies: Optional[Sequence[Body]] = None,
+    ) -> Stepper: ...
+    def step(self, action: F64, state: Optional[F64] = None) -> Tuple[int, F64]:
+        """action (bodies, 6), state (bodies, 13) -> (k, states after (bodies, 13))."""
+    def backward(self, k: int, grad: F64) -> Tuple[F64, F64]:
+        """∂L/∂(states after action k) -> (∂L/∂action k (bodies, 6), ∂L/∂(states before))."""
+    def states(self) -> F64: ...
+    def simulation(self) -> Simulation: ...
+    @property
+    def steps_taken(self) -> int: ...
+    @property
+    def steps_per_action(self) -> int: ...
+    @property
+    def controlled(self) -> list[int]: ...
+
 def _panic_for_tests() -> None:
     """Panics inside the boundary guard (raises InternalError); for the tests."""
 def tune_memory() -> bool:

@@ -10,11 +10,19 @@ the forward pass keeps its tape for the backward pass.
 Orientations are quaternions ``[w, x, y, z]``. The simulation starts from ``q / |q|`` (a unit
 ``q`` is used bit for bit), and the gradient on ``q`` is that of the map through the
 normalisation (it has no component along ``q``).
+
+Control through the water: :func:`trajectory` runs a schedule of actions (a force and torque
+on each dynamic body, a velocity and angular velocity on each kinematic one, at every
+action) and returns the body states at every action boundary, differentiably with respect to
+every action and the initial state, in one backward sweep; :class:`Stepper` takes one action
+at a time, for a closed-loop policy trained through the simulator. A body state is one row
+of 13 numbers: x (3), q ``[w, x, y, z]`` (4), v (3), ω (3) (the slices :data:`X`, :data:`Q`,
+:data:`V`, :data:`W`).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -22,7 +30,24 @@ import torch
 from . import _diffluid
 from ._diffluid import BodyTargetLoss, Simulation
 
-__all__ = ["BodyState", "initial_state", "rollout", "target_loss"]
+__all__ = [
+    "BodyState",
+    "Q",
+    "Stepper",
+    "V",
+    "W",
+    "X",
+    "body_states",
+    "initial_state",
+    "rollout",
+    "step",
+    "target_loss",
+    "trajectory",
+]
+
+#: Where x, q ``[w, x, y, z]``, v and ω sit in a body's row of 13 (:func:`trajectory`,
+#: :class:`Stepper`): ``states[..., X]``.
+X, Q, V, W = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13)
 
 
 class BodyState(NamedTuple):
@@ -169,3 +194,208 @@ def target_loss(loss: BodyTargetLoss, sim: Simulation, final: BodyState) -> torc
 def _squared(d: torch.Tensor) -> torch.Tensor:
     """|d|² summed left to right, as diffluid sums it (x·x + y·y + z·z)."""
     return d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+
+
+def _tensor(a: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A read-only array handed out by diffluid as a tensor torch owns."""
+    return torch.from_numpy(np.array(a)).to(device)
+
+
+def body_states(sim: Simulation, requires_grad: bool = False) -> torch.Tensor:
+    """`sim`'s current body states as a float64 tensor (bodies, 13): x, q ``[w, x, y, z]``,
+    v, ω per row (a copy), with ``requires_grad`` set as asked: a ``state0`` for
+    :func:`trajectory`, or the state a :class:`Stepper`'s first step starts from."""
+    rows = np.concatenate(
+        [sim.positions, sim.orientations, sim.velocities, sim.angular_velocities], axis=1
+    )
+    return torch.tensor(rows, dtype=torch.float64, requires_grad=requires_grad)
+
+
+def _bodies(bodies: Optional[Sequence[Union[int, str]]]) -> Optional[list]:
+    """A body or a sequence of them as a list (None: every steerable body)."""
+    if bodies is None:
+        return None
+    if isinstance(bodies, (str, int)):
+        return [bodies]
+    return list(bodies)
+
+
+class _TrajectoryFunction(torch.autograd.Function):
+    """forward: a run under a schedule of actions, kept; backward: one adjoint sweep over it."""
+
+    @staticmethod
+    def forward(ctx, sim, options, actions, state0):  # type: ignore[override]
+        r = _diffluid.controlled_run(
+            sim, _numpy(actions), None if state0 is None else _numpy(state0), **options
+        )
+        ctx.run = r
+        ctx.device = actions.device
+        return _tensor(r.states(), actions.device)
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        ga, g0 = ctx.run.backward(_numpy(grad))
+        g0 = _tensor(g0, ctx.device) if ctx.needs_input_grad[3] else None
+        return None, None, _tensor(ga, ctx.device), g0
+
+
+def trajectory(
+    sim: Simulation,
+    actions: torch.Tensor,
+    state0: Optional[torch.Tensor] = None,
+    *,
+    steps_per_action: int = 1,
+    surface: str = "live",
+    mode: str = "full",
+    through_contact: bool = False,
+    checkpoint_every: Optional[int] = None,
+    bodies: Optional[Sequence[Union[int, str]]] = None,
+) -> torch.Tensor:
+    """Runs `sim` under `actions` and returns the body states at every action boundary,
+    differentiably with respect to `actions` and `state0`.
+
+    `actions` is a float64 tensor (T, bodies, 6): action k on body i, held for
+    `steps_per_action` steps (T·steps_per_action steps in all). A dynamic body's row is an
+    external force and torque (world frame, N and N·m, on top of gravity), a kinematic
+    body's (see :meth:`diffluid.Simulation.set_kinematic`) its velocity and angular velocity
+    (m/s and rad/s, world frame); the rows of the other bodies (fixed, external, or left out
+    of `bodies`) are ignored and get a zero gradient. `bodies` names the steered bodies
+    (indices or names, each dynamic or kinematic); by default every dynamic and kinematic
+    body is. `state0` (bodies, 13), optional, sets the initial body states (x, q
+    ``[w, x, y, z]``, v, ω; q is normalised and its gradient goes through the
+    normalisation); by default the run starts from `sim`'s current state. `sim` itself is
+    not changed.
+
+    Returns ``states`` (T + 1, bodies, 13): ``states[k]`` the bodies after
+    k·steps_per_action steps, before action k (``states[0]`` the initial state; a kinematic
+    body's velocity there is the one the action before set). Any torch loss on them works:
+    ``loss.backward()`` runs diffluid's adjoint once over the kept run (one sweep, whatever
+    T) and gives ∂L/∂actions and ∂L/∂state0.
+
+    Checked before anything runs: float64 tensors (TypeError), shapes, NaNs and infinities,
+    ``steps_per_action`` ≥ 1, the steered bodies (ValueError with the message). `surface`,
+    `mode`, `through_contact` and `checkpoint_every` are as in :func:`rollout`. The GIL is
+    released in both passes.
+    """
+    _check("actions", actions)
+    if state0 is not None:
+        _check("state0", state0)
+    options = dict(
+        steps_per_action=steps_per_action,
+        surface=surface,
+        mode=mode,
+        through_contact=through_contact,
+        checkpoint_every=checkpoint_every,
+        bodies=_bodies(bodies),
+    )
+    return _TrajectoryFunction.apply(sim, options, actions, state0)
+
+
+class _StepFunction(torch.autograd.Function):
+    """forward: one action's taped steps; backward: that action taken back, the liquid's
+    adjoint carried inside the native stepper."""
+
+    @staticmethod
+    def forward(ctx, native, action, state):  # type: ignore[override]
+        k, after = native.step(_numpy(action), _numpy(state))
+        ctx.native, ctx.k, ctx.device = native, k, action.device
+        return _tensor(after, action.device)
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        ga, gs = ctx.native.backward(ctx.k, _numpy(grad))
+        return None, _tensor(ga, ctx.device), _tensor(gs, ctx.device)
+
+
+class Stepper:
+    """A run driven one action at a time, for a closed-loop policy trained through the
+    simulator::
+
+        stepper = Stepper(sim, steps_per_action=5)
+        s = stepper.initial_state()
+        for t in range(T):
+            s = stepper.step(policy(s), s)     # (bodies, 6), (bodies, 13) -> (bodies, 13)
+        loss(s).backward()
+
+    Each :meth:`step` is a ``torch.autograd.Function``: its forward runs the action's
+    `steps_per_action` steps, taped, from `state` (the previous step's output: that is how
+    torch links the steps); its backward takes that action back with diffluid's adjoint,
+    returning the gradients on the action and on `state`, while the liquid's adjoint (its
+    velocity and particles, which the states do not show) is carried inside the stepper from
+    one action to the one before. The actions are as :func:`trajectory`'s (a force and torque
+    on a dynamic body, a velocity on a kinematic one; other rows ignored), and the gradients
+    are the same as :func:`trajectory`'s on the same actions.
+
+    The backward steps must run once each, the last action first: what autograd does for
+    one ``loss.backward()``. A second backward pass through the same steps (after
+    ``retain_graph=True``) raises ValueError; sum the losses and call backward once. Once a
+    backward pass has run, the stepper takes no more actions: go on with a new one,
+    ``Stepper(stepper.simulation(), ...)`` (truncated backpropagation through time). Steps
+    after the last one the loss reads are dropped at the cost of a backward step each.
+
+    The first step may start from any `state` (bodies, 13), and its gradient then goes
+    through q's normalisation; each later `state` must be the states the step before
+    returned (ValueError otherwise). `bodies`, `surface`, `mode` and `through_contact` are as
+    in :func:`trajectory`. `sim` itself is not changed.
+    """
+
+    def __init__(
+        self,
+        sim: Simulation,
+        *,
+        steps_per_action: int = 1,
+        surface: str = "live",
+        mode: str = "full",
+        through_contact: bool = False,
+        bodies: Optional[Sequence[Union[int, str]]] = None,
+    ) -> None:
+        self._native = _diffluid.Stepper(
+            sim,
+            steps_per_action=steps_per_action,
+            surface=surface,
+            mode=mode,
+            through_contact=through_contact,
+            bodies=_bodies(bodies),
+        )
+        self._initial = body_states(sim)
+
+    def initial_state(self, requires_grad: bool = False) -> torch.Tensor:
+        """The body states the run starts from (bodies, 13), a copy."""
+        return self._initial.clone().requires_grad_(requires_grad)
+
+    def step(self, action: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """Takes `action` (bodies, 6) from `state` (bodies, 13) for `steps_per_action` steps
+        and returns the body states after them (bodies, 13), differentiably."""
+        _check("action", action)
+        _check("state", state)
+        return _StepFunction.apply(self._native, action, state)
+
+    def states(self) -> torch.Tensor:
+        """The body states now (bodies, 13), a copy outside the graph."""
+        return _tensor(self._native.states(), self._initial.device)
+
+    def simulation(self) -> Simulation:
+        """The simulation now (a copy)."""
+        return self._native.simulation()
+
+    @property
+    def steps_taken(self) -> int:
+        """Actions taken."""
+        return self._native.steps_taken
+
+    @property
+    def steps_per_action(self) -> int:
+        return self._native.steps_per_action
+
+    @property
+    def controlled(self) -> list[int]:
+        """The steered bodies' indices."""
+        return self._native.controlled
+
+    def __repr__(self) -> str:
+        return repr(self._native)
+
+
+def step(stepper: Stepper, action: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+    """``stepper.step(action, state)``."""
+    return stepper.step(action, state)

@@ -21,7 +21,11 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 
 /// The backward pass's options from their Python names.
-fn options(surface: &str, mode: &str, through_contact: bool) -> PyResult<GradientOptions> {
+pub(crate) fn options(
+    surface: &str,
+    mode: &str,
+    through_contact: bool,
+) -> PyResult<GradientOptions> {
     let surface = match surface {
         "live" => SurfaceGradient::Live,
         "frozen" => SurfaceGradient::Frozen,

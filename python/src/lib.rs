@@ -18,6 +18,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
+mod control;
 mod gradients;
 mod scene;
 mod simulation;
@@ -279,6 +280,9 @@ fn _diffluid(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(gradients::value_and_grad, m)?)?;
     m.add_function(wrap_pyfunction!(gradients::optimize, m)?)?;
     m.add_function(wrap_pyfunction!(gradients::rollout, m)?)?;
+    m.add_class::<control::ControlledRun>()?;
+    m.add_class::<control::Stepper>()?;
+    m.add_function(wrap_pyfunction!(control::controlled_run, m)?)?;
     m.add_function(wrap_pyfunction!(simulation::_panic_for_tests, m)?)?;
     m.add_function(wrap_pyfunction!(tune_memory, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

@@ -2,7 +2,7 @@
 
 use crate::scene::Scene;
 use crate::{lattice, read_flat, read_rows, row, rows, run, to_py_object, value_error};
-use diffluid::geometry::body::BodyState;
+use diffluid::geometry::body::{BodyState, Motion};
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::{BodyTargetLoss, Loss};
 use diffluid::math::{Rotation, Vec3};
@@ -102,6 +102,16 @@ pub(crate) fn state_from(v: &[f64], w: &[f64], x: &[f64], q: &[f64]) -> PyResult
 /// |q| of a quaternion's four numbers.
 pub(crate) fn quat_norm(q: &[f64]) -> f64 {
     q.iter().map(|c| c * c).sum::<f64>().sqrt()
+}
+
+/// A motion's Python name.
+pub(crate) fn motion_name(m: Motion) -> &'static str {
+    match m {
+        Motion::Dynamic => "dynamic",
+        Motion::Fixed => "fixed",
+        Motion::External => "external",
+        Motion::Kinematic => "kinematic",
+    }
 }
 
 /// `[w, x, y, z]`.
@@ -330,6 +340,36 @@ impl Simulation {
         self.inner
             .set_external_force(h, Vec3::new(f[0], f[1], f[2]), Vec3::new(t[0], t[1], t[2]))
             .map_err(crate::to_py)
+    }
+
+    /// How each body moves, in order: "dynamic" (moved by the liquid, gravity and external
+    /// forces), "kinematic" (moved along its own velocity, a moving boundary no force
+    /// changes), "fixed" (held still) or "external" (moved by the caller's engine). A scene's
+    /// ``dynamic = false`` body is kinematic if it has a velocity, fixed if not.
+    #[getter]
+    fn motions(&self) -> Vec<&'static str> {
+        self.inner.bodies().iter().map(|b| motion_name(b.motion)).collect()
+    }
+
+    /// Makes body `body` (an index or a name) kinematic: it moves along its own velocity and
+    /// angular velocity (kept, and set by :meth:`set_body_state`), a moving boundary the
+    /// pressure solve sees and no force changes; in :mod:`diffluid.torch`'s control its
+    /// action is that velocity. The way to steer a paddle that a scene file holds at rest
+    /// (a ``dynamic = false`` body without a velocity is fixed). A dynamic body made
+    /// kinematic keeps its velocity; an external one (moved by the caller's engine) cannot
+    /// be made kinematic (ValueError).
+    fn set_kinematic(&mut self, body: &Bound<'_, PyAny>) -> PyResult<()> {
+        let i = self.body_index(body)?;
+        let b = &mut self.inner.bodies_mut()[i];
+        if b.motion == Motion::External {
+            return Err(value_error(format!(
+                "body {:?} is moved by the caller's engine (external): it cannot be made \
+                 kinematic",
+                b.name
+            )));
+        }
+        b.motion = Motion::Kinematic;
+        Ok(())
     }
 
     /// Marker particle positions, shape (particles, 3), m (a copy).
