@@ -1,5 +1,5 @@
 //! `diffluid gradcheck assets/scenes/gradcheck_box.toml --json` checks the adjoint gradient
-//! of every initial body parameter against central differences of the same forward map
+//! of every initial body parameter (and its mass) against central differences of the same forward map
 //! (surface held fixed), and reports the paper's approximation beside it. Every full
 //! rel_error must be at most 1e-6 (measured 7.7e-8; the command itself fails above 1e-3).
 
@@ -15,7 +15,7 @@ fn gradcheck_box_json_has_every_rel_error_below_1e_6() {
     assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let params = v["params"].as_array().unwrap();
-    assert_eq!(params.len(), 12, "v, ω, x, q of the box");
+    assert_eq!(params.len(), 13, "v, ω, x, q and the mass of the box");
     for p in params {
         let rel = p["rel_error"].as_f64().unwrap();
         assert!(rel <= 1e-6, "{}: rel_error {rel}", p["name"]);
@@ -48,7 +48,7 @@ fn gradcheck_live_follows_the_moving_surface() {
     assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let params = v["params"].as_array().unwrap();
-    assert_eq!(params.len(), 12);
+    assert_eq!(params.len(), 13, "v, ω, x, q and the mass of the box");
     for p in params {
         assert!(p["pass"].as_bool().unwrap(), "{}: {p}", p["name"]);
         // Measured 1.8e-4 at worst (x[1]; the central differences of x differ at ε and 10ε).
@@ -78,7 +78,7 @@ fn gradcheck_control_checks_actions_and_the_initial_state() {
     let params = v["params"].as_array().unwrap();
     let actions = params.iter().filter(|p| p["name"].as_str().unwrap().contains(".a")).count();
     assert_eq!(actions, 24, "the asked sample of action entries");
-    assert_eq!(params.len(), 24 + 12, "and v, ω, x, q of the ball");
+    assert_eq!(params.len(), 24 + 13, "and v, ω, x, q and the mass of the ball");
     for p in params {
         assert!(p["pass"].as_bool().unwrap(), "{}", p["name"]);
         if p["fd"].as_f64().unwrap().abs() > 1e-5 {

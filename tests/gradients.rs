@@ -86,7 +86,7 @@ fn fluid_velocity_gradient_matches_central_differences() {
     for _ in 0..scene.time.steps {
         sim.step_taped(&mut tape).unwrap();
     }
-    let adj = AdjointState { u: c.clone(), bodies: vec![], particles: vec![] };
+    let adj = AdjointState { u: c.clone(), bodies: vec![], particles: vec![], mass: vec![] };
     let mut init = sim0.clone();
     init.u = u0.clone();
     let grad = backward(&init, &tape, adj, &GradientOptions::new(GradientMode::Full)).unwrap();

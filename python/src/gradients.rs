@@ -532,7 +532,12 @@ impl Rollout {
                 q: Rotation::from_xyzw(gq[i][1], gq[i][2], gq[i][3], gq[i][0]),
             })
             .collect();
-        let adj = AdjointState { u: Mac::zeros(initial.grid()), bodies, particles: Vec::new() };
+        let adj = AdjointState {
+            u: Mac::zeros(initial.grid()),
+            bodies,
+            particles: Vec::new(),
+            mass: Vec::new(),
+        };
         let adj = run(py, || Ok(self.inner.backward(adj, &self.options)?.0))?;
         // The tangent part at q̂ = q/|q|, over |q|: the gradient through the normalisation.
         let q0: Vec<[f64; 4]> = adj

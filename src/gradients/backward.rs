@@ -33,7 +33,7 @@ use crate::stages::advect::{advect_adjoint_into, needed_faces};
 use crate::stages::band::Band;
 use crate::stages::density::{DensityInputs, DensityProjection};
 use crate::stages::extrapolate::correct_with_bodies_adjoint;
-use crate::stages::forces::body_velocity_pose_adjoint;
+use crate::stages::forces::{body_velocity_pose_adjoint, load_velocity};
 use crate::stages::pressure::{
     kinematic_pose_adjoint, projection_pose_adjoint, Coupling, PoseAdjointInputs,
 };
@@ -176,7 +176,14 @@ pub fn to_gradient(initial: &Simulation, adj: AdjointState) -> Gradient {
         .bodies
         .iter()
         .zip(initial.bodies())
-        .map(|(a, b)| BodyGradient { v: a.v, w: a.w, x: a.x, q: so3::tangent_gradient(b.q, a.q) })
+        .enumerate()
+        .map(|(i, (a, b))| BodyGradient {
+            v: a.v,
+            w: a.w,
+            x: a.x,
+            q: so3::tangent_gradient(b.q, a.q),
+            mass: adj.mass.get(i).copied().unwrap_or(0.0),
+        })
         .collect();
     Gradient { u: adj.u, bodies, particles: adj.particles }
 }
@@ -406,6 +413,19 @@ fn step_adjoint(
         out[i].v = Vec3::new(vhat_bar[k][0], vhat_bar[k][1], vhat_bar[k][2]);
         out[i].w = Vec3::new(vhat_bar[k][3], vhat_bar[k][4], vhat_bar[k][5]);
     }
+    // The masses, the inertias scaling with them (M → s·M): 4ᵀ gives −V̂̄·(V′ − V̂)/m (the
+    // pressure's impulse M·(V′ − V̂) held, ∂L/∂M⁻¹ = V̂̄ ⊗ impulse), 2ᵀ gives
+    // −Δt·V̂̄·[F/m; I_w⁻¹τ]/m.
+    let mut mass = adj.mass;
+    mass.resize(bodies.len(), 0.0);
+    for (k, &i) in sys.coupled.iter().enumerate() {
+        let b = &bodies[i];
+        let dv = load_velocity(b, dt);
+        let (vh, va, vb) = (rec.v_hat[k], rec.v_after[i], vhat_bar[k]);
+        let impulse: f64 = (0..6).map(|d| vb[d] * (va[d] - vh[d])).sum();
+        let load: f64 = (0..6).map(|d| vb[d] * dv[d]).sum();
+        mass[i] -= (impulse + load) / b.mass;
+    }
     // Kinematic bodies: b ∋ −Jᵀ·v, so v̄ −= J·s; the pressure does not change their velocity.
     for (i, c, _) in &sys.kinematic {
         let js = c.force(&s);
@@ -490,7 +510,7 @@ fn step_adjoint(
     lap(&mut times.advect_particles);
     initial.spare().keep_velocity(uhat_bar);
     initial.spare().keep_system(sys.geometry, sys.pressure);
-    Ok(AdjointState { u: u0, bodies: out, particles })
+    Ok(AdjointState { u: u0, bodies: out, particles, mass })
 }
 
 /// What the particle stage's adjoint (0ᵀ) reads besides the record.

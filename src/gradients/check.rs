@@ -330,6 +330,13 @@ pub fn gradcheck_controlled(
             let name = format!("{}.{}", body.name, c.name());
             params.push(check_row(name, c.of(&run.initial.bodies[b]), at, l0, s, None)?);
         }
+        let at = |h: f64| {
+            let mut start = sim.clone();
+            start.bodies_mut()[b].set_mass(body.mass + h);
+            value(schedule, &start)
+        };
+        let name = format!("{}.mass", body.name);
+        params.push(check_row(name, run.initial.bodies[b].mass, at, l0, s, None)?);
     }
     Ok(GradcheckReport {
         loss: run.loss,
@@ -377,6 +384,17 @@ pub fn gradcheck(
             let name = format!("{}.{}", body.name, c.name());
             params.push(check_row(name, c.of(&run.gradient.bodies[b]), at, l0, s, paper)?);
         }
+        let at = |h: f64| {
+            let mut start = sim.clone();
+            start.bodies_mut()[b].set_mass(body.mass + h);
+            for _ in 0..steps {
+                start.step()?;
+            }
+            Ok(loss.value(&start))
+        };
+        let name = format!("{}.mass", body.name);
+        let paper = paper.as_ref().map(|p| p.gradient.bodies[b].mass);
+        params.push(check_row(name, run.gradient.bodies[b].mass, at, l0, s, paper)?);
     }
     Ok(GradcheckReport {
         loss: run.loss,

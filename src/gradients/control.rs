@@ -265,6 +265,7 @@ impl ControlledRun {
             u: Mac::zeros(self.initial.grid()),
             bodies: Vec::new(),
             particles: Vec::new(),
+            mass: Vec::new(),
         });
         adj.bodies = seed.states[steps].clone();
         let mut actions = seed.actions.clone();
@@ -466,6 +467,7 @@ impl Stepper {
             u: Mac::zeros(self.start.grid()),
             bodies: Vec::new(),
             particles: Vec::new(),
+            mass: Vec::new(),
         });
         adj.bodies = after.to_vec();
         let mut grads = vec![[0.0; 6]; self.controlled.len()];

@@ -40,6 +40,10 @@ pub struct AdjointState {
     pub bodies: Vec<BodyAdjoint>,
     /// ∂L/∂(marker particle positions); empty means zero.
     pub particles: Vec<Vec3>,
+    /// ∂L/∂m per body: its mass, with its inertia scaling with it (its density changes, not
+    /// its shape). A parameter, not a state: the backward pass adds each step's part as it
+    /// crosses the step, so a loss hands in zero (empty means zero).
+    pub mass: Vec<f64>,
 }
 
 /// A loss on the final state.
@@ -94,7 +98,7 @@ impl Loss for BodyTargetLoss {
         if let Some((t, w)) = self.velocity {
             g.v = 2.0 * w * (b.v - t);
         }
-        AdjointState { u: Mac::zeros(sim.grid()), bodies, particles: Vec::new() }
+        AdjointState { u: Mac::zeros(sim.grid()), bodies, particles: Vec::new(), mass: Vec::new() }
     }
 }
 
@@ -110,6 +114,9 @@ pub struct BodyGradient {
     pub x: Vec3,
     /// ∂L/∂θ₀.
     pub q: Vec3,
+    /// ∂L/∂m: the body's mass, its inertia scaling with it (its density changes, not its
+    /// shape). Zero for a body the pressure and the forces do not move.
+    pub mass: f64,
 }
 
 impl BodyGradient {

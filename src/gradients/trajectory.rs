@@ -177,6 +177,7 @@ impl TrajectoryLoss for TrajectoryTerms {
                 u: Mac::zeros(t.final_state.grid()),
                 bodies: Vec::new(),
                 particles: grads.into_iter().map(|g| g * c).collect(),
+                mass: Vec::new(),
             });
         }
         seed

@@ -29,6 +29,19 @@ pub fn body_velocity(b: &RigidBody, g: Vec3, dt: f64) -> [f64; 6] {
     [v.x, v.y, v.z, w.x, w.y, w.z]
 }
 
+/// What a body's external force and torque alone add to its [v; ω] in `dt`:
+/// Δt·[F/m; I_w⁻¹·τ]. Scaling the body's mass and inertia by s scales it by 1/s (the mass
+/// gradient reads it).
+pub fn load_velocity(b: &RigidBody, dt: f64) -> [f64; 6] {
+    let v = dt * b.force / b.mass;
+    let w = if b.torque == Vec3::ZERO {
+        Vec3::ZERO
+    } else {
+        dt * (b.world_inertia().inverse() * b.torque)
+    };
+    [v.x, v.y, v.z, w.x, w.y, w.z]
+}
+
 /// The orientation part of [`body_velocity`]'s adjoint: given ∂L/∂ω after the stage, the
 /// gradient ∂L/∂θ (world-frame tangent) of Δt·I_w(θ)⁻¹·τ. With I_w⁻¹ → I_w⁻¹ + \[δθ\]×I_w⁻¹ −
 /// I_w⁻¹\[δθ\]× and y = I_w⁻¹τ: Δt·(y × ω̄ − τ × I_w⁻¹ω̄). (The v and ω parts are the identity.)
