@@ -231,6 +231,20 @@ fn one_action_at_a_time_matches_the_whole_schedule() {
         }
     }
     assert!(stepper.backward(&after).is_err(), "more actions taken back than taken");
+    // The whole run's mass gradient, summed action by action.
+    let (got, want) = (stepper.mass_gradient()[1], whole.initial.bodies[1].mass);
+    assert!((got - want).abs() <= 1e-12 * want.abs(), "mass: {got} vs {want}");
+    // A run being taken back takes no more actions; reset() starts a new one, the same run.
+    let err = stepper.step(&schedule.actions[0]).unwrap_err().to_string();
+    assert!(err.contains("reset()"), "{err}");
+    stepper.reset();
+    assert_eq!(stepper.actions_taken(), 0);
+    assert_eq!(stepper.mass_gradient(), vec![0.0, 0.0]);
+    let first = stepper.step(&schedule.actions[0]).unwrap();
+    assert_eq!(first, whole.states[5]);
+    // A refused backward (wrong number of adjoints) takes nothing back.
+    assert!(stepper.backward(&after[..1]).is_err());
+    assert_eq!(stepper.actions_taken(), 1);
 }
 
 /// A scene's `[control]` section and the trajectory terms of its `[loss]`: each mistake is

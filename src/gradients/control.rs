@@ -380,6 +380,9 @@ pub struct Stepper {
     blocks: Vec<(crate::world::Tape, usize)>,
     /// The liquid's adjoint at the start of the last action taken back.
     carried: Option<AdjointState>,
+    /// Whether [`Stepper::backward`] has run since the start (or [`Stepper::reset`]): the
+    /// run is being taken back and takes no more actions.
+    taking_back: bool,
 }
 
 impl Stepper {
@@ -404,7 +407,31 @@ impl Stepper {
             options,
             blocks: Vec::new(),
             carried: None,
+            taking_back: false,
         })
+    }
+
+    /// Back to the state the stepper started from, every action and adjoint dropped: a new
+    /// run (the next episode of a policy's training, say).
+    pub fn reset(&mut self) {
+        self.sim = self.start.clone();
+        self.blocks.clear();
+        self.carried = None;
+        self.taking_back = false;
+    }
+
+    /// The actions taken and not yet taken back.
+    pub fn actions_taken(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// ∂L/∂m of every body (see [`AdjointState::mass`]), summed over the actions taken back
+    /// so far: the whole run's once every action is.
+    pub fn mass_gradient(&self) -> Vec<f64> {
+        let n = self.start.bodies().len();
+        let mut m = self.carried.as_ref().map(|a| a.mass.clone()).unwrap_or_default();
+        m.resize(n, 0.0);
+        m
     }
 
     /// The simulation now.
@@ -420,6 +447,14 @@ impl Stepper {
     /// Takes `action` (one [f; τ] or [v; ω] per controlled body) for `steps_per_action` taped
     /// steps; returns the bodies' states after them.
     pub fn step(&mut self, action: &[[f64; 6]]) -> Result<Vec<BodyState>> {
+        if self.taking_back {
+            return Err(Error::InvalidSettings {
+                key: "control".into(),
+                message: "the run is being taken back (backward ran): it takes no more actions; \
+                          reset() starts a new one"
+                    .into(),
+            });
+        }
         let schedule = Schedule {
             bodies: self.controlled.clone(),
             steps_per_action: self.steps_per_action,
@@ -449,10 +484,7 @@ impl Stepper {
     /// (with the liquid's adjoint carried from the action after it), the gradient of that
     /// action and ∂L/∂(the bodies' states before it).
     pub fn backward(&mut self, after: &[BodyAdjoint]) -> Result<(Vec<[f64; 6]>, Vec<BodyAdjoint>)> {
-        let (tape, first) = self.blocks.pop().ok_or_else(|| Error::InvalidSettings {
-            key: "control".into(),
-            message: "backward asked for more actions than were taken".into(),
-        })?;
+        // Checked before anything is taken: a refused call leaves the run as it was.
         if after.len() != self.start.bodies().len() {
             return Err(Error::InvalidSettings {
                 key: "control".into(),
@@ -463,6 +495,11 @@ impl Stepper {
                 ),
             });
         }
+        let (tape, first) = self.blocks.pop().ok_or_else(|| Error::InvalidSettings {
+            key: "control".into(),
+            message: "backward asked for more actions than were taken".into(),
+        })?;
+        self.taking_back = true;
         let mut adj = self.carried.take().unwrap_or_else(|| AdjointState {
             u: Mac::zeros(self.start.grid()),
             bodies: Vec::new(),
