@@ -272,8 +272,7 @@ impl Lattice {
     /// The trilinear stencil at `x`. The point is clamped to the lattice's hull, so a sample
     /// outside the domain takes the nearest boundary value (and has zero derivative across
     /// the clamped axis). Always inlined, as [`Lattice::sample`] is: left as a call it returns
-    /// its 320 bytes through memory, and the advection's adjoint took 52 ms a `large_tank`
-    /// step instead of 35.
+    /// its 320 bytes through memory, which the advection's adjoint pays for on every face.
     #[inline(always)]
     pub fn stencil(&self, x: Vec3) -> Stencil {
         // Written out, as in `sample_scaled`.
@@ -290,8 +289,7 @@ impl Lattice {
 
     /// Trilinear interpolation of `field` at `x` (the same value as [`Lattice::stencil`]
     /// gives, without the derivative: this is the hot path of advection). Always inlined: the
-    /// compiler left it a call from the advection's loop, which then took 25 ms a
-    /// `large_tank` step instead of 14.
+    /// compiler otherwise leaves it a call from the advection's loop.
     #[inline(always)]
     pub fn sample(&self, field: &[f64], x: Vec3) -> f64 {
         self.sample_scaled(field, [x.x / self.dx, x.y / self.dx, x.z / self.dx])

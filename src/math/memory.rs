@@ -5,8 +5,8 @@
 //! A step's whole-grid arrays are freed and made again every step (most are kept by the
 //! step's pools, not all). glibc hands an array above its mmap threshold (at most 32 MiB)
 //! back to the kernel when it is freed, and the next one of the same size is page-faulted
-//! in again, a zeroed 4 KiB page at a time: at 256×128×256 cells that was 350 k faults and
-//! about 2 s of kernel time a step (`clear_page` alone 15% of a profile). And an array of
+//! in again, a zeroed 4 KiB page at a time (at 256×128×256 cells most of a step's kernel
+//! time; docs/performance.md has the profile). And an array of
 //! tens of MB read at random places (a particle's cell, a stencil's neighbours) misses the
 //! TLB at nearly every read with 4 KiB pages, whose few thousand TLB entries reach a few MB.
 //!

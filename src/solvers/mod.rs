@@ -65,17 +65,11 @@ pub enum Preconditioner {
 }
 
 impl Preconditioner {
-    /// Unknowns from which `auto` picks multigrid over MIC(0). Measured on the pressure
-    /// solve of `benches/solve.rs` (tank, wavy free surface, floating ball) to 1e-8 on a
-    /// 2-core machine, median of repeated solves with the preconditioner's set-up included:
-    /// 312 unknowns (8³) MIC(0) 0.11 ms (20 iterations) vs multigrid 0.15 ms (8); 1034
-    /// (12³) a tie, 0.33 vs 0.35 ms; 2452 (16³) 0.87 vs 0.76 ms; 19.5k (32³) 11 vs 7 ms;
-    /// 1.24M (128³, to 1e-6) 94 vs 8 iterations and about 6× the time. MIC(0)'s iterations
-    /// grow with the grid, multigrid's hardly do, so the crossover sits between 12³ and 16³
-    /// for a cold solve. Inside a time step the solve starts from the last step's pressure
-    /// and MIC(0) needs fewer iterations: on block_drop (3,519 unknowns) a whole epoch took
-    /// 0.317–0.325 s with MIC(0) and 0.327–0.331 s with multigrid (2 threads), so the
-    /// switch sits above that, at 4,000.
+    /// Unknowns from which `auto` picks multigrid over MIC(0). MIC(0)'s iterations grow with
+    /// the grid, multigrid's hardly do: for a cold solve the crossover sits between 12³ and
+    /// 16³ unknowns, and inside a time step (warm-started, fewer MIC(0) iterations) above
+    /// `block_drop`'s 3,519. The measurements are in docs/performance.md ("Why the hot paths
+    /// are written as they are").
     pub const AUTO_CROSSOVER: usize = 4_000;
 
     /// The preconditioner to use for `unknowns` unknowns: itself, unless `Auto`.

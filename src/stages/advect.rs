@@ -104,7 +104,7 @@ pub fn advect_into(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>, out: 
 }
 
 /// [`advect_into`]'s component `AXIS`, the axis a constant (each face's index arithmetic
-/// then folds: 13.5 → 11.5 ms a `large_tank` step).
+/// then folds; measured in docs/performance.md, "Why the hot paths are written as they are").
 fn advect_axis<const AXIS: usize>(
     u: &Mac,
     grid: &Grid,

@@ -186,7 +186,7 @@ impl PressureSystem {
 
     /// [`PressureSystem::face_gradient`] of an open face between cells `m` (its − side) and
     /// `pl`: Some exactly when either is an unknown (the condition `projected_faces` counts
-    /// by, without computing the coefficient: measured 3–5 ms a system build faster).
+    /// by, without computing the coefficient, which is measurably faster).
     #[inline]
     pub(super) fn gradient_between(
         &self,
