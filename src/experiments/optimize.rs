@@ -18,7 +18,8 @@ use crate::experiments::scene::{OptimizerSpec, Scene, SurfaceGradientSpec};
 use crate::geometry::body::{BodyState, Param};
 use crate::gradients::backward::SurfaceGradient;
 use crate::gradients::{
-    value_and_gradient, BodyTargetLoss, GradientOptions, GradientSettings, Loss,
+    value_and_gradient, value_and_smoothed_gradient, BodyTargetLoss, GradientOptions,
+    GradientSettings, Loss, Smoothing,
 };
 use crate::math::{so3, Rotation, Vec3};
 use crate::world::Simulation;
@@ -174,6 +175,10 @@ pub struct Optimization {
     pub max_gradient_norm: f64,
     /// The backward pass's options (contact taken as free flight when the scene asks).
     pub gradient: GradientOptions,
+    /// Optimise the smoothed loss instead (`optimize.smoothing`): each epoch's loss and
+    /// gradient are the mean over the perturbed runs, the same perturbations every epoch
+    /// (so a line search sees one deterministic function).
+    pub smoothing: Option<Smoothing>,
 }
 
 impl Optimization {
@@ -217,6 +222,7 @@ impl Optimization {
                 },
                 ..Default::default()
             },
+            smoothing: spec.smoothing,
             initial,
             scene,
         })
@@ -254,10 +260,19 @@ impl Optimization {
     pub fn evaluate(&self, p: &BodyState) -> Result<(f64, Vec<f64>)> {
         let sim = self.simulation(p);
         let settings = GradientSettings::from(self.gradient);
-        let run = value_and_gradient(&sim, self.scene.time.steps, &self.loss, &settings)?;
-        let g = run.gradient.bodies[self.body];
+        let steps = self.scene.time.steps;
+        let (loss, g) = match &self.smoothing {
+            None => {
+                let run = value_and_gradient(&sim, steps, &self.loss, &settings)?;
+                (run.loss, run.gradient.bodies[self.body])
+            }
+            Some(s) => {
+                let run = value_and_smoothed_gradient(&sim, steps, &self.loss, &settings, s)?;
+                (run.loss, run.gradient.bodies[self.body])
+            }
+        };
         let out: Vec<f64> = self.params.iter().flat_map(|&p| g.get(p).to_array()).collect();
-        Ok((run.loss, out))
+        Ok((loss, out))
     }
 
     /// The loss at `p` (forward only).

@@ -370,6 +370,11 @@ pub struct OptimizeSpec {
     /// costs no particle work. `run` keeps the scene's own setting. Default false.
     #[serde(default)]
     pub freeze_surface: bool,
+    /// Optimise the loss smoothed over a Gaussian perturbation of the initial state (see
+    /// [`crate::gradients::smooth`]): `{ samples = K, sigma = { v, w, x, q }, seed }`, K runs
+    /// an epoch. For horizons where the map jumps. Default: the plain gradient.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub smoothing: Option<crate::gradients::Smoothing>,
 }
 
 /// The backward pass's surface, as a scene names it.
@@ -1018,6 +1023,11 @@ impl Scene {
             }
             if let Some(v) = &o.recover_velocity {
                 check_finite("optimize.recover_velocity", v)?;
+            }
+            if let Some(Err(Error::InvalidSettings { key, message })) =
+                o.smoothing.as_ref().map(|s| s.validate())
+            {
+                return Err(problem(key, message));
             }
         }
         if self.output.every == 0 {

@@ -9,6 +9,7 @@ pub mod check;
 pub mod control;
 pub mod loss;
 pub mod run;
+pub mod smooth;
 pub mod trajectory;
 
 pub use backward::{backward, backward_adjoint, GradientMode, GradientOptions};
@@ -22,4 +23,5 @@ pub use control::{
 };
 pub use loss::{AdjointState, BodyAdjoint, BodyGradient, BodyTargetLoss, Gradient, Loss};
 pub use run::{value_and_gradient, GradientRun, GradientSettings, Rollout};
+pub use smooth::{value_and_smoothed_gradient, SmoothedRun, Smoothing, SmoothingScale};
 pub use trajectory::{FinalTarget, LiquidInBox, TrajectoryTerms, Waypoint};
