@@ -92,6 +92,38 @@ fn quick_scale_study_writes_its_table_and_charts() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// `diffluid bench --only smoothed --quick`: the smoothed gradient on the surge at 6 steps
+/// (σ_v 1e-2, 4 runs) beside the exact adjoint, for x₀ and v_y. Over 6 steps the map is
+/// smooth at that scale, so the estimate lies within 10% plus four standard errors of the
+/// exact gradient (a sign or frame error would put it far outside).
+#[test]
+fn quick_smoothed_gradient_study_agrees_where_the_map_is_smooth() {
+    let out = std::env::temp_dir().join(format!("diffluid-smoothed-{}", std::process::id()));
+    let status = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+        .args(["bench", "--only", "smoothed", "--quick", "--out"])
+        .arg(&out)
+        .status()
+        .expect("runs");
+    assert!(status.success());
+    let table = std::fs::read_to_string(out.join("smoothed_gradient.csv")).unwrap();
+    let header: Vec<&str> = table.lines().next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let rows: Vec<Vec<&str>> = table.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 2, "x[0] and v[1] at one horizon and one σ");
+    for r in &rows {
+        let num = |name: &str| r[col(name)].parse::<f64>().unwrap();
+        let (exact, smoothed, se) = (num("exact"), num("smoothed"), num("standard_error"));
+        eprintln!("{}: exact {exact:+.5e} smoothed {smoothed:+.5e} ± {se:.1e}", r[col("param")]);
+        assert!(exact.is_finite() && se.is_finite() && se >= 0.0);
+        assert!(
+            (smoothed - exact).abs() <= 0.1 * exact.abs() + 4.0 * se,
+            "{}: {smoothed} ± {se} against {exact}",
+            r[col("param")]
+        );
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
 /// The quick energy audit (0.5 s of each scene): still water and the ball floating at rest
 /// stay still, their liquid's kinetic energy under 1e-9 J (measured about 1e-17 J) and
 /// their total energy never more than 1e-6 J above its start (measured 1e-11 J). The

@@ -330,7 +330,7 @@ fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> 
 
 /// One study of `diffluid bench` (see [`mod@bench`]): [`bench::accuracy`],
 /// [`bench::stability`], [`bench::thin_plates`], [`bench::cost`], [`bench::energy`],
-/// [`bench::smoothness`] and [`bench::scale`]. (The variants' own docs are the CLI's help,
+/// [`bench::smoothness`], [`bench::smoothed_gradient`] and [`bench::scale`]. (The variants' own docs are the CLI's help,
 /// so they name no item.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
@@ -348,6 +348,9 @@ pub enum Study {
     Energy,
     /// Smoothness over long horizons.
     Smoothness,
+    /// The smoothed gradient's bias and noise against the exact one on the surge: run only
+    /// when asked for (`--only smoothed`; 64 gradients of up to 50 steps).
+    Smoothed,
     /// Time per step and peak memory against grid size up to 8.4M cells: run only when
     /// asked for (`--only scale`; it takes about a minute and 4 GB).
     Scale,
@@ -382,6 +385,17 @@ pub fn write_bench(
     }
     if only == Some(Study::Scale) {
         lines.extend(write_scale(out, quick, &mut progress)?);
+    }
+    if only == Some(Study::Smoothed) {
+        progress("the smoothed gradient on the surge");
+        let rows = bench::smoothed_gradient(quick)?;
+        write_csv(&at("smoothed_gradient.csv"), &rows)?;
+        for r in &rows {
+            lines.push(format!(
+                "{} steps, σ_v {:.0e}: {} exact {:+.4e} (fd 1e-4 {:+.4e}, 1e-6 {:+.4e}), smoothed {:+.4e} ± {:.1e}",
+                r.horizon, r.sigma, r.param, r.exact, r.fd_1e4, r.fd_1e6, r.smoothed, r.standard_error
+            ));
+        }
     }
     if runs(Study::Smoothness) {
         progress("smoothness over long horizons");
