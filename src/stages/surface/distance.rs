@@ -1,0 +1,234 @@
+//! The liquid signed distance φ_L from the particles, and its adjoint.
+
+use super::*;
+use crate::geometry::grid::Grid;
+use crate::math::buffer::refill;
+use crate::math::Vec3;
+use rayon::prelude::*;
+
+/// Per cell, the L∞ distance in cells to the nearest `from` cell, capped at `cap` (cells
+/// beyond the tank do not count). Separable: one windowed
+/// min–max pass per axis.
+pub fn linf_distance(grid: &Grid, from: &[bool], cap: u8) -> Vec<u8> {
+    let mut d: Vec<u8> = from.par_iter().map(|&o| if o { 0 } else { cap }).collect();
+    for axis in 0..3 {
+        d = depth_pass(grid, &d, axis, cap);
+    }
+    d
+}
+
+/// `out(x) = min over |s| ≤ cap of max(|s|, d(x + s·e_axis))`, as whole-row passes: for
+/// each shift s, the row (or slab) s away raised to at least s and folded in by a minimum
+/// (loops over u8 slices the compiler vectorises, instead of a branchy search per cell).
+fn depth_pass(grid: &Grid, d: &[u8], axis: usize, cap: u8) -> Vec<u8> {
+    let n = grid.n;
+    let slab = n[0] * n[1];
+    let fold = |o: &mut [u8], src: &[u8], s: u8| {
+        o.iter_mut().zip(src).for_each(|(o, &v)| *o = (*o).min(v.max(s)));
+    };
+    let mut out = d.to_vec();
+    out.par_chunks_mut(slab).enumerate().for_each(|(k, o)| match axis {
+        0 => {
+            for (j, row) in o.chunks_mut(n[0]).enumerate() {
+                let src = &d[k * slab + j * n[0]..][..n[0]];
+                for s in 1..=(cap as usize).min(n[0] - 1) {
+                    fold(&mut row[s..], &src[..n[0] - s], s as u8);
+                    fold(&mut row[..n[0] - s], &src[s..], s as u8);
+                }
+            }
+        }
+        1 => {
+            for s in 1..=(cap as usize).min(n[1] - 1) {
+                let src = &d[k * slab..][..slab];
+                let shift = s * n[0];
+                fold(&mut o[shift..], &src[..slab - shift], s as u8);
+                fold(&mut o[..slab - shift], &src[shift..], s as u8);
+            }
+        }
+        _ => {
+            for s in 1..=cap as usize {
+                if k >= s {
+                    fold(o, &d[(k - s) * slab..][..slab], s as u8);
+                }
+                if k + s < n[2] {
+                    fold(o, &d[(k + s) * slab..][..slab], s as u8);
+                }
+            }
+        }
+    });
+    out
+}
+
+/// A narrow band's deep cells, for φ_L: which cells, and their φ.
+#[derive(Clone, Copy, Debug)]
+pub struct Deep<'a> {
+    /// Per cell, whether it is deep.
+    pub cells: &'a [bool],
+    /// φ_L of a deep cell.
+    pub phi: f64,
+}
+
+/// How φ_L is made from the particles.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceModel {
+    /// The particle radius r of `min_p |x − x_p| − r` (see [`particle_radius`]).
+    pub radius: f64,
+    /// A cell that holds a particle is liquid even where the distance says air (see
+    /// [`liquid_sdf_nearest`]).
+    pub sparse_cells: bool,
+}
+
+/// The liquid signed distance at cell centres: `min_p |x − x_p| − r`, exact where the
+/// nearest particle is within two cells, and `2·dx − r` or more beyond.
+pub fn liquid_sdf(
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
+) -> Vec<f64> {
+    liquid_sdf_with(Vec::new(), pos, bins, grid, model, deep, false).0
+}
+
+/// [`liquid_sdf`] written into the memory of `phi` (whatever it holds).
+pub fn liquid_sdf_into(
+    phi: &mut Vec<f64>,
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
+) {
+    *phi = liquid_sdf_with(std::mem::take(phi), pos, bins, grid, model, deep, false).0;
+}
+
+/// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
+/// move with a particle: capped far from the liquid, or set by the sparse-cell rule). With
+/// `model.sparse_cells`, a cell that holds a particle is liquid even where the particles are
+/// too sparse for the distance to say so (thin sheets, splashes): the projection then keeps
+/// it divergence-free instead of leaving its particles to extrapolated air velocities, which
+/// bunch them up and lose volume. The rule makes φ jump when a particle crosses a cell face.
+/// The `deep` cells of a narrow band are liquid with its φ (see `band.rs`).
+pub fn liquid_sdf_nearest(
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
+) -> (Vec<f64>, Vec<u32>) {
+    liquid_sdf_with(Vec::new(), pos, bins, grid, model, deep, true)
+}
+
+/// [`liquid_sdf_nearest`] in the memory of `phi`, the nearest particles only when `nearest`
+/// (empty otherwise: 4 bytes a cell that the forward pass never reads).
+fn liquid_sdf_with(
+    mut phi: Vec<f64>,
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    model: &SurfaceModel,
+    deep: Option<Deep<'_>>,
+    nearest: bool,
+) -> (Vec<f64>, Vec<u32>) {
+    let radius = model.radius;
+    use crate::geometry::grid::NONE;
+    let cells = grid.cells();
+    let dx = grid.dx;
+    let slab = grid.n[0] * grid.n[1];
+    // How far (L∞, in cells) the nearest cell holding a particle is: nothing to search in
+    // the air beyond two cells of the liquid (most of a tall tank's cells).
+    let occupied: Vec<bool> =
+        (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty()).collect();
+    let reach = linf_distance(grid, &occupied, 3);
+    // Filled in place, a slab a task (not built a slab at a time and copied together).
+    if phi.len() != cells.len() {
+        refill(&mut phi, cells.len(), 0.0);
+    }
+    let mut who = if nearest { vec![NONE; cells.len()] } else { Vec::new() };
+    // φ of cell (i, j, k) and the particle it is the distance to.
+    let cell_phi = |i: usize, j: usize, k: usize| -> (f64, u32) {
+        if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
+            return (d.phi, NONE);
+        }
+        if reach[grid.cell(i, j, k)] > 2 {
+            return (2.0 * dx - radius, NONE);
+        }
+        let x = cells.position(i, j, k);
+        let nearest = |reach: usize| {
+            let mut best = (f64::MAX, NONE);
+            for_neighbour_cells(grid, [i, j, k], reach, |c| {
+                for &p in bins.cell(c) {
+                    let d = (pos[p as usize] - x).length_squared();
+                    if d < best.0 {
+                        best = (d, p);
+                    }
+                }
+            });
+            (best.0.sqrt(), best.1)
+        };
+        // A particle outside the cell is at least dx/2 from its centre, so one nearer inside
+        // it is the nearest (deep in the liquid, most cells: 8 distances instead of 216). A
+        // particle outside the 3³ block is at least dx away, so a nearer one found inside it
+        // is the true nearest; otherwise look one ring further (exact up to 2·dx).
+        let mut d = nearest(0);
+        if d.0 >= 0.5 * dx {
+            d = nearest(1);
+        }
+        if d.0 > dx {
+            d = nearest(2);
+            if d.0 > 2.0 * dx {
+                d = (2.0 * dx, NONE);
+            }
+        }
+        let value = d.0 - radius;
+        if model.sparse_cells && value >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {
+            (-1e-3 * dx, NONE)
+        } else {
+            (value, d.1)
+        }
+    };
+    let slab_phi = |k: usize, phi_k: &mut [f64], mut who_k: Option<&mut [u32]>| {
+        for j in 0..grid.n[1] {
+            for i in 0..grid.n[0] {
+                let o = i + grid.n[0] * j;
+                let (value, particle) = cell_phi(i, j, k);
+                phi_k[o] = value;
+                if let Some(w) = who_k.as_deref_mut() {
+                    w[o] = particle;
+                }
+            }
+        }
+    };
+    if nearest {
+        phi.par_chunks_mut(slab)
+            .zip(who.par_chunks_mut(slab))
+            .enumerate()
+            .for_each(|(k, (phi_k, who_k))| slab_phi(k, phi_k, Some(who_k)));
+    } else {
+        phi.par_chunks_mut(slab).enumerate().for_each(|(k, phi_k)| slab_phi(k, phi_k, None));
+    }
+    (phi, who)
+}
+
+/// Adjoint of [`liquid_sdf_nearest`] in the particles: ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c|
+/// for the particle p whose distance φ_c is. Adds into `pbar`.
+pub fn liquid_sdf_adjoint(
+    pos: &[Vec3],
+    nearest: &[u32],
+    grid: &Grid,
+    phi_bar: &[f64],
+    pbar: &mut [Vec3],
+) {
+    let cells = grid.cells();
+    for (c, (&p, &g)) in nearest.iter().zip(phi_bar).enumerate() {
+        if g == 0.0 || p == crate::geometry::grid::NONE {
+            continue;
+        }
+        let [i, j, k] = cells.ijk(c);
+        let d = pos[p as usize] - cells.position(i, j, k);
+        let len = d.length();
+        if len > 0.0 {
+            pbar[p as usize] += g * d / len;
+        }
+    }
+}

@@ -1,0 +1,359 @@
+//! The particle stage's tests: the forward maps, and each adjoint against central
+//! differences.
+
+use super::*;
+use crate::geometry::body::RigidBody;
+use crate::geometry::fractions::NodeSdf;
+use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::shape::Solid;
+use crate::math::{Pose, Vec3};
+
+/// The forward maps.
+mod forward {
+    use super::*;
+
+    /// Scattered particles, some on the tank's faces and edges.
+    fn scattered(grid: &Grid, n: usize) -> Vec<Vec3> {
+        let size = grid.size();
+        (0..n)
+            .map(|i| {
+                let r = |k: usize| ((i * 7919 + k * 104_729) % 10_007) as f64 / 10_006.0;
+                let edge = |t: f64| if i % 97 == 0 { t.round() } else { t };
+                Vec3::new(edge(r(1)) * size.x, r(2) * size.y, edge(r(3)) * size.z)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn liquid_sdf_is_the_nearest_particles_distance_up_to_two_cells() {
+        // Sparse: most cells find their nearest particle one or two cells away, or none.
+        let grid = Grid { n: [11, 9, 10], dx: 0.1 };
+        let pos = scattered(&grid, 60);
+        let model = SurfaceModel { radius: 0.03, sparse_cells: false };
+        let bins = Bins::new(&pos, &grid);
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
+        let cells = grid.cells();
+        let mut rings = [0; 3];
+        for c in 0..grid.num_cells() {
+            let [i, j, k] = cells.ijk(c);
+            let x = cells.position(i, j, k);
+            let (d, p) = (0..pos.len())
+                .map(|p| ((pos[p] - x).length(), p as u32))
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .expect("particles");
+            if d <= 2.0 * grid.dx {
+                rings[usize::from(d >= 0.5 * grid.dx) + usize::from(d > grid.dx)] += 1;
+                assert_eq!((phi[c], who[c]), (d - model.radius, p), "cell {c}");
+            } else {
+                assert_eq!(
+                    (phi[c], who[c]),
+                    (2.0 * grid.dx - model.radius, crate::geometry::grid::NONE),
+                    "cell {c}"
+                );
+            }
+        }
+        // Found in the own cell, within one cell and within two: every search ring is used.
+        assert!(rings.iter().all(|&r| r >= 10), "{rings:?}");
+    }
+
+    #[test]
+    fn bins_list_each_cells_particles_in_order_with_any_thread_count() {
+        let grid = Grid { n: [7, 5, 9], dx: 0.1 };
+        // More than two of the counting sort's chunks of 65,536.
+        let pos = scattered(&grid, 150_000);
+        let run = |t: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+            pool.install(|| Bins::new(&pos, &grid))
+        };
+        let (a, b) = (run(1), run(2));
+        assert_eq!((&a.start, &a.items), (&b.start, &b.items));
+        for c in 0..grid.num_cells() {
+            let want: Vec<u32> =
+                (0..pos.len() as u32).filter(|&p| cell_of(&grid, pos[p as usize]) == c).collect();
+            assert_eq!(a.cell(c), &want[..], "cell {c}");
+        }
+    }
+
+    #[test]
+    fn deposit_is_the_serial_scatter_with_any_thread_count() {
+        let grid = Grid { n: [6, 5, 8], dx: 0.1 };
+        // More than two of the slab sort's chunks of 65,536.
+        let mut pos = scattered(&grid, 140_000);
+        // Two outside the tank, whose folded slabs are not adjacent.
+        pos.insert(17, Vec3::new(0.21, 0.33, -0.25));
+        pos.push(Vec3::new(0.43, 0.12, 1.06));
+        let run = |t: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+            pool.install(|| particle_density(&pos, &grid, 8, None))
+        };
+        let (a, b) = (run(1), run(2));
+        assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+        let mut serial = vec![0.0; grid.num_cells()];
+        let mut terms = vec![0usize; grid.num_cells()];
+        for x in &pos {
+            let (idx, w, _) = deposit_weights(&grid, *x);
+            for c in 0..8 {
+                let (bi, bj, bk) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
+                let cell = grid.cell(idx[0][bi], idx[1][bj], idx[2][bk]);
+                serial[cell] += w[0][bi] * w[1][bj] * w[2][bk] / 8.0;
+                terms[cell] += 1;
+            }
+        }
+        // The slab pairs add in another order than one serial pass: the two sums of n
+        // non-negative terms differ by at most n·ε times the sum.
+        for ((x, y), n) in a.iter().zip(&serial).zip(&terms) {
+            let bound = *n as f64 * f64::EPSILON * y;
+            assert!((x - y).abs() <= bound, "{x} against {y} ({n} terms)");
+        }
+        let total: f64 = a.iter().sum();
+        assert!((total - pos.len() as f64 / 8.0).abs() < 1e-9, "each particle deposits one unit");
+    }
+
+    #[test]
+    fn radius_for_eight_per_cell() {
+        let r = particle_radius(1.0, 2);
+        assert!((r - (11f64.sqrt() + 3f64.sqrt()) / 8.0).abs() < 1e-14);
+    }
+
+    #[test]
+    fn seeded_box_has_exact_volume_and_flat_surface() {
+        use crate::geometry::shape::Solid;
+        let grid = Grid { n: [8, 8, 8], dx: 0.125 };
+        let region = Solid::aabb(Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0));
+        let sdf = NodeSdf::new(&grid, &[]);
+        let pos = seed(&grid, &[region], 8, &sdf, None);
+        assert_eq!(pos.len(), 8 * 8 * 4 * 8);
+        let bins = Bins::new(&pos, &grid);
+        let vol = liquid_volume(&pos, &grid, 8, None);
+        assert!((vol - 0.5).abs() < 1e-12, "volume {vol}");
+        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
+        let phi = liquid_sdf(&pos, &bins, &grid, &model, None);
+        // Centres at y = 7/16 (below) and 9/16 (above) straddle the surface y = 0.5 evenly.
+        let below = phi[grid.cell(3, 3, 3)];
+        let above = phi[grid.cell(3, 4, 3)];
+        assert!(below < 0.0 && above > 0.0);
+        assert!((below / (below - above) - 0.5).abs() < 1e-12);
+    }
+}
+
+mod adjoint {
+    //! Each particle-stage adjoint against central differences of its forward map, for a
+    //! fixed linear functional of the output: ⟨∇L, d⟩ = (L(x + εd) − L(x − εd)) / 2ε.
+    use super::*;
+    use crate::math::{Rotation, SharedShape};
+
+    fn grid() -> Grid {
+        Grid { n: [8, 7, 6], dx: 0.1 }
+    }
+
+    /// Particles spread over the tank, away from lattice planes.
+    fn particles(n: usize) -> Vec<Vec3> {
+        (0..n)
+            .map(|i| {
+                let f = |k: usize| ((i * k * 7919 + k * 104729) % 1000) as f64 / 1000.0;
+                Vec3::new(0.05 + 0.7 * f(3), 0.05 + 0.6 * f(5), 0.05 + 0.5 * f(7))
+                    + Vec3::splat(1e-4)
+            })
+            .collect()
+    }
+
+    fn field(grid: &Grid, seed: usize) -> Mac {
+        let mut u = Mac::zeros(grid);
+        for a in 0..3 {
+            for (f, x) in u.c[a].iter_mut().enumerate() {
+                *x = (((f * 7919 + a * 131 + seed * 31) % 101) as f64 / 50.0 - 1.0) * 0.6 + 0.0123;
+            }
+        }
+        u
+    }
+
+    fn dir(n: usize, seed: usize) -> Vec<Vec3> {
+        (0..n)
+            .map(|i| {
+                let f = |k: usize| ((i * 31 + k * 17 + seed * 7) % 23) as f64 / 11.5 - 1.0;
+                Vec3::new(f(1), f(2), f(3))
+            })
+            .collect()
+    }
+
+    fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
+        a.iter().zip(b).map(|(x, y)| x.dot(*y)).sum()
+    }
+
+    /// The liquid distance and its nearest particle per cell against a search over every
+    /// particle, for a dense block (where a cell's own particle is the nearest) beside sparse
+    /// ones (where the search must look one or two rings out, or give up at 2·dx).
+    #[test]
+    fn nearest_particle_is_the_nearest_of_all() {
+        let grid = grid();
+        let mut pos = particles(150);
+        // A dense block: 8 jittered particles in each of 3×3×2 cells.
+        for c in 0..18 {
+            let ijk = [1 + c % 3, 1 + (c / 3) % 3, 1 + c / 9];
+            for q in 0..8 {
+                let r = |k: usize| ((c * 131 + q * 17 + k * 7) % 97) as f64 / 97.0 * 0.02 - 0.01;
+                let sub = [q & 1, (q >> 1) & 1, (q >> 2) & 1];
+                pos.push(Vec3::from_array(
+                    [0, 1, 2]
+                        .map(|a| (ijk[a] as f64 + 0.25 + 0.5 * sub[a] as f64) * grid.dx + r(a)),
+                ));
+            }
+        }
+        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: false };
+        let bins = Bins::new(&pos, &grid);
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
+        let cells = grid.cells();
+        let mut own = 0;
+        for c in 0..grid.num_cells() {
+            let [i, j, k] = cells.ijk(c);
+            let x = cells.position(i, j, k);
+            let (d, p) = pos
+                .iter()
+                .enumerate()
+                .map(|(p, y)| ((*y - x).length(), p as u32))
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .unwrap();
+            if d <= 2.0 * grid.dx {
+                assert_eq!((phi[c], who[c]), (d - model.radius, p), "cell {c}");
+                own += usize::from(d < 0.5 * grid.dx);
+            } else {
+                assert_eq!(phi[c], 2.0 * grid.dx - model.radius, "cell {c}");
+            }
+        }
+        assert!(own >= 18, "the dense block's cells find their own particle: {own}");
+    }
+
+    /// Advection through a field with a solid obstacle and the tank walls in reach: the
+    /// adjoint in the positions and in the field against central differences.
+    #[test]
+    fn advection_adjoint_matches_central_differences() {
+        let grid = grid();
+        let obstacle =
+            Solid::new(SharedShape::ball(0.12), Pose::from_translation(Vec3::new(0.4, 0.3, 0.3)));
+        let node_sdf = NodeSdf::new(&grid, &[obstacle]);
+        let (p0, u, du) = (particles(200), field(&grid, 1), field(&grid, 2));
+        let (c, dp) = (dir(200, 3), dir(200, 4));
+        let (dt, subs) = (0.05, 3);
+        let run = |p: &[Vec3], u: &Mac| {
+            let mut q = p.to_vec();
+            advect_substepped(&mut q, u, &grid, dt, subs, &node_sdf);
+            dot(&q, &c)
+        };
+        let mut pbar = c.clone();
+        let mut ubar = Mac::zeros(&grid);
+        advect_adjoint(&p0, &mut pbar, &u, &grid, dt, subs, &node_sdf, &mut ubar);
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        let fd = (run(&shift(eps), &u) - run(&shift(-eps), &u)) / (2.0 * eps);
+        let ad = dot(&pbar, &dp);
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "positions: adjoint {ad:e}, fd {fd:e}");
+        let moved = |s: f64| {
+            let mut v = u.clone();
+            for a in 0..3 {
+                for (x, d) in v.c[a].iter_mut().zip(&du.c[a]) {
+                    *x += s * d;
+                }
+            }
+            v
+        };
+        let fd = (run(&p0, &moved(eps)) - run(&p0, &moved(-eps))) / (2.0 * eps);
+        let ad = ubar.dot(&du);
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "field: adjoint {ad:e}, fd {fd:e}");
+    }
+
+    /// The push out of a tilted box and a ball: positions and the bodies' pose.
+    #[test]
+    fn push_out_adjoint_matches_central_differences() {
+        let grid = grid();
+        let pose = |x: [f64; 3], q: Rotation| Pose::from_parts(Vec3::from_array(x), q);
+        let bodies = vec![
+            RigidBody::new(
+                "box".into(),
+                SharedShape::cuboid(0.15, 0.1, 0.12),
+                pose(
+                    [0.31, 0.33, 0.29],
+                    Rotation::from_axis_angle(Vec3::new(0.3, 1.0, 0.2).normalize(), 0.4),
+                ),
+                500.0,
+            ),
+            RigidBody::new(
+                "ball".into(),
+                SharedShape::ball(0.1),
+                pose([0.55, 0.4, 0.3], Rotation::IDENTITY),
+                500.0,
+            ),
+        ];
+        let (p0, c, dp) = (particles(400), dir(400, 5), dir(400, 6));
+        let margin = 1e-3 * grid.dx;
+        let run = |p: &[Vec3], bodies: &[RigidBody]| {
+            let mut q = p.to_vec();
+            push_out_of_bodies(&mut q, bodies, margin);
+            dot(&q, &c)
+        };
+        let mut pbar = c.clone();
+        let pose_bar =
+            push_out_of_bodies_adjoint(&p0, &mut pbar, &bodies, margin, jacobian_step(&grid));
+        let mut pushed = p0.clone();
+        push_out_of_bodies(&mut pushed, &bodies, margin);
+        assert!(pushed.iter().zip(&p0).filter(|(a, b)| a != b).count() > 20, "too few pushed");
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        let fd = (run(&shift(eps), &bodies) - run(&shift(-eps), &bodies)) / (2.0 * eps);
+        let ad = dot(&pbar, &dp);
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "positions: adjoint {ad:e}, fd {fd:e}");
+        for (b, k) in [(0, 0), (0, 4), (1, 1), (1, 5)] {
+            let moved = |s: f64| {
+                let mut bs = bodies.clone();
+                let e = s * crate::math::unit(k % 3);
+                if k < 3 {
+                    bs[b].x += e;
+                } else {
+                    bs[b].q = (Rotation::from_scaled_axis(e) * bs[b].q).normalize();
+                }
+                bs
+            };
+            let fd = (run(&p0, &moved(eps)) - run(&p0, &moved(-eps))) / (2.0 * eps);
+            let ad = pose_bar[b][k];
+            assert!(
+                (ad - fd).abs() <= 1e-5 * fd.abs().max(1e-3),
+                "body {b} dir {k}: {ad:e} vs {fd:e}"
+            );
+        }
+    }
+
+    /// φ_L and the particle density in the particles.
+    #[test]
+    fn sdf_and_density_adjoints_match_central_differences() {
+        let grid = grid();
+        let (p0, dp) = (particles(300), dir(300, 8));
+        let cells = grid.num_cells();
+        let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
+        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
+        let sdf = |p: &[Vec3]| {
+            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, None);
+            phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let dens = |p: &[Vec3]| {
+            particle_density(p, &grid, 8, None)
+                .iter()
+                .zip(&phi_bar)
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
+        };
+        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model, None);
+        let mut g_sdf = vec![Vec3::ZERO; p0.len()];
+        liquid_sdf_adjoint(&p0, &nearest, &grid, &phi_bar, &mut g_sdf);
+        let mut g_dens = vec![Vec3::ZERO; p0.len()];
+        particle_density_adjoint(&p0, &grid, 8, &phi_bar, &mut g_dens);
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        for (name, f, g) in
+            [("sdf", &sdf as &dyn Fn(&[Vec3]) -> f64, &g_sdf), ("density", &dens, &g_dens)]
+        {
+            let fd = (f(&shift(eps)) - f(&shift(-eps))) / (2.0 * eps);
+            let ad = dot(g, &dp);
+            assert!(fd.abs() > 1e-3, "{name}: a vanishing derivative checks nothing");
+            assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "{name}: adjoint {ad:e}, fd {fd:e}");
+        }
+    }
+}
