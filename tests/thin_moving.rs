@@ -9,8 +9,12 @@
 //! (2) Sealing: a kinematic paddle a quarter of a cell thick pushed through the water at
 //! constant speed lets (nearly) no liquid through its outline, and gives the liquid the
 //! momentum a two-cell paddle of the same outline gives.
+//!
+//! (3) Rest: a neutrally buoyant quarter-cell plate, tilted and submerged in still water,
+//! stays put: the liquid its sealed faces carry weighs what the extra pressure on those
+//! faces lifts.
 
-use diffluid::experiments::bench::{disk_fall, paddle_through};
+use diffluid::experiments::bench::{disk_fall, paddle_through, plate_drift};
 
 #[test]
 fn thin_disks_fall_at_the_potential_flow_rate() {
@@ -31,4 +35,11 @@ fn thin_paddles_push_the_liquid_instead_of_letting_it_through() {
     // Before sealing moving bodies: leakage 0.091, momentum 32% of the two-cell paddle's.
     assert!(leak < 0.01, "leakage {leak}");
     assert!(momentum >= 0.9 * thick, "momentum {momentum} against {thick}");
+}
+
+#[test]
+fn a_neutral_thin_plate_stays_put() {
+    let moved = plate_drift(0.25).unwrap();
+    eprintln!("a neutral quarter-cell plate moved {:.3} mm in 0.5 s", 1e3 * moved);
+    assert!(moved < 2e-3, "moved {moved} m");
 }

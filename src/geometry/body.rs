@@ -42,6 +42,10 @@ pub struct RigidBody {
     /// Thickness of the shape, 2·V/S (see [`crate::geometry::shape::thickness`]): how finely
     /// its face fractions sample its distance ([`RigidBody::face_fractions`]).
     pub thickness: f64,
+    /// Depth of the shape, the radius of its largest inscribed ball (see
+    /// [`crate::geometry::shape::depth`]): a body less than a cell deep (thinner than 2 cells
+    /// everywhere) seals the faces its surface cuts ([`RigidBody::seals`]).
+    pub depth: f64,
 }
 
 /// Which part of a body's rotation reaches the liquid (see [`RigidBody::spin`]).
@@ -269,6 +273,7 @@ impl RigidBody {
         let r = Mat3::from_quat(mp.principal_inertia_local_frame);
         let local_inertia = r * Mat3::from_diagonal(mp.principal_inertia()) * r.transpose();
         let thickness = crate::geometry::shape::thickness(&shape);
+        let depth = crate::geometry::shape::depth(&shape);
         RigidBody {
             name,
             x: pose.transform_point(mp.local_com),
@@ -283,6 +288,7 @@ impl RigidBody {
             force: Vec3::ZERO,
             torque: Vec3::ZERO,
             thickness,
+            depth,
         }
     }
 
@@ -375,6 +381,14 @@ impl RigidBody {
     /// ([`fractions::samples_per_cell`] of its thickness).
     pub fn samples_per_cell(&self, dx: f64) -> usize {
         fractions::samples_per_cell(self.thickness, dx)
+    }
+
+    /// Whether the body seals the faces its surface cuts between two cell centres on cells of
+    /// side `dx`: it is less than a cell deep, thinner than [`fractions::SEAL_BELOW_CELLS`]
+    /// everywhere, as a static solid is sealed (see `world::step::Geometry`). A thicker body
+    /// fills some face's whole control volume wherever it is and seals by its fractions.
+    pub fn seals(&self, dx: f64) -> bool {
+        self.depth < 0.5 * fractions::SEAL_BELOW_CELLS * dx
     }
 
     /// The body's face fractions where it is now, volume-consistent (see
