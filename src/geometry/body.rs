@@ -11,6 +11,11 @@ use crate::math::dual::Dual;
 use crate::math::{Pose, Rotation, SharedShape, Vec3};
 use parry3d_f64::math::Matrix as Mat3;
 
+/// Bodies thinner than this many cells everywhere seal the faces they cross
+/// ([`RigidBody::seals`]); static solids from 2 cells down
+/// ([`fractions::SEAL_BELOW_CELLS`]).
+pub const SEAL_BELOW_CELLS: f64 = 1.0;
+
 /// A rigid body with its state.
 #[derive(Clone)]
 pub struct RigidBody {
@@ -43,7 +48,7 @@ pub struct RigidBody {
     /// its face fractions sample its distance ([`RigidBody::face_fractions`]).
     pub thickness: f64,
     /// Depth of the shape, the radius of its largest inscribed ball (see
-    /// [`crate::geometry::shape::depth`]): a body less than a cell deep (thinner than 2 cells
+    /// [`crate::geometry::shape::depth`]): a body less than half a cell deep (thinner than a cell
     /// everywhere) seals the faces its surface cuts ([`RigidBody::seals`]).
     pub depth: f64,
 }
@@ -384,11 +389,13 @@ impl RigidBody {
     }
 
     /// Whether the body seals the faces its surface cuts between two cell centres on cells of
-    /// side `dx`: it is less than a cell deep, thinner than [`fractions::SEAL_BELOW_CELLS`]
-    /// everywhere, as a static solid is sealed (see `world::step::Geometry`). A thicker body
-    /// fills some face's whole control volume wherever it is and seals by its fractions.
+    /// side `dx`: it is less than half a cell deep, thinner than [`SEAL_BELOW_CELLS`] (one
+    /// cell) everywhere. A body a cell thick or more moves the liquid by its fractions alone
+    /// (a disk a cell thick falls within 5% of potential flow unsealed; the liquid sealed
+    /// faces carry weighs on it, 23% slow); a thinner one lets the liquid through (half a
+    /// cell: twice too fast). See `docs/method.md`, "Moving thin bodies".
     pub fn seals(&self, dx: f64) -> bool {
-        self.depth < 0.5 * fractions::SEAL_BELOW_CELLS * dx
+        self.depth < 0.5 * SEAL_BELOW_CELLS * dx
     }
 
     /// The body's face fractions where it is now, volume-consistent (see

@@ -1,6 +1,6 @@
 //! The faces a moving thin body seals.
 //!
-//! A body thinner than two cells everywhere ([`RigidBody::seals`]) leaves most of a face's
+//! A body thinner than a cell everywhere ([`RigidBody::seals`]) leaves most of a face's
 //! control volume to the liquid (a quarter-cell plate, three quarters), so by its fractions
 //! alone the liquid flows through it. Such a body also closes every face whose segment
 //! between the two cell centres meets it, as a thin static solid does

@@ -55,8 +55,8 @@ pub fn thickness(shape: &SharedShape) -> f64 {
 /// radius of its largest inscribed ball). Exact for cuboids (the smallest half extent),
 /// balls, capsules and cylinders; otherwise the largest depth of a lattice of at most about
 /// 10⁵ points over its bounds, spaced at most a quarter of its [`thickness`] (2·V/S) apart
-/// (under by at most that spacing). A body thinner than 2 cells everywhere (depth under a
-/// cell) is sealed as it moves (see `world::step::Geometry`).
+/// (under by at most that spacing). A body thinner than a cell everywhere (depth under half
+/// a cell) seals the liquid as it moves (see `geometry::seal`).
 pub fn depth(shape: &SharedShape) -> f64 {
     if let Some(c) = shape.as_cuboid() {
         return c.half_extents.min_element();
