@@ -339,7 +339,8 @@ pub enum Study {
     Accuracy,
     /// The stability map of the monolithic and the weak coupling.
     Stability,
-    /// Thin plates.
+    /// Thin plates: static leakage and hydrostatics, and moving thin bodies (a falling
+    /// disk against potential flow, a paddle pushed through the water).
     Thin,
     /// Time per step against liquid cells.
     Cost,
@@ -488,6 +489,25 @@ fn write_thin(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Resul
         "thin plates (|value|, floored at 1e-7)",
         ("plate thickness, cells", "relative error"),
         (false, true),
+        &s,
+    )?;
+    progress("moving thin bodies");
+    let moving = bench::moving_thin(quick)?;
+    write_csv(&at("moving_thin.csv"), &moving)?;
+    let line = |f: fn(&bench::MovingThinRow) -> f64| -> Vec<(f64, f64)> {
+        moving.iter().map(|r| (r.thickness_cells, f(r))).collect()
+    };
+    let s = vec![
+        ("falling disk: acceleration / potential flow".into(), line(|r| r.fall_over_potential)),
+        ("potential flow".into(), line(|_| 1.0)),
+        ("paddle: impulse / a two-cell paddle's".into(), line(|r| r.momentum_over_thick)),
+        ("paddle: leakage".into(), line(|r| r.leakage)),
+    ];
+    plot::line_chart(
+        &at("moving_thin.png"),
+        "moving thin bodies",
+        ("body thickness, cells", "ratio"),
+        (false, false),
         &s,
     )
 }

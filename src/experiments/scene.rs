@@ -121,6 +121,11 @@ pub struct BodySpec {
     /// true.
     #[serde(default = "yes")]
     pub dynamic: bool,
+    /// For a `mesh` body, m: an open mesh (a sail, a hull without a deck) loads as a shell
+    /// this thick, its mass that of thickness × area at the body's density; a closed mesh
+    /// keeps the usual rules. Without it an open mesh is an error.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shell_thickness: Option<f64>,
 }
 
 fn yes() -> bool {
@@ -670,7 +675,18 @@ impl Scene {
         notes: &mut Vec<String>,
     ) -> std::result::Result<RigidBody, Problem> {
         let key = format!("body[{i}]");
-        let solid = b.placed().build_noting(&self.base(), notes).map_err(|m| problem(&key, m))?;
+        let solid = match (b.shell_thickness, &b.shape) {
+            (None, _) => b.placed().build_noting(&self.base(), notes),
+            (Some(t), ShapeSpec::Mesh { .. }) => {
+                check_positive(&format!("{key}.shell_thickness"), t)?;
+                b.placed().build_shell(&self.base(), t)
+            }
+            (Some(_), _) => {
+                let message = "applies to a mesh body (shape kind = \"mesh\") only";
+                return Err(problem(format!("{key}.shell_thickness"), message));
+            }
+        };
+        let solid = solid.map_err(|m| problem(&key, m))?;
         let (density, mass) = match (b.density, b.mass) {
             (Some(d), None) => {
                 check_positive(&format!("{key}.density"), d)?;

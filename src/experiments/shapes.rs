@@ -232,6 +232,21 @@ impl Placed {
         self.build_noting(base, &mut Vec::new())
     }
 
+    /// [`Placed::build`] of a `mesh` shape whose file may be an open surface: loaded as a
+    /// shell `thickness` thick when it is ([`crate::geometry::mesh::load_obj_or_shell`]).
+    pub fn build_shell(&self, base: &Path, thickness: f64) -> Result<Solid, String> {
+        let ShapeSpec::Mesh { obj, scale, .. } = &self.shape else {
+            return Err("a shell thickness applies to a mesh only".into());
+        };
+        if !all_finite(&self.position) {
+            return Err(format!("position {:?} must be finite", self.position));
+        }
+        positive("mesh scale", *scale)?;
+        let shape = crate::geometry::mesh::load_obj_or_shell(&base.join(obj), *scale, thickness)?;
+        let rot = self.rotation()?;
+        Ok(Solid { shape, pose: Pose::from_parts(v3(self.position), rot) })
+    }
+
     /// [`Placed::build`], adding to `notes` what was repaired.
     pub fn build_noting(&self, base: &Path, notes: &mut Vec<String>) -> Result<Solid, String> {
         if !all_finite(&self.position) {

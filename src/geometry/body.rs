@@ -11,6 +11,11 @@ use crate::math::dual::Dual;
 use crate::math::{Pose, Rotation, SharedShape, Vec3};
 use parry3d_f64::math::Matrix as Mat3;
 
+/// Bodies thinner than this many cells everywhere seal the faces they cross
+/// ([`RigidBody::seals`]); static solids from 2 cells down
+/// ([`fractions::SEAL_BELOW_CELLS`]).
+pub const SEAL_BELOW_CELLS: f64 = 1.0;
+
 /// A rigid body with its state.
 #[derive(Clone)]
 pub struct RigidBody {
@@ -42,6 +47,10 @@ pub struct RigidBody {
     /// Thickness of the shape, 2·V/S (see [`crate::geometry::shape::thickness`]): how finely
     /// its face fractions sample its distance ([`RigidBody::face_fractions`]).
     pub thickness: f64,
+    /// Depth of the shape, the radius of its largest inscribed ball (see
+    /// [`crate::geometry::shape::depth`]): a body less than half a cell deep (thinner than a cell
+    /// everywhere) seals the faces its surface cuts ([`RigidBody::seals`]).
+    pub depth: f64,
 }
 
 /// Which part of a body's rotation reaches the liquid (see [`RigidBody::spin`]).
@@ -269,6 +278,7 @@ impl RigidBody {
         let r = Mat3::from_quat(mp.principal_inertia_local_frame);
         let local_inertia = r * Mat3::from_diagonal(mp.principal_inertia()) * r.transpose();
         let thickness = crate::geometry::shape::thickness(&shape);
+        let depth = crate::geometry::shape::depth(&shape);
         RigidBody {
             name,
             x: pose.transform_point(mp.local_com),
@@ -283,6 +293,7 @@ impl RigidBody {
             force: Vec3::ZERO,
             torque: Vec3::ZERO,
             thickness,
+            depth,
         }
     }
 
@@ -375,6 +386,16 @@ impl RigidBody {
     /// ([`fractions::samples_per_cell`] of its thickness).
     pub fn samples_per_cell(&self, dx: f64) -> usize {
         fractions::samples_per_cell(self.thickness, dx)
+    }
+
+    /// Whether the body seals the faces its surface cuts between two cell centres on cells of
+    /// side `dx`: it is less than half a cell deep, thinner than [`SEAL_BELOW_CELLS`] (one
+    /// cell) everywhere. A body a cell thick or more moves the liquid by its fractions alone
+    /// (a disk a cell thick falls within 5% of potential flow unsealed; the liquid sealed
+    /// faces carry weighs on it, 23% slow); a thinner one lets the liquid through (half a
+    /// cell: twice too fast). See `docs/method.md`, "Moving thin bodies".
+    pub fn seals(&self, dx: f64) -> bool {
+        self.depth < 0.5 * SEAL_BELOW_CELLS * dx
     }
 
     /// The body's face fractions where it is now, volume-consistent (see

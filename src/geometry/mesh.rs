@@ -59,6 +59,100 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
         .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))
 }
 
+/// Loads an OBJ as [`load_obj`] does when it is closed (today's rules, `thickness` unused);
+/// an open one (with boundary edges: a sail, a leaf, a hull without a deck) as a shell
+/// `thickness` thick (m, after scaling): the surface offset by ±thickness/2 along its vertex
+/// normals, the two sheets joined along the boundary, checked as a closed mesh. Its volume,
+/// so a body's mass at a density, is thickness × area (to first order in thickness over the
+/// surface's curvature radius). An open surface must be consistently wound and manifold, and
+/// the thickness small against its curvature (the sheets must not cross).
+pub fn load_obj_or_shell(path: &Path, scale: f64, thickness: f64) -> Result<SharedShape, String> {
+    let name = path.display();
+    if !(thickness.is_finite() && thickness > 0.0) {
+        return Err(format!(
+            "mesh {name}: shell_thickness must be a positive number, got {thickness}"
+        ));
+    }
+    let closed = load_obj(path, scale);
+    if closed.is_ok() {
+        return closed;
+    }
+    let (positions, triangles) = read_obj(path)?;
+    let (mut vertices, tris) =
+        merge_vertices(&positions, &triangles).map_err(|e| format!("mesh {name} {e}"))?;
+    for v in &mut vertices {
+        *v *= scale;
+    }
+    let shell = shell_mesh(&vertices, &tris, thickness)
+        .map_err(|e| format!("mesh {name} as a shell {thickness} m thick {e}"))?;
+    // Not an open surface (closed, but failing another check): the closed mesh's error.
+    let shell = shell.ok_or_else(|| closed.err().unwrap_or_default())?;
+    let solid = ClosedMesh::new(&shell.0, &shell.1)
+        .map_err(|e| format!("mesh {name} as a shell {thickness} m thick {e}"))?
+        .outward();
+    SharedShape::trimesh_with_flags(solid.vertices, solid.triangles, TriMeshFlags::ORIENTED)
+        .map_err(|e| format!("mesh {name}: parry rejected the shell's triangles: {e}"))
+}
+
+/// A triangle mesh: vertices and triangles.
+type Surface = (Vec<Vec3>, Vec<[u32; 3]>);
+
+/// The closed surface of an open one thickened by `thickness`: vertices offset by ±t/2 along
+/// their area-weighted normals, the − sheet wound the other way, each boundary edge joined
+/// by a quad. None when the surface has no boundary edge (it is closed). Errors: an edge in
+/// more than two triangles, or wound the same way by two.
+fn shell_mesh(
+    vertices: &[Vec3],
+    tris: &[[u32; 3]],
+    thickness: f64,
+) -> Result<Option<Surface>, String> {
+    let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
+    let mut undirected: HashMap<(u32, u32), u32> = HashMap::new();
+    for t in tris {
+        for k in 0..3 {
+            let (a, b) = (t[k], t[(k + 1) % 3]);
+            *directed.entry((a, b)).or_insert(0) += 1;
+            *undirected.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+        }
+    }
+    if undirected.values().any(|&n| n > 2) {
+        return Err("is not a surface: an edge is shared by more than two triangles".into());
+    }
+    if directed.values().any(|&n| n > 1) {
+        return Err("has inconsistent orientation: neighbouring triangles must wind the \
+                    same way"
+            .into());
+    }
+    let mut boundary: Vec<(u32, u32)> =
+        directed.keys().copied().filter(|&(a, b)| !directed.contains_key(&(b, a))).collect();
+    if boundary.is_empty() {
+        return Ok(None);
+    }
+    boundary.sort_unstable();
+    let n = vertices.len();
+    let mut normals = vec![Vec3::ZERO; n];
+    for t in tris {
+        let [a, b, c] = t.map(|i| vertices[i as usize]);
+        let area_normal = (b - a).cross(c - a);
+        for &i in t {
+            normals[i as usize] += area_normal;
+        }
+    }
+    let h = 0.5 * thickness;
+    let mut out: Vec<Vec3> = Vec::with_capacity(2 * n);
+    out.extend(vertices.iter().zip(&normals).map(|(v, m)| *v + h * m.normalize_or_zero()));
+    out.extend(vertices.iter().zip(&normals).map(|(v, m)| *v - h * m.normalize_or_zero()));
+    let m = n as u32;
+    let mut faces: Vec<[u32; 3]> = Vec::with_capacity(2 * tris.len() + 2 * boundary.len());
+    faces.extend(tris.iter().copied());
+    faces.extend(tris.iter().map(|&[a, b, c]| [m + a, m + c, m + b]));
+    for (a, b) in boundary {
+        faces.push([b, a, m + a]);
+        faces.push([b, m + a, m + b]);
+    }
+    Ok(Some((out, faces)))
+}
+
 /// The meshes of `assets/meshes/`, built into the library: the built-in scenes name them by
 /// their path in the source tree, which an installed or moved binary no longer has.
 const SHIPPED_MESHES: &[(&str, &[u8])] = &[
@@ -152,39 +246,7 @@ impl ClosedMesh {
     /// topology, the orientation and the volume. The error completes a sentence starting
     /// with the mesh's name ("is not closed: ...").
     fn new(positions: &[Vec3], triangles: &[[u32; 3]]) -> Result<ClosedMesh, String> {
-        if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
-            return Err(format!("has a non-finite vertex (number {})", i + 1));
-        }
-
-        // Merge vertices by exact coordinates (+0.0 folds -0.0 into 0.0); keep only those
-        // that triangles use.
-        let mut ids: HashMap<[u64; 3], u32> = HashMap::new();
-        let mut remap = vec![u32::MAX; positions.len()];
-        let mut vertices = Vec::new();
-        let mut tris = Vec::with_capacity(triangles.len());
-        for tri in triangles {
-            let mut t = [0u32; 3];
-            for (k, &i) in tri.iter().enumerate() {
-                let Some(&p) = positions.get(i as usize) else {
-                    return Err(format!("has a triangle using missing vertex {}", i + 1));
-                };
-                if remap[i as usize] == u32::MAX {
-                    let key = (p + Vec3::ZERO).to_array().map(f64::to_bits);
-                    remap[i as usize] = *ids.entry(key).or_insert_with(|| {
-                        vertices.push(p);
-                        (vertices.len() - 1) as u32
-                    });
-                }
-                t[k] = remap[i as usize];
-            }
-            if t[0] != t[1] && t[1] != t[2] && t[2] != t[0] {
-                tris.push(t);
-            }
-        }
-        if tris.is_empty() {
-            return Err("contains no triangles".into());
-        }
-
+        let (vertices, tris) = merge_vertices(positions, triangles)?;
         let corners = |t: &[u32; 3]| t.map(|i| vertices[i as usize]);
         if let Some(n) = tris.iter().position(|t| {
             let [a, b, c] = corners(t);
@@ -219,8 +281,14 @@ impl ClosedMesh {
                     plural(non_manifold)
                 ));
             }
+            // An open surface (a sail, a hull without a deck) can be a body's shell.
+            let shell = if boundary > 0 {
+                "; an open surface loads as a shell with the body's `shell_thickness` (m)"
+            } else {
+                ""
+            };
             return Err(format!(
-                "is not closed: {}; every edge must be shared by exactly two triangles",
+                "is not closed: {}; every edge must be shared by exactly two triangles{shell}",
                 parts.join(" and ")
             ));
         }
@@ -270,6 +338,49 @@ impl ClosedMesh {
         }
         self
     }
+}
+
+/// Merges vertices with identical coordinates and drops triangles with a repeated vertex:
+/// the mesh's vertices (each used by a triangle) and triangles. Errors (completing a sentence
+/// starting with the mesh's name): a non-finite or missing vertex, no triangles.
+fn merge_vertices(
+    positions: &[Vec3],
+    triangles: &[[u32; 3]],
+) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
+    if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
+        return Err(format!("has a non-finite vertex (number {})", i + 1));
+    }
+
+    // Merge vertices by exact coordinates (+0.0 folds -0.0 into 0.0); keep only those
+    // that triangles use.
+    let mut ids: HashMap<[u64; 3], u32> = HashMap::new();
+    let mut remap = vec![u32::MAX; positions.len()];
+    let mut vertices = Vec::new();
+    let mut tris = Vec::with_capacity(triangles.len());
+    for tri in triangles {
+        let mut t = [0u32; 3];
+        for (k, &i) in tri.iter().enumerate() {
+            let Some(&p) = positions.get(i as usize) else {
+                return Err(format!("has a triangle using missing vertex {}", i + 1));
+            };
+            if remap[i as usize] == u32::MAX {
+                let key = (p + Vec3::ZERO).to_array().map(f64::to_bits);
+                remap[i as usize] = *ids.entry(key).or_insert_with(|| {
+                    vertices.push(p);
+                    (vertices.len() - 1) as u32
+                });
+            }
+            t[k] = remap[i as usize];
+        }
+        if t[0] != t[1] && t[1] != t[2] && t[2] != t[0] {
+            tris.push(t);
+        }
+    }
+    if tris.is_empty() {
+        return Err("contains no triangles".into());
+    }
+
+    Ok((vertices, tris))
 }
 
 /// The fans of a vertex from its link (each incident triangle's edge opposite it, a pair of

@@ -4,5 +4,6 @@ pub mod body;
 pub mod fractions;
 pub mod grid;
 pub mod mesh;
+pub mod seal;
 pub mod shape;
 pub mod weights;

@@ -391,11 +391,8 @@ fn step_adjoint(
     let (s, stats) = sys.pressure.adjoint_solve(&ubar, &adj_v, &how);
     // The surface's part: ∂L/∂φ_L through the ghost-fluid θ, carried back out of the solids
     // to the cells the extension read.
-    let phi_bar = live_surface.then(|| {
-        let mut g = sys.pressure.phi_adjoint(&sys.phi, &sys.geometry.weights, &s, &rec.p, &ubar);
-        sys.extension.transpose(&mut g);
-        g
-    });
+    let mut phi_bar = live_surface
+        .then(|| sys.pressure.phi_adjoint(&sys.phi, &sys.geometry.weights, &s, &rec.p, &ubar));
     if !stats.converged {
         return Err(Error::NotConverged {
             solve: Solve::PressureAdjoint,
@@ -408,7 +405,24 @@ fn step_adjoint(
     // ū before the projection, in place: ū − Fᵀs; the bodies' v̄ − J·s.
     let mut uhat_bar = ubar;
     sys.pressure.subtract_fluid_flux_adjoint(&s, &sys.geometry.weights, &mut uhat_bar);
-    let vhat_bar = sys.pressure.body_velocity_adjoint(&adj_v, &s);
+    let mut vhat_bar = sys.pressure.body_velocity_adjoint(&adj_v, &s);
+    // The liquid a thin body carries: V_e = M_e⁻¹·(M·V̂ + Σ m_f·û_f·a_f) back to V̂ and û,
+    // and through its masses' liquid fractions to φ_L. y = M_e⁻¹·V̄_e per coupled body.
+    let v_e = sys.entrained_velocities(&rec.v_hat, &u_hat);
+    let mut ys = vec![[0.0; 6]; sys.coupled.len()];
+    for (k, ent) in sys.entrained.iter().enumerate().filter(|(_, e)| !e.is_empty()) {
+        let (vb, y) = ent.velocity_adjoint(&vhat_bar[k], &mut uhat_bar);
+        vhat_bar[k] = vb;
+        ys[k] = y;
+        if let Some(g) = phi_bar.as_mut() {
+            let v_new = &rec.v_after[sys.coupled[k]];
+            ent.phi_adjoint(&y, v_new, &u_hat, &sys.phi, settings.solver.theta_min, g);
+        }
+    }
+    let phi_bar = phi_bar.map(|mut g| {
+        sys.extension.transpose(&mut g);
+        g
+    });
     for (k, &i) in sys.coupled.iter().enumerate() {
         out[i].v = Vec3::new(vhat_bar[k][0], vhat_bar[k][1], vhat_bar[k][2]);
         out[i].w = Vec3::new(vhat_bar[k][3], vhat_bar[k][4], vhat_bar[k][5]);
@@ -444,15 +458,41 @@ fn step_adjoint(
             s: &s,
             dt,
         };
+        // J's faces: the fractions, and on the faces a thin body crosses the static weight.
+        let coupling_faces: Vec<[Vec<(usize, Dual<6>)>; 3]> = dual_faces
+            .iter()
+            .zip(&sys.geometry.seals)
+            .map(|(d, seal)| if seal.is_empty() { d.clone() } else { seal.coupling_dual(d) })
+            .collect();
         for (k, &i) in sys.coupled.iter().enumerate() {
-            let gr = projection_pose_adjoint(
+            let ent = &sys.entrained[k];
+            let mut gr = projection_pose_adjoint(
                 &inputs,
                 &bodies[i],
-                &dual_faces[i],
+                &coupling_faces[i],
                 k,
-                &rec.v_hat[k],
+                &v_e[k],
                 &adj_v[k],
+                ent,
             );
+            if !ent.is_empty() {
+                let density = settings.fluid.density;
+                let (v_hat, v_new) = (&rec.v_hat[k], &rec.v_after[i]);
+                let b = &bodies[i];
+                let ge = ent.pose_adjoint(
+                    &grid,
+                    b,
+                    &dual_faces[i],
+                    &ys[k],
+                    v_hat,
+                    v_new,
+                    &u_hat,
+                    density,
+                );
+                for d in 0..6 {
+                    gr[d] += ge[d];
+                }
+            }
             // 2ᵀ for the torque, whose world inertia turns with the body.
             let gw = body_velocity_pose_adjoint(&bodies[i], dt, out[i].w);
             for d in 0..6 {
@@ -464,7 +504,7 @@ fn step_adjoint(
         }
         // Kinematic bodies: J and the fractions move with the prescribed pose.
         for (i, bc, v) in &sys.kinematic {
-            let gr = kinematic_pose_adjoint(&inputs, &bodies[*i], &dual_faces[*i], bc, v);
+            let gr = kinematic_pose_adjoint(&inputs, &bodies[*i], &coupling_faces[*i], bc, v);
             for d in 0..6 {
                 pose_grad[*i][d] += gr[d];
             }

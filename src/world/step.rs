@@ -8,12 +8,14 @@
 use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::{self, BodyFaces, NodeSdf};
 use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::seal::Seal;
 use crate::geometry::weights::FaceWeights;
 use crate::math::par::{for_each_keyed_mut, sum_by};
 use crate::stages::advect::{advect_into, needed_faces, FaceMask};
 use crate::stages::forces::add_gravity;
 use crate::stages::pressure::{
-    BodyCoupling, Coupling, PressureParams, PressureSystem, ProjectedFace, SystemMemory, SystemPool,
+    BodyCoupling, Coupling, Entrained, PressureParams, PressureSystem, ProjectedFace, SystemMemory,
+    SystemPool,
 };
 use crate::stages::solid_phi::SolidExtension;
 use serde::Serialize;
@@ -48,6 +50,8 @@ pub struct Geometry {
     pub near_solid: Vec<bool>,
     /// Faces covered by each body.
     pub body_faces: Vec<BodyFaces>,
+    /// The faces each body seals (empty for a body at least 2 cells thick somewhere).
+    pub seals: Vec<Seal>,
 }
 
 /// Each body's face fractions where it is now (volume-consistent, see
@@ -117,7 +121,19 @@ impl Geometry {
                 }
             }
         }
-        Geometry { weights, centre_in_solid, near_solid, body_faces: faces }
+        // Thin bodies seal the faces they cut, once every body's fractions are off.
+        let seals: Vec<Seal> =
+            bodies.iter().zip(&faces).map(|(b, f)| Seal::new(grid, b, f, &weights)).collect();
+        for seal in seals.iter().filter(|s| !s.is_empty()) {
+            weights.subtract(&seal.closing());
+        }
+        Geometry { weights, centre_in_solid, near_solid, body_faces: faces, seals }
+    }
+
+    /// The faces of body `i`'s columns of J: its fractions, and on the faces it seals and
+    /// crosses the whole of their open part ([`Seal::coupling`]).
+    pub fn coupling_faces(&self, i: usize) -> BodyFaces {
+        self.seals[i].coupling(&self.body_faces[i])
     }
 }
 
@@ -151,6 +167,9 @@ pub struct StepSystem {
     pub pressure: PressureSystem,
     /// Indices of the bodies in the solve (those that [`RigidBody::moves`]), in order.
     pub coupled: Vec<usize>,
+    /// The liquid each coupled body carries (empty but for thin bodies), in the order of
+    /// [`StepSystem::coupled`]: the solve's M_S is theirs together.
+    pub entrained: Vec<Entrained>,
     /// With weak coupling, the coupled bodies' J and Δt·M⁻¹ (outside the operator).
     weak: Vec<BodyCoupling>,
     /// Kinematic bodies: index, J (its Δt·M⁻¹ unused) and the prescribed [v; ω], a moving
@@ -181,19 +200,34 @@ impl StepSystem {
         let mut pressure = build(memory, grid, &phi, &geometry.weights, params.pressure);
         let coupled: Vec<usize> = (0..bodies.len()).filter(|&i| bodies[i].moves()).collect();
         let dt = params.pressure.dt;
-        let couplings: Vec<BodyCoupling> = coupled
+        let entrained: Vec<Entrained> = coupled
             .iter()
             .map(|&i| {
+                let seal = &geometry.seals[i];
+                if seal.is_empty() {
+                    Entrained::default()
+                } else {
+                    Entrained::new(grid, &bodies[i], seal, &phi, &params.pressure)
+                }
+            })
+            .collect();
+        let couplings: Vec<BodyCoupling> = coupled
+            .iter()
+            .zip(&entrained)
+            .map(|(&i, ent)| {
                 let b = &bodies[i];
-                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.spin());
-                BodyCoupling::new(&pressure.row_of_cell, &jac, dt_minv(b, dt))
+                let faces = geometry.coupling_faces(i);
+                let jac = fractions::body_jacobian(grid, &faces, b.x, b.spin());
+                let mi = if ent.is_empty() { dt_minv(b, dt) } else { ent.dt_minv(dt) };
+                BodyCoupling::new(&pressure.row_of_cell, &jac, mi)
             })
             .collect();
         let kinematic = (0..bodies.len())
             .filter(|&i| bodies[i].motion == crate::geometry::body::Motion::Kinematic)
             .map(|i| {
                 let b = &bodies[i];
-                let jac = fractions::body_jacobian(grid, &geometry.body_faces[i], b.x, b.spin());
+                let faces = geometry.coupling_faces(i);
+                let jac = fractions::body_jacobian(grid, &faces, b.x, b.spin());
                 (
                     i,
                     BodyCoupling::new(&pressure.row_of_cell, &jac, [[0.0; 6]; 6]),
@@ -208,7 +242,27 @@ impl StepSystem {
             }
             Coupling::Weak => couplings,
         };
-        StepSystem { geometry, phi, extension, needed, pressure, coupled, weak, kinematic }
+        StepSystem {
+            geometry,
+            phi,
+            extension,
+            needed,
+            pressure,
+            coupled,
+            entrained,
+            weak,
+            kinematic,
+        }
+    }
+
+    /// The coupled bodies' velocities `v` before the solve with the liquid they carry
+    /// (`u`, the fluid's): [`Entrained::velocity`] where a body carries some, `v` itself
+    /// where it carries none.
+    pub fn entrained_velocities(&self, v: &[[f64; 6]], u: &Mac) -> Vec<[f64; 6]> {
+        v.iter()
+            .zip(&self.entrained)
+            .map(|(v, e)| if e.is_empty() { *v } else { e.velocity(v, u) })
+            .collect()
     }
 
     /// The coupled bodies' J and Δt·M⁻¹, in the order of [`StepSystem::coupled`].

@@ -28,12 +28,14 @@ use serde::{Deserialize, Serialize};
 mod adjoint;
 mod build;
 mod coupling;
+mod entrained;
 mod pool;
 mod pose;
 mod preconditioner;
 mod solve;
 
 pub use coupling::BodyCoupling;
+pub use entrained::{arm_derivative, mass_matrix, Entrained, EntrainedFace};
 pub use pool::{SystemMemory, SystemPool};
 pub use pose::{kinematic_pose_adjoint, projection_pose_adjoint, PoseAdjointInputs};
 use preconditioner::{PreconditionerCache, Prepared};

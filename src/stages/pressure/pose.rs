@@ -31,6 +31,13 @@ pub struct PoseAdjointInputs<'a> {
 /// `dL = sᵀ(δb − δA·p) + V′·(δMi·J p + Mi·δJ p)` where b = −F(w)·û − Jᵀ v̂,
 /// A = S(w) + Jᵀ Mi J and Mi = Δt·M⁻¹. δw = −δβ on faces the clamp leaves alone, δJ comes
 /// from δβ and from the torque arms (δr = −δx), δMi from the rotation of the inertia.
+///
+/// For a body carrying liquid (`entrained` not empty), `faces` are J's faces ([`Seal::coupling`]
+/// of the fractions), `v_hat` its velocity with that liquid's momentum (V_e), and δMi is left
+/// to [`Entrained::pose_adjoint`], which differentiates M_e whole.
+///
+/// [`Seal::coupling`]: crate::geometry::seal::Seal::coupling
+/// [`Entrained::pose_adjoint`]: super::Entrained::pose_adjoint
 pub fn projection_pose_adjoint(
     g: &PoseAdjointInputs<'_>,
     body: &crate::geometry::body::RigidBody,
@@ -38,8 +45,21 @@ pub fn projection_pose_adjoint(
     coupling: usize,
     v_hat: &[f64; 6],
     adj_v: &[f64; 6],
+    entrained: &super::Entrained,
 ) -> [f64; 6] {
-    body_pose_adjoint(g, body, faces, &g.sys.bodies[coupling], true, v_hat, adj_v)
+    let turn = if entrained.is_empty() { Inverse::Turns } else { Inverse::Elsewhere };
+    body_pose_adjoint(g, body, faces, &g.sys.bodies[coupling], turn, v_hat, adj_v)
+}
+
+/// Where δ(Δt·M⁻¹) of a body's pose goes.
+#[derive(Clone, Copy, PartialEq)]
+enum Inverse {
+    /// Nothing of the solve moves the body (a kinematic one).
+    Fixed,
+    /// It is the turn of the world inertia, here.
+    Turns,
+    /// It is taken elsewhere (with the entrained liquid's).
+    Elsewhere,
 }
 
 /// [`projection_pose_adjoint`] of a kinematic body (`sys.kinematic`'s coupling `bc`, its
@@ -52,7 +72,7 @@ pub fn kinematic_pose_adjoint(
     bc: &BodyCoupling,
     v: &[f64; 6],
 ) -> [f64; 6] {
-    body_pose_adjoint(g, body, faces, bc, false, v, &[0.0; 6])
+    body_pose_adjoint(g, body, faces, bc, Inverse::Fixed, v, &[0.0; 6])
 }
 
 /// The pose part of the projection adjoint of a body whose coupling is `bc`, in the
@@ -62,7 +82,7 @@ fn body_pose_adjoint(
     body: &crate::geometry::body::RigidBody,
     faces: &[Vec<(usize, crate::math::dual::Dual<6>)>; 3],
     bc: &BodyCoupling,
-    coupled: bool,
+    inverse: Inverse,
     v_hat: &[f64; 6],
     adj_v: &[f64; 6],
 ) -> [f64; 6] {
@@ -135,7 +155,7 @@ fn body_pose_adjoint(
         std::array::from_fn(|r| std::array::from_fn(|c| inv.col(c).to_array()[r]));
     for k in 0..6 {
         let mut dmi = [[0.0; 6]; 6];
-        if k >= 3 && coupled {
+        if k >= 3 && inverse == Inverse::Turns {
             let ax = crate::math::unit(k - 3);
             let cross = |v: [f64; 3]| {
                 let w = ax.cross(Vec3::new(v[0], v[1], v[2]));

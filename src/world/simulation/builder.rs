@@ -338,36 +338,21 @@ pub(super) fn check_body(b: &RigidBody, size: Vec3, reach: f64) -> std::result::
     Ok(())
 }
 
-/// A warning when a body is thinner than half a cell (its thickness taken as 2·V/S, exact
-/// for a plate). Its face fractions are then sampled more finely
-/// ([`RigidBody::samples_per_cell`]) and keep its whole volume, so its buoyancy, down to the
-/// finest sampling; but a body's faces stay open by 1 − β, so the liquid passes through it
-/// (a body seals by its fractions alone from 2 cells up). Below the finest sampling it also
-/// loses part of its buoyancy, as every thin body did before the finer sampling (a quarter-cell
-/// plate sampled every dx/2 lost 75%).
+/// A warning when a body is thinner than the finest sampling of its face fractions
+/// ([`RigidBody::samples_per_cell`], down to dx/16; its thickness taken as 2·V/S, exact for a
+/// plate): it falls between the samples and loses part of its buoyancy (a quarter-cell plate
+/// sampled every dx/2 lost 75%). A thinner body down to that sampling keeps its volume, and
+/// seals the liquid on its two sides as it moves ([`crate::geometry::seal`]).
 fn thin_body_warning(b: &RigidBody, dx: f64) -> Option<String> {
     let t = b.thickness;
-    if t >= 0.5 * dx {
-        return None;
-    }
     let r = b.samples_per_cell(dx);
-    Some(if dx / r as f64 > t {
+    (t < 0.5 * dx && dx / r as f64 > t).then(|| {
         format!(
             "body {} is about {:.3} cells thick, thinner than the 1/{r} cell its face fractions \
-             are sampled at: it will feel only part of its buoyancy and let liquid through \
-             (refine dx below {:.4} m)",
+             are sampled at: it will feel only part of its buoyancy (refine dx below {:.4} m)",
             b.name,
             t / dx,
             r as f64 * t
-        )
-    } else {
-        format!(
-            "body {} is about {:.2} cells thick, less than half a cell: its face fractions are \
-             sampled every dx/{r} and keep its buoyancy, but liquid passes through it (a body's \
-             faces stay open by 1 - β; refine dx below {:.4} m to seal it)",
-            b.name,
-            t / dx,
-            0.5 * t
         )
     })
 }

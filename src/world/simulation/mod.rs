@@ -282,7 +282,8 @@ impl Simulation {
     }
 
     /// The pressure force (N) and torque (N·m, about the centre of mass) of the last step's
-    /// solve on body `h` (zero before the first step and for fixed bodies).
+    /// solve on body `h` (zero before the first step and for bodies held still; for a
+    /// kinematic body, what driving it along its motion meets).
     pub fn fluid_force(&self, h: BodyHandle) -> Option<(Vec3, Vec3)> {
         let f = self.fluid_forces[self.index_of(h)?];
         Some((Vec3::new(f[0], f[1], f[2]), Vec3::new(f[3], f[4], f[5])))

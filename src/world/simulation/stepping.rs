@@ -310,6 +310,10 @@ impl Simulation {
             b.w = Vec3::new(v[3], v[4], v[5]);
             self.fluid_forces[i] = *f;
         }
+        // A kinematic body's force is what its motion costs: J·p.
+        for (i, c, _) in &sys.kinematic {
+            self.fluid_forces[*i] = c.force(&proj.p);
+        }
         // What only the report reads: a replayed re-run's report is dropped, so it skips them.
         let report = !matches!(pressures, Pressures::Replay(_));
         let (max_divergence, kinetic_energy) = if report {
@@ -537,10 +541,12 @@ impl Simulation {
         let solve = |kick: &[[f64; 6]]| {
             let vel: Vec<[f64; 6]> =
                 v_hat.iter().zip(kick).map(|(v, k)| std::array::from_fn(|d| v[d] + k[d])).collect();
+            // With the liquid the thin bodies carry (`vel` where they carry none).
+            let vel_e = sys.entrained_velocities(&vel, &u_hat);
             let (p, stats) = match pressures {
                 Pressures::Replay(replay) => replay.next(sys.pressure.len(), self.step + 1)?,
                 _ => {
-                    let b = sys.rhs(&u_hat, &vel);
+                    let b = sys.rhs(&u_hat, &vel_e);
                     // Warm start: the last solve's pressure (this step's previous contact
                     // iteration, or the last step's).
                     let guess = match last_p.take() {
@@ -567,17 +573,23 @@ impl Simulation {
                     tolerance: how.tolerance,
                 });
             }
-            let forces: Vec<[f64; 6]> = sys.couplings().iter().map(|c| c.force(&p)).collect();
+            let mut forces: Vec<[f64; 6]> = sys.couplings().iter().map(|c| c.force(&p)).collect();
             let after: Vec<[f64; 6]> = sys
                 .couplings()
                 .iter()
-                .zip(&vel)
+                .zip(&vel_e)
                 .zip(&forces)
                 .map(|((c, v), f)| {
                     let dv = c.dt_minv_times(f);
                     std::array::from_fn(|d| v[d] + dv[d])
                 })
                 .collect();
+            // A body carrying liquid feels M·(V' − V̂)/Δt of it: J·p less the weight and the
+            // momentum of the liquid it carries.
+            for (k, ent) in sys.entrained.iter().enumerate().filter(|(_, e)| !e.is_empty()) {
+                let dv: [f64; 6] = std::array::from_fn(|d| (after[k][d] - vel[k][d]) / dt);
+                forces[k] = std::array::from_fn(|r| (0..6).map(|c| ent.mass[r][c] * dv[c]).sum());
+            }
             last_p = Some(p.clone());
             let proj = Projection {
                 p,
