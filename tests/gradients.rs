@@ -155,7 +155,11 @@ fn check_with(name: &str, scene: &Scene, rtol: f64) -> diffluid::gradients::Grad
         );
     }
     eprintln!("{name}: worst relative error {:.2e}", report.worst_rel_error());
-    assert!(report.params.len() == 12, "{name}: {} parameters", report.params.len());
+    assert!(
+        report.params.len() == 13,
+        "{name}: {} parameters (v, ω, x, q, mass)",
+        report.params.len()
+    );
     for r in &report.params {
         assert!(r.pass, "{name} {}: adjoint {:e}, fd {:e}", r.name, r.adjoint, r.fd);
     }
