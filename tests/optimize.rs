@@ -1,4 +1,5 @@
-//! Optimisation: recovering a known initial velocity, and resuming an interrupted run.
+//! Optimisation: recovering a known initial velocity, resuming an interrupted run, and a run
+//! its caller interrupts.
 //!
 //! Recovery: the target is the final state of a forward run from v*; gradient descent from
 //! rest on the exact gradient (surface held fixed) must find v* again, within 1%, and so must
@@ -318,4 +319,34 @@ fn adam_at_a_working_rate_recovers_the_initial_velocity() {
         out.history.iter().find(|r| relative_error(&r.params, vstar) < 0.01).map(|r| r.evaluations);
     eprintln!("Adam 0.2: within 1% of v* after {first:?} evaluations");
     assert!(first.is_some_and(|n| n <= 90), "Adam 0.2 not within 1% in 90 evaluations");
+}
+
+/// A run its caller interrupts after an epoch (Ctrl-C seen from Python) stops there with
+/// every record so far, the same records as the run not interrupted, and that epoch's
+/// parameters and loss as its result; for gradient descent and L-BFGS.
+#[test]
+fn an_interrupted_run_keeps_its_history() {
+    for optimizer in ["{ kind = \"gd\", learning_rate = 5.0 }", "{ kind = \"lbfgs\" }"] {
+        let mut scene = Scene::from_toml(&recover_box_with(optimizer), "<interrupt>").unwrap();
+        scene.time.steps = 6;
+        scene.optimize.as_mut().unwrap().epochs = 5;
+        let problem = Optimization::new(scene).unwrap();
+        let whole = problem.run(None, None, |_| {}).unwrap();
+        let mut seen = 0;
+        let cut = problem
+            .run_while(None, None, |_| {
+                seen += 1;
+                if seen == 3 {
+                    std::ops::ControlFlow::Break(())
+                } else {
+                    std::ops::ControlFlow::Continue(())
+                }
+            })
+            .unwrap();
+        assert_eq!(cut.history[..], whole.history[..3], "{optimizer}");
+        let stopped = cut.stopped.as_deref().unwrap_or_default();
+        assert!(stopped.contains("epoch 2: interrupted"), "{stopped}");
+        assert_eq!(cut.params, cut.history[2].params);
+        assert_eq!(cut.final_loss, cut.history[2].loss);
+    }
 }

@@ -108,15 +108,24 @@ class BodyStateDict(TypedDict):
 @final
 class Simulation:
     """A running simulation. Arrays are float64 read-only copies; quaternions [w, x, y, z];
-    grid fields indexed [i, j, k]. step/run/advance release the GIL."""
+    grid fields indexed [i, j, k]. step/run/advance release the GIL; a call from another
+    thread meanwhile raises RuntimeError ("in use by another thread")."""
 
     def __new__(cls, scene: Scene) -> Simulation: ...
-    def step(self) -> StepReport: ...
-    def run(self, steps: Optional[int] = None) -> StepReport: ...
-    def advance(self, frame_dt: float) -> list[StepReport]: ...
+    def step(self) -> StepReport:
+        """A step that fails (SimulationError, SolverError) is rolled back."""
+    def run(self, steps: Optional[int] = None) -> StepReport:
+        """Ctrl-C between steps raises KeyboardInterrupt, the steps taken kept."""
+    def advance(self, frame_dt: float) -> list[StepReport]:
+        """Ctrl-C between steps raises KeyboardInterrupt, the steps taken kept."""
     def copy(self) -> Simulation: ...
     def __copy__(self) -> Simulation: ...
     def __deepcopy__(self, memo: Any) -> Simulation: ...
+    @property
+    def rollback(self) -> bool:
+        """Whether a step that fails is rolled back (True by default)."""
+    @rollback.setter
+    def rollback(self, on: bool) -> None: ...
     @property
     def time(self) -> float: ...
     @property
@@ -147,6 +156,11 @@ class Simulation:
     @property
     def angular_velocities(self) -> F64:
         """(bodies, 3)"""
+    @property
+    def masses(self) -> F64:
+        """(bodies,), kg"""
+    def set_mass(self, body: Body, kg: float) -> None:
+        """The body's mass (finite, > 0), its inertia scaling with it."""
     def fluid_forces(self) -> Tuple[F64, F64]:
         """(forces (bodies, 3), torques (bodies, 3)) of the last step's solve."""
     def body_state(self, body: Body) -> BodyStateDict: ...
@@ -214,7 +228,8 @@ class Rollout:
     def final_simulation(self) -> Simulation: ...
     def backward(
         self, gv: F64, gw: F64, gx: F64, gq: F64, *, fluid: bool = False
-    ) -> Tuple[F64, F64, F64, F64, Optional[F64]]: ...
+    ) -> Tuple[F64, F64, F64, F64, Optional[F64], F64]:
+        """(gv0, gw0, gx0, gq0, gu0 or None, gm0 (bodies,): ∂L/∂masses)."""
 
 def value_and_grad(
     scene: Union[Scene, Simulation],
@@ -229,10 +244,11 @@ def value_and_grad(
     checkpoint_every: Optional[int] = None,
     through_contact: bool = False,
 ) -> Tuple[float, dict[str, Any]]:
-    """(loss, {param: gradient}): v, w, x, q (tangent) as (3,) arrays; u as a tuple of
-    three face arrays."""
+    """(loss, {param: gradient}): v, w, x, q (tangent) as (3,) arrays; mass as a float; u
+    as a tuple of three face arrays."""
 
-def optimize(scene: Scene, *, epochs: Optional[int] = None) -> dict[str, Any]: ...
+def optimize(scene: Scene, *, epochs: Optional[int] = None) -> dict[str, Any]:
+    """Ctrl-C after an epoch raises KeyboardInterrupt with the result so far as .result."""
 def rollout(
     sim: Simulation,
     v: F64,
@@ -246,6 +262,7 @@ def rollout(
     mode: str = "full",
     through_contact: bool = False,
     checkpoint_every: Optional[int] = None,
+    masses: Optional[F64] = None,
 ) -> Rollout: ...
 @final
 class ControlledRun:
@@ -263,8 +280,9 @@ class ControlledRun:
     def step_states(self) -> F64:
         """(T·steps_per_action + 1, bodies, 13): after every step."""
     def final_simulation(self) -> Simulation: ...
-    def backward(self, grad: F64) -> Tuple[F64, F64]:
-        """grad (T + 1, bodies, 13) -> (∂L/∂actions (T, bodies, 6), ∂L/∂state0 (bodies, 13))."""
+    def backward(self, grad: F64) -> Tuple[F64, F64, F64]:
+        """grad (T + 1, bodies, 13) -> (∂L/∂actions (T, bodies, 6), ∂L/∂state0 (bodies, 13),
+        ∂L/∂masses (bodies,))."""
 
 def controlled_run(
     sim: Simulation,
@@ -277,6 +295,7 @@ def controlled_run(
     through_contact: bool = False,
     checkpoint_every: Optional[int] = None,
     bodies: Optional[Sequence[Body]] = None,
+    masses: Optional[F64] = None,
 ) -> ControlledRun:
     """actions (T, bodies, 6): [force, torque] of a dynamic body, [v, ω] of a kinematic one
     (other rows ignored); state0 (bodies, 13)."""
@@ -295,15 +314,26 @@ class Stepper:
         mode: str = "full",
         through_contact: bool = False,
         bodies: Optional[Sequence[Body]] = None,
+        masses: Optional[F64] = None,
     ) -> Stepper: ...
     def step(self, action: F64, state: Optional[F64] = None) -> Tuple[int, F64]:
         """action (bodies, 6), state (bodies, 13) -> (k, states after (bodies, 13))."""
-    def backward(self, k: int, grad: F64) -> Tuple[F64, F64]:
-        """∂L/∂(states after action k) -> (∂L/∂action k (bodies, 6), ∂L/∂(states before))."""
+    def backward(self, k: int, grad: F64) -> Tuple[F64, F64, F64]:
+        """∂L/∂(states after action k) -> (∂L/∂action k (bodies, 6), ∂L/∂(states before),
+        what action k adds to ∂L/∂masses (bodies,))."""
+    def mass_gradient(self) -> F64:
+        """∂L/∂masses (bodies,) over the actions taken back so far."""
+    def reset(self, masses: Optional[F64] = None) -> None:
+        """A new run from where this one started, optionally with new masses."""
+    @property
+    def masses(self) -> F64: ...
     def states(self) -> F64: ...
     def simulation(self) -> Simulation: ...
     @property
     def steps_taken(self) -> int: ...
+    @property
+    def actions_pending(self) -> int:
+        """Actions taken and not yet taken back."""
     @property
     def steps_per_action(self) -> int: ...
     @property

@@ -18,6 +18,12 @@ every action and the initial state, in one backward sweep; :class:`Stepper` take
 at a time, for a closed-loop policy trained through the simulator. A body state is one row
 of 13 numbers: x (3), q ``[w, x, y, z]`` (4), v (3), ω (3) (the slices :data:`X`, :data:`Q`,
 :data:`V`, :data:`W`).
+
+Physical parameters: :func:`rollout`, :func:`trajectory` and :class:`Stepper` take the
+bodies' masses as an optional float64 tensor ``masses`` (bodies,), each body's inertia
+scaling with its mass (its density changes, not its shape); its gradient comes from the same
+backward sweep. Only dynamic bodies' masses act: the entries of kinematic, fixed and
+external bodies are checked (finite, > 0) but ignored, and their gradient is zero.
 """
 
 from __future__ import annotations
@@ -72,11 +78,26 @@ def _check(name: str, t: object) -> torch.Tensor:
     return t
 
 
+def _masses(sim: Simulation, masses: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+    """`masses` checked as a float64 tensor of one mass per body of `sim` ((bodies,), or ()
+    with one body); its values are checked (finite, > 0) where they are used."""
+    return None if masses is None else _masses_for(sim.num_bodies, masses)
+
+
+def _masses_for(bodies: int, masses: torch.Tensor) -> torch.Tensor:
+    _check("masses", masses)
+    if masses.dim() == 0 and bodies == 1:
+        return masses.reshape(1)
+    if tuple(masses.shape) != (bodies,):
+        raise ValueError(f"masses: expected shape ({bodies},), got {list(masses.shape)}")
+    return masses
+
+
 class _RolloutFunction(torch.autograd.Function):
     """forward: a taped diffluid run; backward: diffluid's adjoint over that tape."""
 
     @staticmethod
-    def forward(ctx, sim, options, v, w, x, q, u):  # type: ignore[override]
+    def forward(ctx, sim, options, v, w, x, q, u, masses):  # type: ignore[override]
         r = _diffluid.rollout(
             sim,
             _numpy(v),
@@ -84,6 +105,7 @@ class _RolloutFunction(torch.autograd.Function):
             _numpy(x),
             _numpy(q),
             None if u is None else _numpy(u),
+            masses=None if masses is None else _numpy(masses),
             **options,
         )
         ctx.rollout = r
@@ -100,7 +122,8 @@ class _RolloutFunction(torch.autograd.Function):
         )
         out = [torch.from_numpy(np.array(a)).to(ctx.device) for a in g[:4]]
         gu = None if g[4] is None else torch.from_numpy(np.array(g[4])).to(ctx.device)
-        return (None, None, *out, gu)
+        gm = _tensor(g[5], ctx.device) if ctx.needs_input_grad[7] else None
+        return (None, None, *out, gu, gm)
 
 
 def rollout(
@@ -116,6 +139,7 @@ def rollout(
     mode: str = "full",
     through_contact: bool = False,
     checkpoint_every: Optional[int] = None,
+    masses: Optional[torch.Tensor] = None,
 ) -> BodyState:
     """Runs `steps` steps (default: the scene's ``time.steps``) of `sim` from the initial
     body state (v, w, x, q) and returns the final body state, differentiably.
@@ -123,9 +147,12 @@ def rollout(
     `v`, `w`, `x` are (bodies, 3) and `q` is (bodies, 4) ``[w, x, y, z]``; for a simulation
     with one body they may be (3,) and (4,), and the result then has the same shapes.
     `fluid_velocity` optionally sets the initial fluid velocity, flat in
-    :meth:`Simulation.velocity_flat`'s order, and receives a gradient too. Every tensor must
-    be float64 (TypeError otherwise); shapes and NaNs are checked (ValueError). `sim` itself
-    is not changed: the run starts from a copy of it with this state.
+    :meth:`Simulation.velocity_flat`'s order, and receives a gradient too; so does `masses`
+    (bodies,), or () for a simulation with one body: the bodies' masses for the run (each
+    finite and > 0; the entries of bodies that are not dynamic are ignored and get a zero
+    gradient). Every tensor must be float64 (TypeError otherwise); shapes, NaNs and
+    masses are checked (ValueError). `sim` itself is not changed: the run starts from a copy
+    of it with this state.
 
     `surface`, `mode` and `through_contact` are the backward pass's options, as in
     :func:`diffluid.value_and_grad`. With `checkpoint_every` = k the forward pass keeps the
@@ -137,6 +164,7 @@ def rollout(
     v, w, x, q = (_check(n, t) for n, t in (("v", v), ("w", w), ("x", x), ("q", q)))
     if fluid_velocity is not None:
         _check("fluid_velocity", fluid_velocity)
+    masses = _masses(sim, masses)
     single = v.dim() == 1
     if single:
         if sim.num_bodies != 1:
@@ -152,7 +180,7 @@ def rollout(
         through_contact=through_contact,
         checkpoint_every=checkpoint_every,
     )
-    out = _RolloutFunction.apply(sim, options, v, w, x, q, fluid_velocity)
+    out = _RolloutFunction.apply(sim, options, v, w, x, q, fluid_velocity, masses)
     if single:
         out = tuple(t.squeeze(0) for t in out)
     return BodyState(*out)
@@ -224,9 +252,13 @@ class _TrajectoryFunction(torch.autograd.Function):
     """forward: a run under a schedule of actions, kept; backward: one adjoint sweep over it."""
 
     @staticmethod
-    def forward(ctx, sim, options, actions, state0):  # type: ignore[override]
+    def forward(ctx, sim, options, actions, state0, masses):  # type: ignore[override]
         r = _diffluid.controlled_run(
-            sim, _numpy(actions), None if state0 is None else _numpy(state0), **options
+            sim,
+            _numpy(actions),
+            None if state0 is None else _numpy(state0),
+            masses=None if masses is None else _numpy(masses),
+            **options,
         )
         ctx.run = r
         ctx.device = actions.device
@@ -234,9 +266,10 @@ class _TrajectoryFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):  # type: ignore[override]
-        ga, g0 = ctx.run.backward(_numpy(grad))
+        ga, g0, gm = ctx.run.backward(_numpy(grad))
         g0 = _tensor(g0, ctx.device) if ctx.needs_input_grad[3] else None
-        return None, None, _tensor(ga, ctx.device), g0
+        gm = _tensor(gm, ctx.device) if ctx.needs_input_grad[4] else None
+        return None, None, _tensor(ga, ctx.device), g0, gm
 
 
 def trajectory(
@@ -250,9 +283,10 @@ def trajectory(
     through_contact: bool = False,
     checkpoint_every: Optional[int] = None,
     bodies: Optional[Sequence[Union[int, str]]] = None,
+    masses: Optional[torch.Tensor] = None,
 ) -> torch.Tensor:
     """Runs `sim` under `actions` and returns the body states at every action boundary,
-    differentiably with respect to `actions` and `state0`.
+    differentiably with respect to `actions`, `state0` and `masses`.
 
     `actions` is a float64 tensor (T, bodies, 6): action k on body i, held for
     `steps_per_action` steps (T·steps_per_action steps in all). A dynamic body's row is an
@@ -263,14 +297,16 @@ def trajectory(
     (indices or names, each dynamic or kinematic); by default every dynamic and kinematic
     body is. `state0` (bodies, 13), optional, sets the initial body states (x, q
     ``[w, x, y, z]``, v, ω; q is normalised and its gradient goes through the
-    normalisation); by default the run starts from `sim`'s current state. `sim` itself is
-    not changed.
+    normalisation); by default the run starts from `sim`'s current state. `masses`
+    (bodies,), optional, sets the bodies' masses for the run (each finite and > 0; the
+    entries of bodies that are not dynamic are ignored and get a zero gradient). `sim`
+    itself is not changed.
 
     Returns ``states`` (T + 1, bodies, 13): ``states[k]`` the bodies after
     k·steps_per_action steps, before action k (``states[0]`` the initial state; a kinematic
     body's velocity there is the one the action before set). Any torch loss on them works:
     ``loss.backward()`` runs diffluid's adjoint once over the kept run (one sweep, whatever
-    T) and gives ∂L/∂actions and ∂L/∂state0.
+    T) and gives ∂L/∂actions, ∂L/∂state0 and ∂L/∂masses.
 
     Checked before anything runs: float64 tensors (TypeError), shapes, NaNs and infinities,
     ``steps_per_action`` ≥ 1, the steered bodies (ValueError with the message). `surface`,
@@ -280,6 +316,7 @@ def trajectory(
     _check("actions", actions)
     if state0 is not None:
         _check("state0", state0)
+    masses = _masses(sim, masses)
     options = dict(
         steps_per_action=steps_per_action,
         surface=surface,
@@ -288,23 +325,24 @@ def trajectory(
         checkpoint_every=checkpoint_every,
         bodies=_bodies(bodies),
     )
-    return _TrajectoryFunction.apply(sim, options, actions, state0)
+    return _TrajectoryFunction.apply(sim, options, actions, state0, masses)
 
 
 class _StepFunction(torch.autograd.Function):
     """forward: one action's taped steps; backward: that action taken back, the liquid's
-    adjoint carried inside the native stepper."""
+    adjoint carried inside the native stepper (and what its steps add to ∂L/∂masses)."""
 
     @staticmethod
-    def forward(ctx, native, action, state):  # type: ignore[override]
+    def forward(ctx, native, action, state, masses):  # type: ignore[override]
         k, after = native.step(_numpy(action), _numpy(state))
         ctx.native, ctx.k, ctx.device = native, k, action.device
         return _tensor(after, action.device)
 
     @staticmethod
     def backward(ctx, grad):  # type: ignore[override]
-        ga, gs = ctx.native.backward(ctx.k, _numpy(grad))
-        return None, _tensor(ga, ctx.device), _tensor(gs, ctx.device)
+        ga, gs, gm = ctx.native.backward(ctx.k, _numpy(grad))
+        gm = _tensor(gm, ctx.device) if ctx.needs_input_grad[3] else None
+        return None, _tensor(ga, ctx.device), _tensor(gs, ctx.device), gm
 
 
 class Stepper:
@@ -329,9 +367,17 @@ class Stepper:
     The backward steps must run once each, the last action first: what autograd does for
     one ``loss.backward()``. A second backward pass through the same steps (after
     ``retain_graph=True``) raises ValueError; sum the losses and call backward once. Once a
-    backward pass has run, the stepper takes no more actions: go on with a new one,
+    backward pass has run, the stepper takes no more actions: :meth:`reset` starts the next
+    episode from the same start, or go on from where it is with a new one,
     ``Stepper(stepper.simulation(), ...)`` (truncated backpropagation through time). Steps
     after the last one the loss reads are dropped at the cost of a backward step each.
+
+    `masses` (bodies,), optional, a float64 tensor, sets the bodies' masses for the run
+    (each finite and > 0; entries of bodies that are not dynamic are ignored): every step
+    takes it as an input, so ``loss.backward()`` also gives ``masses.grad`` (what each
+    action's steps add, summed by autograd). Without it, :meth:`mass_gradient` gives
+    ∂L/∂m at the simulation's masses after the backward pass. To train masses over
+    episodes, hand the updated tensor to ``reset(masses)``.
 
     The first step may start from any `state` (bodies, 13), and its gradient then goes
     through q's normalisation; each later `state` must be the states the step before
@@ -348,7 +394,9 @@ class Stepper:
         mode: str = "full",
         through_contact: bool = False,
         bodies: Optional[Sequence[Union[int, str]]] = None,
+        masses: Optional[torch.Tensor] = None,
     ) -> None:
+        masses = _masses(sim, masses)
         self._native = _diffluid.Stepper(
             sim,
             steps_per_action=steps_per_action,
@@ -356,7 +404,11 @@ class Stepper:
             mode=mode,
             through_contact=through_contact,
             bodies=_bodies(bodies),
+            masses=None if masses is None else _numpy(masses),
         )
+        self._masses = masses
+        self._masses_used = None if masses is None else masses.detach().clone()
+        self._num_bodies = sim.num_bodies
         self._initial = body_states(sim)
 
     def initial_state(self, requires_grad: bool = False) -> torch.Tensor:
@@ -368,7 +420,36 @@ class Stepper:
         and returns the body states after them (bodies, 13), differentiably."""
         _check("action", action)
         _check("state", state)
-        return _StepFunction.apply(self._native, action, state)
+        if self._masses is not None and not torch.equal(
+            self._masses.detach().reshape(-1), self._masses_used
+        ):
+            raise ValueError(
+                "masses: changed since the run started (an optimiser step?); reset(masses) "
+                "starts a run with the new values"
+            )
+        return _StepFunction.apply(self._native, action, state, self._masses)
+
+    def reset(self, masses: Optional[torch.Tensor] = None) -> None:
+        """Starts the next run from where this one started, every action and adjoint of
+        this one dropped (its graph can no longer go backward); with `masses`, a float64
+        tensor (bodies,), the new run's masses (and the tensor its steps take as input)."""
+        if masses is not None:
+            masses = _masses_for(self._num_bodies, masses)
+        self._native.reset(masses=None if masses is None else _numpy(masses))
+        if masses is not None:
+            self._masses = masses
+            self._masses_used = masses.detach().clone()
+
+    def mass_gradient(self) -> torch.Tensor:
+        """∂L/∂(each body's mass) (bodies,) over the actions taken back so far: the run's
+        once the backward pass has reached its first action (zero for bodies that are not
+        dynamic), a tensor outside the graph."""
+        return _tensor(self._native.mass_gradient(), self._initial.device)
+
+    @property
+    def masses(self) -> torch.Tensor:
+        """The bodies' masses in the run (bodies,), kg, a copy outside the graph."""
+        return _tensor(self._native.masses, self._initial.device)
 
     def states(self) -> torch.Tensor:
         """The body states now (bodies, 13), a copy outside the graph."""
@@ -380,7 +461,7 @@ class Stepper:
 
     @property
     def steps_taken(self) -> int:
-        """Actions taken."""
+        """Actions taken in this run (since the last :meth:`reset`)."""
         return self._native.steps_taken
 
     @property

@@ -10,8 +10,8 @@
 //! bodies that are not steered being ignored.
 
 use crate::gradients::options;
-use crate::simulation::{quat_norm, state_from, wxyz, Simulation};
-use crate::{read_only, read_rows, run, to_py, value_error};
+use crate::simulation::{mass_gradient, quat_norm, set_masses, state_from, wxyz, Simulation};
+use crate::{borrow_mut, read_only, read_rows, run, to_py, value_error};
 use diffluid::geometry::body::{BodyState, Motion};
 use diffluid::gradients::backward::check_settings;
 use diffluid::gradients::{
@@ -22,7 +22,7 @@ use diffluid::math::{so3, Rotation, Vec3};
 use diffluid::world::BodyHandle;
 use diffluid::Simulation as RSim;
 use numpy::ndarray::{Array2, Array3};
-use numpy::{IntoPyArray, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray1, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
@@ -207,17 +207,19 @@ pub struct ControlledRun {
 /// still be finite). `bodies` names the steered bodies (indices or names, each dynamic or
 /// kinematic); by default every dynamic and kinematic body. `state0` (bodies, 13: x, q
 /// ``[w, x, y, z]``, v, ω) optionally sets the initial state (q normalised; the gradient
-/// goes through the normalisation). `sim` itself is not changed. Everything is checked
-/// before a step is run (ValueError naming the argument). The GIL is released.
+/// goes through the normalisation). `masses` (bodies,) optionally sets the bodies' masses
+/// (as :meth:`Simulation.set_mass`: each finite and > 0; the entries of bodies that are not
+/// dynamic are ignored). `sim` itself is not changed. Everything is checked before a step
+/// is run (ValueError naming the argument). The GIL is released.
 #[pyfunction]
 #[pyo3(signature = (
     sim, actions, state0 = None, *, steps_per_action = 1, surface = "live", mode = "full",
-    through_contact = false, checkpoint_every = None, bodies = None
+    through_contact = false, checkpoint_every = None, bodies = None, masses = None
 ))]
 #[allow(clippy::too_many_arguments)]
 pub fn controlled_run(
     py: Python<'_>,
-    sim: PyRef<'_, Simulation>,
+    sim: &Bound<'_, Simulation>,
     actions: PyReadonlyArrayDyn<'_, f64>,
     state0: Option<PyReadonlyArrayDyn<'_, f64>>,
     steps_per_action: i64,
@@ -226,7 +228,10 @@ pub fn controlled_run(
     through_contact: bool,
     checkpoint_every: Option<i64>,
     bodies: Option<Vec<Bound<'_, PyAny>>>,
+    masses: Option<PyReadonlyArrayDyn<'_, f64>>,
 ) -> PyResult<ControlledRun> {
+    // A copy: no borrow of `sim` is held while the run releases the GIL.
+    let sim = crate::simulation::sim(sim)?.clone();
     let options = options(surface, mode, through_contact)?;
     let spa = at_least_one("steps_per_action", steps_per_action)?;
     let checkpoint_every =
@@ -235,10 +240,13 @@ pub fn controlled_run(
     let controlled = controlled(&sim, bodies)?;
     let rows = read_blocks("actions", &actions, None, n, ACTION)?;
     let state = state0.map(|s| read_rows("state0", &s, n, STATE)).transpose()?;
-    let initial = match &state {
+    let mut initial = match &state {
         Some(s) => with_state(&sim.inner, s)?,
         None => sim.inner.clone(),
     };
+    if let Some(m) = masses {
+        set_masses(&mut initial, &m)?;
+    }
     let handles: Vec<BodyHandle> = controlled.iter().map(|&i| initial.handles()[i]).collect();
     let schedule =
         Schedule::new(&initial, &handles, spa, rows.iter().map(|r| pick(r, &controlled)).collect())
@@ -306,9 +314,10 @@ impl ControlledRun {
 
     /// The vector–Jacobian product: from `grad` (T + 1, bodies, 13), the gradient of a loss
     /// on :meth:`states` (∂L/∂q in ``[w, x, y, z]``), the gradient on the actions
-    /// (T, bodies, 6; zero rows for the bodies not steered) and on the initial state
-    /// (bodies, 13; through q's normalisation). One backward sweep; the run is kept, so it
-    /// can go backward again.
+    /// (T, bodies, 6; zero rows for the bodies not steered), on the initial state
+    /// (bodies, 13; through q's normalisation) and on the bodies' masses (bodies,; zero for
+    /// the bodies that are not dynamic). One backward sweep; the run is kept, so it can go
+    /// backward again.
     fn backward<'py>(
         &self,
         py: Python<'py>,
@@ -338,7 +347,16 @@ impl ControlledRun {
             let (x, v, w) = (g.x.to_array(), g.v.to_array(), g.w.to_array());
             [x[0], x[1], x[2], q[0], q[1], q[2], q[3], v[0], v[1], v[2], w[0], w[1], w[2]]
         });
-        PyTuple::new(py, [rows3(py, (t, n), actions.into_iter())?, rows2(py, initial)?])
+        let masses: Vec<f64> = g0.bodies.iter().map(|b| b.mass).collect();
+        let masses = mass_gradient(self.inner.trajectory().final_state, &masses);
+        PyTuple::new(
+            py,
+            [
+                rows3(py, (t, n), actions.into_iter())?,
+                rows2(py, initial)?,
+                read_only(PyArray1::from_vec(py, masses))?,
+            ],
+        )
     }
 
     fn __repr__(&self) -> String {
@@ -357,11 +375,11 @@ impl ControlledRun {
 /// :meth:`step` takes an action (bodies, 6) for `steps_per_action` taped steps and returns
 /// the states after them (bodies, 13). :meth:`backward` takes action k back: it must be
 /// called for the actions in reverse order (what an autograd engine does), each once. Once
-/// a backward step has run, the stepper takes no more actions.
+/// a backward step has run, the stepper takes no more actions until :meth:`reset`.
 #[pyclass(module = "diffluid._diffluid", name = "Stepper")]
 pub struct Stepper {
-    /// The simulation given (its liquid and bodies are where the run starts, unless the
-    /// first step is handed another body state).
+    /// The simulation given, with the masses asked for (its liquid and bodies are where the
+    /// run starts, unless the first step is handed another body state).
     base: RSim,
     inner: RStepper,
     controlled: Vec<usize>,
@@ -370,6 +388,9 @@ pub struct Stepper {
     /// |q| of each body's initial quaternion as given, and the unit quaternion used.
     q_norms: Vec<f64>,
     q_start: Vec<Rotation>,
+    /// Actions taken in the runs before the last reset: this run's action k is numbered
+    /// `offset + k`, so that an autograd graph of an earlier run cannot take back this one's.
+    offset: usize,
     /// Actions taken.
     taken: usize,
     /// Actions taken and not yet taken back.
@@ -394,7 +415,7 @@ impl Stepper {
     fn usable(&self) -> PyResult<()> {
         match &self.broken {
             Some(why) => Err(value_error(format!(
-                "this Stepper cannot be used any more ({why}); make a new one"
+                "this Stepper cannot be used any more ({why}); reset() it or make a new one"
             ))),
             None => Ok(()),
         }
@@ -403,6 +424,16 @@ impl Stepper {
     fn current(&self) -> Vec<[f64; STATE]> {
         self.inner.states().iter().map(state_row).collect()
     }
+
+    /// ∂L/∂m of every body over the actions taken back so far (zero for bodies not dynamic).
+    fn masses_bar(&self) -> Vec<f64> {
+        mass_gradient(&self.base, &self.inner.mass_gradient())
+    }
+}
+
+/// Stepper `slf` to use (a clear error when another thread is using it).
+fn stepper<'py>(slf: &Bound<'py, Stepper>) -> PyResult<PyRefMut<'py, Stepper>> {
+    borrow_mut(slf, "Stepper")
 }
 
 #[pymethods]
@@ -410,24 +441,32 @@ impl Stepper {
     /// A run from `sim`'s current state (`sim` itself is not changed), steering `bodies`
     /// (indices or names, each dynamic or kinematic; default: every dynamic and kinematic
     /// body), each action held `steps_per_action` steps; `surface`, `mode` and
-    /// `through_contact` are the backward pass's options.
+    /// `through_contact` are the backward pass's options. `masses` (bodies,) optionally sets
+    /// the bodies' masses for the run (each finite and > 0; the entries of bodies that are
+    /// not dynamic are ignored); :meth:`mass_gradient` gives ∂L/∂m.
     #[new]
     #[pyo3(signature = (
         sim, *, steps_per_action = 1, surface = "live", mode = "full", through_contact = false,
-        bodies = None
+        bodies = None, masses = None
     ))]
+    #[allow(clippy::too_many_arguments)]
     fn new(
-        sim: PyRef<'_, Simulation>,
+        sim: &Bound<'_, Simulation>,
         steps_per_action: i64,
         surface: &str,
         mode: &str,
         through_contact: bool,
         bodies: Option<Vec<Bound<'_, PyAny>>>,
+        masses: Option<PyReadonlyArrayDyn<'_, f64>>,
     ) -> PyResult<Stepper> {
+        let sim = crate::simulation::sim(sim)?;
         let options = options(surface, mode, through_contact)?;
         let spa = at_least_one("steps_per_action", steps_per_action)?;
         let controlled = controlled(&sim, bodies)?;
-        let base = sim.inner.clone();
+        let mut base = sim.inner.clone();
+        if let Some(m) = masses {
+            set_masses(&mut base, &m)?;
+        }
         check_settings(&base, false, &options).map_err(to_py)?;
         let inner = Stepper::start(&base, &controlled, spa, options)?;
         let n = base.bodies().len();
@@ -440,6 +479,7 @@ impl Stepper {
             options,
             q_norms: vec![1.0; n],
             q_start,
+            offset: 0,
             taken: 0,
             remaining: 0,
             backward_started: false,
@@ -449,95 +489,109 @@ impl Stepper {
 
     /// Takes `action` (bodies, 6; the rows of the bodies not steered ignored) for
     /// `steps_per_action` taped steps from `state` (bodies, 13), and returns ``(k, states)``:
-    /// the action's index and the body states after it (bodies, 13). `state` must be the
+    /// the action's number and the body states after it (bodies, 13). `state` must be the
     /// states the last step returned (ValueError otherwise: a stepper goes on from where it
     /// is); before the first step it may be any state, which the run then starts from (q
     /// normalised). None: go on from where the run is. The GIL is released.
     #[pyo3(signature = (action, state = None))]
     fn step<'py>(
-        &mut self,
+        slf: &Bound<'py, Self>,
         py: Python<'py>,
         action: PyReadonlyArrayDyn<'py, f64>,
         state: Option<PyReadonlyArrayDyn<'py, f64>>,
     ) -> PyResult<(usize, Bound<'py, PyAny>)> {
-        self.usable()?;
-        if self.backward_started {
+        let mut this = stepper(slf)?;
+        let this = &mut *this;
+        this.usable()?;
+        if this.backward_started {
             return Err(value_error(
                 "this Stepper's actions are being taken back (a backward pass ran): it takes no \
-                 more actions; go on with a new Stepper (Stepper(stepper.simulation(), ...))",
+                 more actions; reset() starts a new run from the same state, or go on from \
+                 where it is with a new Stepper (Stepper(stepper.simulation(), ...))",
             ));
         }
-        let n = self.base.bodies().len();
+        let n = this.base.bodies().len();
         let rows = read_rows("action", &action, n, ACTION)?;
-        let action = pick(&rows, &self.controlled);
+        let action = pick(&rows, &this.controlled);
         if let Some(s) = state {
             let s = read_rows("state", &s, n, STATE)?;
-            let same = s.iter().zip(self.current()).all(|(a, b)| a.as_slice() == b.as_slice());
+            let same = s.iter().zip(this.current()).all(|(a, b)| a.as_slice() == b.as_slice());
             if !same {
-                if self.taken > 0 {
+                if this.taken > 0 {
                     return Err(value_error(format!(
                         "state: not the states step {} returned; a Stepper goes on from where \
-                         it is (to start elsewhere, make a new one)",
-                        self.taken - 1
+                         it is (to start elsewhere, reset() it or make a new one)",
+                        this.offset + this.taken - 1
                     )));
                 }
-                let start = with_state(&self.base, &s)?;
-                self.inner =
-                    Stepper::start(&start, &self.controlled, self.steps_per_action, self.options)?;
-                self.q_norms = s.iter().map(|r| quat_norm(&r[3..7])).collect();
-                self.q_start = start.bodies().iter().map(|b| b.q).collect();
+                let start = with_state(&this.base, &s)?;
+                this.inner =
+                    Stepper::start(&start, &this.controlled, this.steps_per_action, this.options)?;
+                this.q_norms = s.iter().map(|r| quat_norm(&r[3..7])).collect();
+                this.q_start = start.bodies().iter().map(|b| b.q).collect();
             }
         }
-        let inner = &mut self.inner;
+        let inner = &mut this.inner;
         match run(py, || inner.step(&action)) {
             Ok(states) => {
-                let k = self.taken;
-                self.taken += 1;
-                self.remaining += 1;
+                let k = this.offset + this.taken;
+                this.taken += 1;
+                this.remaining += 1;
                 Ok((k, rows2(py, states.iter().map(state_row))?))
             }
             Err(e) => {
-                self.broken = Some(format!("step {} failed", self.taken));
+                this.broken = Some(format!("step {} failed", this.offset + this.taken));
                 Err(e)
             }
         }
     }
 
     /// Takes action `k` back: from `grad` (bodies, 13), ∂L/∂(the states after it), returns
-    /// ``(grad_action, grad_state)``: ∂L/∂(action k) (bodies, 6; zero rows for the bodies not
-    /// steered) and ∂L/∂(the states before it) (bodies, 13; for k = 0 through q's
-    /// normalisation). The liquid's adjoint is carried from action k + 1, taken back before.
-    /// Actions after k that were never taken back (the loss does not read them) are dropped
-    /// first, at the cost of a backward step each. Each action goes back once: asking for
-    /// one taken back already (a second backward pass through the same steps) is a
-    /// ValueError. The GIL is released.
+    /// ``(grad_action, grad_state, grad_masses)``: ∂L/∂(action k) (bodies, 6; zero rows for
+    /// the bodies not steered), ∂L/∂(the states before it) (bodies, 13; for the run's first
+    /// action through q's normalisation) and what action k's steps add to ∂L/∂(the masses)
+    /// (bodies,; zero for bodies that are not dynamic; summed over the actions, the run's
+    /// :meth:`mass_gradient`). The liquid's adjoint is carried from action k + 1, taken back
+    /// before. Actions after k that were never taken back (the loss does not read them) are
+    /// dropped first, at the cost of a backward step each. Each action goes back once: asking
+    /// for one taken back already (a second backward pass through the same steps), or for
+    /// one of a run before :meth:`reset`, is a ValueError. The GIL is released.
     fn backward<'py>(
-        &mut self,
+        slf: &Bound<'py, Self>,
         py: Python<'py>,
         k: usize,
         grad: PyReadonlyArrayDyn<'py, f64>,
     ) -> PyResult<Bound<'py, PyTuple>> {
-        self.usable()?;
-        if k >= self.taken {
+        let mut this = stepper(slf)?;
+        let this = &mut *this;
+        this.usable()?;
+        if k < this.offset {
             return Err(value_error(format!(
-                "action {k}: this Stepper took {} actions",
-                self.taken
+                "action {k} belongs to a run before reset(): its steps cannot be taken back"
             )));
         }
-        if k >= self.remaining {
+        let local = k - this.offset;
+        if local >= this.taken {
+            return Err(value_error(format!(
+                "action {k}: this Stepper took {} actions",
+                this.offset + this.taken
+            )));
+        }
+        if local >= this.remaining {
             return Err(value_error(format!(
                 "action {k} was already taken back: a Stepper's steps go backward once, last \
                  first (a second backward pass through the same steps, e.g. with \
                  retain_graph=True, is not supported; sum the losses and call backward once, \
-                 or run the steps again with a new Stepper)"
+                 or run the steps again after reset())"
             )));
         }
-        let n = self.base.bodies().len();
+        let n = this.base.bodies().len();
         let g = read_rows("grad", &grad, n, STATE)?;
         let after: Vec<BodyAdjoint> = g.iter().map(|r| adjoint_of_row(r)).collect();
-        self.backward_started = true;
-        let drop = self.remaining - (k + 1);
-        let inner = &mut self.inner;
+        this.backward_started = true;
+        let drop = this.remaining - (local + 1);
+        let masses_before = this.masses_bar();
+        let inner = &mut this.inner;
         let out = run(py, || {
             let zero = vec![BodyAdjoint::zero(); n];
             for _ in 0..drop {
@@ -548,63 +602,129 @@ impl Stepper {
         let (ga, before) = match out {
             Ok(o) => o,
             Err(e) => {
-                self.broken = Some(format!("taking action {k} back failed"));
+                this.broken = Some(format!("taking action {k} back failed"));
                 return Err(e);
             }
         };
-        self.remaining = k;
+        this.remaining = local;
+        let masses: Vec<f64> =
+            this.masses_bar().iter().zip(&masses_before).map(|(a, b)| a - b).collect();
         let mut actions = vec![[0.0; ACTION]; n];
-        for (&i, a) in self.controlled.iter().zip(&ga) {
+        for (&i, a) in this.controlled.iter().zip(&ga) {
             actions[i] = *a;
         }
         let before = before.iter().enumerate().map(|(i, a)| {
             let mut r = adjoint_row(a);
-            if k == 0 {
-                let q = through_normalisation(self.q_start[i], a.q, self.q_norms[i]);
+            if local == 0 {
+                let q = through_normalisation(this.q_start[i], a.q, this.q_norms[i]);
                 r[3..7].copy_from_slice(&q);
             }
             r
         });
         let before: Vec<[f64; STATE]> = before.collect();
-        PyTuple::new(py, [rows2(py, actions.into_iter())?, rows2(py, before.into_iter())?])
+        PyTuple::new(
+            py,
+            [
+                rows2(py, actions.into_iter())?,
+                rows2(py, before.into_iter())?,
+                read_only(PyArray1::from_vec(py, masses))?,
+            ],
+        )
+    }
+
+    /// ∂L/∂(each body's mass) (bodies,), summed over the actions taken back so far: the
+    /// run's once its backward pass has reached its first action (zero before; zero for the
+    /// bodies that are not dynamic). The masses are :attr:`masses`.
+    fn mass_gradient<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let m = stepper(slf)?.masses_bar();
+        read_only(PyArray1::from_vec(py, m))
+    }
+
+    /// The bodies' masses in the run (bodies,), kg.
+    #[getter]
+    fn masses<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let m: Vec<f64> = stepper(slf)?.base.bodies().iter().map(|b| b.mass).collect();
+        read_only(PyArray1::from_vec(py, m))
+    }
+
+    /// Starts a new run from where this one started (the state its first step was handed,
+    /// or the simulation's), every action and adjoint dropped, optionally with new `masses`
+    /// (bodies,; checked as in the constructor): the next episode of a policy's training.
+    /// Also makes a stepper whose step failed usable again. The actions of the runs before
+    /// cannot be taken back after it (their numbers go on from theirs).
+    #[pyo3(signature = (masses = None))]
+    fn reset(slf: &Bound<'_, Self>, masses: Option<PyReadonlyArrayDyn<'_, f64>>) -> PyResult<()> {
+        let mut this = stepper(slf)?;
+        let this = &mut *this;
+        let mut base = this.base.clone();
+        if let Some(m) = &masses {
+            set_masses(&mut base, m)?;
+        }
+        this.inner.reset();
+        if masses.is_some() {
+            let mut start = this.inner.simulation().clone();
+            for (b, m) in start.bodies_mut().iter_mut().zip(base.bodies()) {
+                b.set_mass(m.mass);
+            }
+            this.inner =
+                Stepper::start(&start, &this.controlled, this.steps_per_action, this.options)?;
+            this.base = base;
+        }
+        this.offset += this.taken;
+        this.taken = 0;
+        this.remaining = 0;
+        this.backward_started = false;
+        this.broken = None;
+        Ok(())
     }
 
     /// The body states now (bodies, 13).
-    fn states<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        rows2(py, self.current().into_iter())
+    fn states<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let rows = stepper(slf)?.current();
+        rows2(py, rows.into_iter())
     }
 
     /// The simulation now (a copy): to look at, or to go on from with a new Stepper.
-    fn simulation(&self) -> Simulation {
-        Simulation {
-            inner: self.inner.simulation().clone(),
-            scene_steps: self.steps_per_action,
+    fn simulation(slf: &Bound<'_, Self>) -> PyResult<Simulation> {
+        let this = stepper(slf)?;
+        Ok(Simulation {
+            inner: this.inner.simulation().clone(),
+            scene_steps: this.steps_per_action,
             loss: None,
-        }
+        })
     }
 
-    /// Actions taken.
+    /// Actions taken in this run (since the last :meth:`reset`).
     #[getter]
-    fn steps_taken(&self) -> usize {
-        self.taken
+    fn steps_taken(slf: &Bound<'_, Self>) -> PyResult<usize> {
+        Ok(stepper(slf)?.taken)
+    }
+
+    /// Actions taken and not yet taken back.
+    #[getter]
+    fn actions_pending(slf: &Bound<'_, Self>) -> PyResult<usize> {
+        Ok(stepper(slf)?.inner.actions_taken())
     }
 
     /// Steps each action is held.
     #[getter]
-    fn steps_per_action(&self) -> usize {
-        self.steps_per_action
+    fn steps_per_action(slf: &Bound<'_, Self>) -> PyResult<usize> {
+        Ok(stepper(slf)?.steps_per_action)
     }
 
     /// The steered bodies' indices.
     #[getter]
-    fn controlled(&self) -> Vec<usize> {
-        self.controlled.clone()
+    fn controlled(slf: &Bound<'_, Self>) -> PyResult<Vec<usize>> {
+        Ok(stepper(slf)?.controlled.clone())
     }
 
-    fn __repr__(&self) -> String {
+    fn __repr__(slf: &Bound<'_, Self>) -> String {
+        let Ok(this) = slf.try_borrow() else {
+            return "Stepper(<in use by another thread>)".into();
+        };
         format!(
             "Stepper(steps_per_action={}, controlled={:?}, actions taken={}, not taken back={})",
-            self.steps_per_action, self.controlled, self.taken, self.remaining
+            this.steps_per_action, this.controlled, this.taken, this.remaining
         )
     }
 }

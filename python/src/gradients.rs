@@ -3,10 +3,10 @@
 //! (`rollout` and `Rollout`, what `diffluid.torch` builds its `autograd.Function` on).
 
 use crate::scene::Scene;
-use crate::simulation::{state_from, wxyz, Simulation};
-use crate::{lattice, read_rows, row, rows, run, to_py_object, value_error};
-use diffluid::experiments::optimize::Optimization;
-use diffluid::geometry::body::BodyState;
+use crate::simulation::{mass_gradient, set_masses, sim, state_from, wxyz, Simulation};
+use crate::{lattice, read_only, read_rows, row, rows, run, to_py_object, value_error};
+use diffluid::experiments::optimize::{Optimization, Outcome};
+use diffluid::geometry::body::{BodyState, Motion};
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::backward::SurfaceGradient;
 use diffluid::gradients::{
@@ -15,10 +15,11 @@ use diffluid::gradients::{
 };
 use diffluid::math::{so3, Rotation, Vec3};
 use diffluid::Simulation as RSim;
-use numpy::PyReadonlyArrayDyn;
+use numpy::{PyArray1, PyReadonlyArrayDyn};
 use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
+use std::ops::ControlFlow;
 
 /// The backward pass's options from their Python names.
 pub(crate) fn options(
@@ -143,12 +144,17 @@ impl BodyTargetLoss {
         } else {
             return Err(PyTypeError::new_err("body: an index (≥ 0) or a name"));
         };
-        Ok(BodyTargetLoss {
+        let loss = BodyTargetLoss {
             body,
             position: target("position", position)?,
             orientation: target("orientation", orientation)?,
             velocity: target("velocity", velocity)?,
-        })
+        };
+        // As a scene's [loss] section: a loss with no term is a mistake, not a zero.
+        if loss.position.is_none() && loss.orientation.is_none() && loss.velocity.is_none() {
+            return Err(value_error("loss: give at least one of position, orientation, velocity"));
+        }
+        Ok(loss)
     }
 
     /// The body: an index or a name, as given.
@@ -161,8 +167,8 @@ impl BodyTargetLoss {
     }
 
     /// The body's index in `sim`.
-    fn body_index(&self, sim: PyRef<'_, Simulation>) -> PyResult<usize> {
-        Ok(self.resolve(&sim.inner)?.body)
+    fn body_index(&self, sim: &Bound<'_, Simulation>) -> PyResult<usize> {
+        Ok(self.resolve(&crate::simulation::sim(sim)?.inner)?.body)
     }
 
     /// ``(target, weight)`` of the position term, or None.
@@ -184,8 +190,9 @@ impl BodyTargetLoss {
     }
 
     /// The loss at `sim`'s current state.
-    fn value(&self, sim: PyRef<'_, Simulation>) -> PyResult<f64> {
-        Ok(self.resolve(&sim.inner)?.value(&sim.inner))
+    fn value(&self, sim: &Bound<'_, Simulation>) -> PyResult<f64> {
+        let s = crate::simulation::sim(sim)?;
+        Ok(self.resolve(&s.inner)?.value(&s.inner))
     }
 
     fn __reduce__<'py>(
@@ -223,9 +230,10 @@ fn start(
     steps: Option<usize>,
 ) -> PyResult<(RSim, RLoss, usize)> {
     let sim = if let Ok(s) = scene.cast::<Scene>() {
-        Simulation::from_scene(py, &s.borrow())?
+        let scene = s.borrow().inner.clone();
+        Simulation::from_scene(py, scene)?
     } else if let Ok(s) = scene.cast::<Simulation>() {
-        s.borrow().clone()
+        sim(s)?.clone()
     } else {
         return Err(PyTypeError::new_err("scene: a diffluid.Scene or a diffluid.Simulation"));
     };
@@ -276,12 +284,14 @@ fn apply_state(sim: &mut RSim, i: usize, state: &Bound<'_, PyDict>) -> PyResult<
 /// `scene` is a Scene (its initial state) or a Simulation (its current state). `loss` is a
 /// BodyTargetLoss, or None for the scene's `[loss]`. `params` names what to differentiate
 /// with respect to: any of "v", "w", "x", "q" (the loss body's, or `body`'s, initial linear
-/// and angular velocity, position and orientation) and "u" (the initial fluid velocity).
+/// and angular velocity, position and orientation), "mass" (that body's mass, its inertia
+/// scaling with it: :meth:`Simulation.set_mass`) and "u" (the initial fluid velocity).
 /// `state` optionally overrides the loss body's initial state (a dict of arrays v, w, x, q).
 ///
 /// Returns ``(loss, grads)``: grads maps each param to a float64 array: (3,) for v, w, x; for
-/// q the gradient in the world-frame tangent space q → exp(θ)·q, (3,); for u a tuple of the
-/// three face arrays. The GIL is released for the whole forward and backward pass.
+/// q the gradient in the world-frame tangent space q → exp(θ)·q, (3,); for mass a float,
+/// ∂L/∂m in 1/kg (0 for a body that is not dynamic); for u a tuple of the three face arrays.
+/// The GIL is released for the whole forward and backward pass.
 #[pyfunction]
 #[pyo3(signature = (
     scene, loss = None, params = None, *, steps = None, state = None, body = None,
@@ -305,8 +315,8 @@ pub fn value_and_grad<'py>(
     let (mut sim, loss, steps) = start(py, scene, loss, steps)?;
     let params = params.unwrap_or_else(|| ["v", "w", "x", "q"].map(String::from).to_vec());
     for p in &params {
-        if !["v", "w", "x", "q", "u"].contains(&p.as_str()) {
-            return Err(value_error(format!("params: unknown {p:?} (v, w, x, q, u)")));
+        if !["v", "w", "x", "q", "mass", "u"].contains(&p.as_str()) {
+            return Err(value_error(format!("params: unknown {p:?} (v, w, x, q, mass, u)")));
         }
     }
     let which = match body {
@@ -343,6 +353,10 @@ pub fn value_and_grad<'py>(
             "w" => grads.set_item("w", row(py, b.w.to_array())?)?,
             "x" => grads.set_item("x", row(py, b.x.to_array())?)?,
             "q" => grads.set_item("q", row(py, b.q.to_array())?)?,
+            "mass" => {
+                let dynamic = sim.bodies()[which].motion == Motion::Dynamic;
+                grads.set_item("mass", if dynamic { b.mass } else { 0.0 })?
+            }
             _ => {
                 let parts: Vec<Bound<'py, PyAny>> = (0..3)
                     .map(|a| lattice(py, sim.grid().faces(a).n, g.u.c[a].clone()))
@@ -358,25 +372,61 @@ pub fn value_and_grad<'py>(
 /// Adam or L-BFGS), exactly as ``diffluid optimize`` does (without its files), and returns a
 /// dict: history (a list of {epoch, loss, grad_norm, params, evaluations}), params (the
 /// final state {v, w, x, q}), final_loss, stopped, converged, evaluations. `epochs`
-/// overrides the scene's. The GIL is released throughout.
+/// overrides the scene's (at least 1, as ``--epochs``). The GIL is released while it runs.
+///
+/// Ctrl-C (any signal whose handler raises) is noticed after each epoch: it raises
+/// KeyboardInterrupt with the result so far attached as its ``result`` attribute (the same
+/// dict, ``stopped`` saying it was interrupted, params and final_loss those of the last
+/// epoch evaluated).
 #[pyfunction]
 #[pyo3(signature = (scene, *, epochs = None))]
 pub fn optimize<'py>(
     py: Python<'py>,
-    scene: PyRef<'py, Scene>,
-    epochs: Option<usize>,
+    scene: &Bound<'py, Scene>,
+    epochs: Option<i64>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let mut s = scene.inner.clone();
-    if let (Some(e), Some(o)) = (epochs, s.optimize.as_mut()) {
-        o.epochs = e;
+    let mut s = scene.borrow().inner.clone();
+    if let Some(e) = epochs {
+        if e < 1 {
+            return Err(value_error(format!("epochs: must be at least 1, got {e}")));
+        }
+        if let Some(o) = s.optimize.as_mut() {
+            o.epochs = e as usize;
+        }
     }
-    let outcome = run(py, || Optimization::new(s)?.run(None, None, |_| {}))?;
+    let mut interrupt = None;
+    let outcome = run(py, || {
+        Optimization::new(s)?.run_while(None, None, |_| {
+            match Python::attach(|py| py.check_signals()) {
+                Ok(()) => ControlFlow::Continue(()),
+                Err(e) => {
+                    interrupt = Some(e);
+                    ControlFlow::Break(())
+                }
+            }
+        })
+    })?;
+    // A signal during the last epoch's final forward pass is kept with the result too.
+    let interrupt = match interrupt {
+        Some(e) => Some(e),
+        None => py.check_signals().err(),
+    };
+    let d = outcome_dict(py, &outcome)?;
+    if let Some(e) = interrupt {
+        e.value(py).setattr("result", &d)?;
+        return Err(e);
+    }
+    Ok(d)
+}
+
+/// What :func:`optimize` returns.
+fn outcome_dict<'py>(py: Python<'py>, outcome: &Outcome) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
     d.set_item("history", to_py_object(py, &outcome.history)?)?;
     d.set_item("params", to_py_object(py, &outcome.params)?)?;
     d.set_item("final_loss", outcome.final_loss)?;
-    d.set_item("stopped", outcome.stopped)?;
-    d.set_item("converged", outcome.converged)?;
+    d.set_item("stopped", &outcome.stopped)?;
+    d.set_item("converged", &outcome.converged)?;
     d.set_item("evaluations", outcome.evaluations)?;
     Ok(d)
 }
@@ -413,7 +463,9 @@ fn state_rows<'py>(py: Python<'py>, s: &[BodyState]) -> PyResult<Bound<'py, PyTu
 /// initial fluid velocity `u` (flat, in :meth:`Simulation.velocity_flat`'s order), taping
 /// what the backward pass needs. The run starts from q/|q| (q unchanged when it is a unit
 /// quaternion to round-off), and the backward pass differentiates through that
-/// normalisation. `sim` itself is not changed. Raises GradientError at once
+/// normalisation. `masses` (bodies,) optionally sets the bodies' masses first (as
+/// :meth:`Simulation.set_mass`: each finite and > 0; the entries of bodies that are not
+/// dynamic are ignored). `sim` itself is not changed. Raises GradientError at once
 /// if the run cannot be differentiated with these options.
 ///
 /// With `checkpoint_every` = k, only the state every k steps (and each step's pressure) is
@@ -423,12 +475,12 @@ fn state_rows<'py>(py: Python<'py>, s: &[BodyState]) -> PyResult<Bound<'py, PyTu
 #[pyfunction]
 #[pyo3(signature = (
     sim, v, w, x, q, u = None, *, steps = None, surface = "live", mode = "full",
-    through_contact = false, checkpoint_every = None
+    through_contact = false, checkpoint_every = None, masses = None
 ))]
 #[allow(clippy::too_many_arguments)]
 pub fn rollout(
     py: Python<'_>,
-    sim: PyRef<'_, Simulation>,
+    sim: &Bound<'_, Simulation>,
     v: PyReadonlyArrayDyn<'_, f64>,
     w: PyReadonlyArrayDyn<'_, f64>,
     x: PyReadonlyArrayDyn<'_, f64>,
@@ -439,7 +491,10 @@ pub fn rollout(
     mode: &str,
     through_contact: bool,
     checkpoint_every: Option<usize>,
+    masses: Option<PyReadonlyArrayDyn<'_, f64>>,
 ) -> PyResult<Rollout> {
+    // A copy: no borrow of `sim` is held while the run releases the GIL.
+    let sim = crate::simulation::sim(sim)?.clone();
     let options = options(surface, mode, through_contact)?;
     if checkpoint_every == Some(0) {
         return Err(value_error("checkpoint_every: must be at least 1"));
@@ -464,6 +519,9 @@ pub fn rollout(
     if let Some(u) = u {
         let flat = crate::read_flat("u", &u, sim.faces_len())?;
         initial.u = sim.mac_from_flat(&flat);
+    }
+    if let Some(m) = masses {
+        set_masses(&mut initial, &m)?;
     }
     let settings = GradientSettings { options, checkpoint_every, re_solve: false };
     let inner = run(py, || {
@@ -501,9 +559,11 @@ impl Rollout {
 
     /// The vector–Jacobian product: from the gradient of a loss on the final body state
     /// (gv, gw, gx: (bodies, 3); gq: (bodies, 4) in ``[w, x, y, z]``) the gradient on the
-    /// initial state: a tuple (gv0, gw0, gx0, gq0, gu0). gq0 is the gradient on the q given,
-    /// through q/|q| (so it has no component along q); gu0 is the
-    /// gradient on the initial fluid velocity, flat, when `fluid` is true, else None. The
+    /// initial state: a tuple (gv0, gw0, gx0, gq0, gu0, gm0). gq0 is the gradient on the q
+    /// given, through q/|q| (so it has no component along q); gu0 is the
+    /// gradient on the initial fluid velocity, flat, when `fluid` is true, else None; gm0
+    /// (bodies,) is ∂L/∂(each body's mass), from the same sweep (0 for a body that is not
+    /// dynamic). The
     /// backward pass is the adjoint of the linear loss L = Σ g·(final state), whose gradient
     /// is g itself. The tape is kept, so it can run again (``retain_graph``).
     #[pyo3(signature = (gv, gw, gx, gq, *, fluid = false))]
@@ -564,6 +624,7 @@ impl Rollout {
                 rows(py, adj.bodies.iter().map(|a| a.x.to_array()))?,
                 rows(py, q0.into_iter())?,
                 gu,
+                read_only(PyArray1::from_vec(py, mass_gradient(initial, &adj.mass)))?,
             ],
         )
     }

@@ -16,6 +16,7 @@ use numpy::{IntoPyArray, PyArray, PyArray1, PyReadonlyArrayDyn, PyUntypedArrayMe
 use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+use pyo3::PyClass;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
 mod control;
@@ -106,6 +107,31 @@ pub(crate) fn run<T: Send>(
             panic_message(p.as_ref())
         ))),
     }
+}
+
+/// `obj` (a `what`: "Simulation", "Stepper") to read, or a RuntimeError that says why not:
+/// another thread is inside a call on it that released the GIL (a step, say). pyo3's own
+/// message for it is a bare "Already mutably borrowed".
+pub(crate) fn borrow<'py, T: PyClass>(obj: &Bound<'py, T>, what: &str) -> PyResult<PyRef<'py, T>> {
+    obj.try_borrow().map_err(|_| busy(what))
+}
+
+/// `obj` to change, or the RuntimeError of [`borrow`].
+pub(crate) fn borrow_mut<'py, T: PyClass<Frozen = pyo3::pyclass::boolean_struct::False>>(
+    obj: &Bound<'py, T>,
+    what: &str,
+) -> PyResult<PyRefMut<'py, T>> {
+    obj.try_borrow_mut().map_err(|_| busy(what))
+}
+
+/// The error of a call on an object another thread is using.
+fn busy(what: &str) -> PyErr {
+    let own = if what == "Simulation" { "its own (sim.copy())" } else { "its own" };
+    PyRuntimeError::new_err(format!(
+        "this {what} is in use by another thread (a call that releases the GIL, such as a \
+         step, is running on it there): it takes one call at a time; give each thread {own} \
+         or wait for that call to return"
+    ))
 }
 
 /// A value error with `message`.

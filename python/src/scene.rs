@@ -161,8 +161,9 @@ impl Scene {
     }
 
     /// The simulation in the scene's initial state (the same as ``Simulation(scene)``).
-    fn build(&self, py: Python<'_>) -> PyResult<Simulation> {
-        Simulation::from_scene(py, self)
+    fn build(slf: &Bound<'_, Self>, py: Python<'_>) -> PyResult<Simulation> {
+        let scene = slf.borrow().inner.clone();
+        Simulation::from_scene(py, scene)
     }
 
     /// The scene as JSON (every number exact): what pickling sends.

@@ -1,15 +1,18 @@
 //! `diffluid.Simulation`: a running simulation, its bodies and fields as NumPy arrays.
 
 use crate::scene::Scene;
-use crate::{lattice, read_flat, read_rows, row, rows, run, to_py_object, value_error};
+use crate::{
+    borrow, borrow_mut, lattice, read_flat, read_rows, row, rows, run, to_py_object, value_error,
+};
 use diffluid::geometry::body::{BodyState, Motion};
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::{BodyTargetLoss, Loss};
 use diffluid::math::{Rotation, Vec3};
-use diffluid::Simulation as RSim;
+use diffluid::{Scene as RScene, Simulation as RSim};
 use numpy::PyReadonlyArrayDyn;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
+use std::ops::ControlFlow;
 
 /// A running simulation: the liquid on a MAC grid, its marker particles and the rigid bodies
 /// coupled to it. ``Simulation(scene)`` is the scene's initial state.
@@ -28,9 +31,9 @@ pub struct Simulation {
 }
 
 impl Simulation {
-    /// The scene's simulation in its initial state (the GIL released while it builds).
-    pub(crate) fn from_scene(py: Python<'_>, scene: &Scene) -> PyResult<Simulation> {
-        let s = &scene.inner;
+    /// The scene's simulation in its initial state (the GIL released while it builds; the
+    /// scene is a copy, so no borrow of a Python Scene is held meanwhile).
+    pub(crate) fn from_scene(py: Python<'_>, s: RScene) -> PyResult<Simulation> {
         let inner = run(py, || s.build())?;
         Ok(Simulation { inner, scene_steps: s.time.steps, loss: s.loss() })
     }
@@ -119,12 +122,23 @@ pub(crate) fn wxyz(q: Rotation) -> [f64; 4] {
     [q.w, q.x, q.y, q.z]
 }
 
+/// Simulation `slf` to read (a clear error when another thread is stepping it).
+pub(crate) fn sim<'py>(slf: &Bound<'py, Simulation>) -> PyResult<PyRef<'py, Simulation>> {
+    borrow(slf, "Simulation")
+}
+
+/// Simulation `slf` to change (a clear error when another thread is using it).
+pub(crate) fn sim_mut<'py>(slf: &Bound<'py, Simulation>) -> PyResult<PyRefMut<'py, Simulation>> {
+    borrow_mut(slf, "Simulation")
+}
+
 #[pymethods]
 impl Simulation {
     /// The scene's simulation in its initial state.
     #[new]
-    fn new(py: Python<'_>, scene: PyRef<'_, Scene>) -> PyResult<Simulation> {
-        Simulation::from_scene(py, &scene)
+    fn new(py: Python<'_>, scene: &Bound<'_, Scene>) -> PyResult<Simulation> {
+        let scene = scene.borrow().inner.clone();
+        Simulation::from_scene(py, scene)
     }
 
     /// Advances one step of the fixed Δt and returns its report as a dict (step, time,
@@ -134,37 +148,66 @@ impl Simulation {
     /// contact_iterations, contact_residual, stage_seconds, and warnings when there are any).
     ///
     /// Raises SolverError when the pressure solve does not converge and SimulationError when
-    /// the state blows up or a body leaves the tank.
-    fn step<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let sim = &mut self.inner;
+    /// the state blows up or a body leaves the tank; the step is then rolled back (the
+    /// simulation is as it was before it, every field, particle and body, its time and step
+    /// count), unless :attr:`rollback` is off.
+    fn step<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let mut this = sim_mut(slf)?;
+        let sim = &mut this.inner;
         let report = run(py, || sim.step())?;
         to_py_object(py, &report)
     }
 
     /// Advances `steps` steps (default: the scene's `time.steps`) in one call, the GIL
-    /// released throughout, and returns the last step's report.
+    /// released while each step runs, and returns the last step's report.
+    ///
+    /// Ctrl-C (any signal whose handler raises) is noticed between steps: it raises
+    /// KeyboardInterrupt with every step finished so far kept (``steps_taken`` and ``time``
+    /// say how far it got). A step that fails raises as :meth:`step` does, rolled back, the
+    /// steps before it kept.
     #[pyo3(signature = (steps = None))]
-    fn run<'py>(&mut self, py: Python<'py>, steps: Option<usize>) -> PyResult<Bound<'py, PyAny>> {
-        let n = steps.unwrap_or(self.scene_steps);
+    fn run<'py>(
+        slf: &Bound<'py, Self>,
+        py: Python<'py>,
+        steps: Option<usize>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let mut this = sim_mut(slf)?;
+        let n = steps.unwrap_or(this.scene_steps);
         if n == 0 {
             return Err(value_error("steps: must be at least 1"));
         }
-        let sim = &mut self.inner;
-        let report = run(py, || {
-            let mut last = None;
-            for _ in 0..n {
-                last = Some(sim.step()?);
-            }
-            Ok(last.expect("at least one step"))
-        })?;
-        to_py_object(py, &report)
+        let sim = &mut this.inner;
+        let mut last = None;
+        for _ in 0..n {
+            last = Some(run(py, || sim.step())?);
+            py.check_signals()?;
+        }
+        to_py_object(py, &last.expect("at least one step"))
     }
 
     /// Advances by `frame_dt` seconds in as many CFL-limited steps as needed (a game or
-    /// robot loop's frame) and returns their reports.
-    fn advance<'py>(&mut self, py: Python<'py>, frame_dt: f64) -> PyResult<Bound<'py, PyList>> {
-        let sim = &mut self.inner;
-        let reports = run(py, || sim.advance(frame_dt))?;
+    /// robot loop's frame) and returns their reports. Ctrl-C is noticed between steps, as in
+    /// :meth:`run` (the frame's finished steps kept, ``time`` short of the frame's end).
+    fn advance<'py>(
+        slf: &Bound<'py, Self>,
+        py: Python<'py>,
+        frame_dt: f64,
+    ) -> PyResult<Bound<'py, PyList>> {
+        let mut this = sim_mut(slf)?;
+        let sim = &mut this.inner;
+        let mut interrupt = None;
+        let reports = run(py, || {
+            sim.advance_while(frame_dt, |_| match Python::attach(|py| py.check_signals()) {
+                Ok(()) => ControlFlow::Continue(()),
+                Err(e) => {
+                    interrupt = Some(e);
+                    ControlFlow::Break(())
+                }
+            })
+        })?;
+        if let Some(e) = interrupt {
+            return Err(e);
+        }
         let out = PyList::empty(py);
         for r in &reports {
             out.append(to_py_object(py, r)?)?;
@@ -173,104 +216,144 @@ impl Simulation {
     }
 
     /// An independent copy (the same state; stepping one does not move the other).
-    fn copy(&self) -> Simulation {
-        self.clone()
+    fn copy(slf: &Bound<'_, Self>) -> PyResult<Simulation> {
+        Ok(sim(slf)?.clone())
     }
 
-    fn __copy__(&self) -> Simulation {
-        self.clone()
+    fn __copy__(slf: &Bound<'_, Self>) -> PyResult<Simulation> {
+        Ok(sim(slf)?.clone())
     }
 
-    fn __deepcopy__(&self, _memo: &Bound<'_, PyAny>) -> Simulation {
-        self.clone()
+    fn __deepcopy__(slf: &Bound<'_, Self>, _memo: &Bound<'_, PyAny>) -> PyResult<Simulation> {
+        Ok(sim(slf)?.clone())
+    }
+
+    /// Whether a step that fails is rolled back (True by default; see :meth:`step`). Rolling
+    /// back keeps a copy of the particles, the narrow band and φ_L through every step (on a
+    /// grid of a million cells, about 55 MB); set it to False to save that memory when a
+    /// failed step ends the run anyway: a step that fails then leaves the particles and the
+    /// bodies where it had moved them, ``time`` and ``steps_taken`` as before.
+    #[getter]
+    fn rollback(slf: &Bound<'_, Self>) -> PyResult<bool> {
+        Ok(sim(slf)?.inner.rollback())
+    }
+
+    #[setter]
+    fn set_rollback(slf: &Bound<'_, Self>, on: bool) -> PyResult<()> {
+        sim_mut(slf)?.inner.set_rollback(on);
+        Ok(())
     }
 
     /// Simulated time, s.
     #[getter]
-    fn time(&self) -> f64 {
-        self.inner.time()
+    fn time(slf: &Bound<'_, Self>) -> PyResult<f64> {
+        Ok(sim(slf)?.inner.time())
     }
 
     /// Steps taken so far.
     #[getter]
-    fn steps_taken(&self) -> usize {
-        self.inner.steps_taken()
+    fn steps_taken(slf: &Bound<'_, Self>) -> PyResult<usize> {
+        Ok(sim(slf)?.inner.steps_taken())
     }
 
     /// The scene's `time.steps` (the default horizon of `run` and the gradients).
     #[getter]
-    fn scene_steps(&self) -> usize {
-        self.scene_steps
+    fn scene_steps(slf: &Bound<'_, Self>) -> PyResult<usize> {
+        Ok(sim(slf)?.scene_steps)
     }
 
     /// The fixed step Δt, s.
     #[getter]
-    fn dt(&self) -> f64 {
-        self.inner.dt()
+    fn dt(slf: &Bound<'_, Self>) -> PyResult<f64> {
+        Ok(sim(slf)?.inner.dt())
     }
 
     /// Cell side, m.
     #[getter]
-    fn dx(&self) -> f64 {
-        self.inner.grid().dx
+    fn dx(slf: &Bound<'_, Self>) -> PyResult<f64> {
+        Ok(sim(slf)?.inner.grid().dx)
     }
 
     /// Cells along x, y, z.
     #[getter]
-    fn shape(&self) -> [usize; 3] {
-        self.inner.grid().n
+    fn shape(slf: &Bound<'_, Self>) -> PyResult<[usize; 3]> {
+        Ok(sim(slf)?.inner.grid().n)
     }
 
     /// Every warning so far, each once.
     #[getter]
-    fn warnings(&self) -> Vec<String> {
-        self.inner.warnings().to_vec()
+    fn warnings(slf: &Bound<'_, Self>) -> PyResult<Vec<String>> {
+        Ok(sim(slf)?.inner.warnings().to_vec())
     }
 
     /// The bodies' names, in order.
     #[getter]
-    fn body_names(&self) -> Vec<String> {
-        self.names()
+    fn body_names(slf: &Bound<'_, Self>) -> PyResult<Vec<String>> {
+        Ok(sim(slf)?.names())
     }
 
     /// Number of bodies.
     #[getter]
-    fn num_bodies(&self) -> usize {
-        self.inner.bodies().len()
+    fn num_bodies(slf: &Bound<'_, Self>) -> PyResult<usize> {
+        Ok(sim(slf)?.inner.bodies().len())
     }
 
     /// Centres of mass, shape (bodies, 3), m.
     #[getter]
-    fn positions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        rows(py, self.inner.bodies().iter().map(|b| b.x.to_array()))
+    fn positions<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        rows(py, sim(slf)?.inner.bodies().iter().map(|b| b.x.to_array()))
     }
 
     /// Orientations as quaternions ``[w, x, y, z]``, shape (bodies, 4).
     #[getter]
-    fn orientations<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        rows(py, self.inner.bodies().iter().map(|b| wxyz(b.q)))
+    fn orientations<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        rows(py, sim(slf)?.inner.bodies().iter().map(|b| wxyz(b.q)))
     }
 
     /// Linear velocities of the centres of mass, shape (bodies, 3), m/s.
     #[getter]
-    fn velocities<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        rows(py, self.inner.bodies().iter().map(|b| b.v.to_array()))
+    fn velocities<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        rows(py, sim(slf)?.inner.bodies().iter().map(|b| b.v.to_array()))
     }
 
     /// Angular velocities (world frame), shape (bodies, 3), rad/s.
     #[getter]
-    fn angular_velocities<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        rows(py, self.inner.bodies().iter().map(|b| b.w.to_array()))
+    fn angular_velocities<'py>(
+        slf: &Bound<'py, Self>,
+        py: Python<'py>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        rows(py, sim(slf)?.inner.bodies().iter().map(|b| b.w.to_array()))
+    }
+
+    /// Each body's mass, shape (bodies,), kg (:meth:`set_mass` changes one).
+    #[getter]
+    fn masses<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let m: Vec<f64> = sim(slf)?.inner.bodies().iter().map(|b| b.mass).collect();
+        crate::read_only(numpy::PyArray1::from_vec(py, m))
+    }
+
+    /// Sets body `body`'s (an index or a name) mass to `kg`, its inertia scaling with it (its
+    /// density changes, not its shape): what the gradients' ``mass`` entries differentiate.
+    /// It must be a finite number > 0 (ValueError otherwise). Only a dynamic body's mass
+    /// moves anything in the liquid; a kinematic, fixed or external body's is kept but read
+    /// only by contact.
+    fn set_mass(slf: &Bound<'_, Self>, body: &Bound<'_, PyAny>, kg: f64) -> PyResult<()> {
+        let mut this = sim_mut(slf)?;
+        let i = this.body_index(body)?;
+        check_mass("kg", kg)?;
+        this.inner.bodies_mut()[i].set_mass(kg);
+        Ok(())
     }
 
     /// The pressure force (N) and torque (N·m, about the centre of mass) of the last step's
     /// solve on each body: a pair of arrays of shape (bodies, 3), zero before the first step.
-    fn fluid_forces<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
-        let ft: Vec<(Vec3, Vec3)> = self
+    fn fluid_forces<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let this = sim(slf)?;
+        let ft: Vec<(Vec3, Vec3)> = this
             .inner
             .handles()
             .iter()
-            .map(|&h| self.inner.fluid_force(h).expect("a handle of this simulation"))
+            .map(|&h| this.inner.fluid_force(h).expect("a handle of this simulation"))
             .collect();
         let f = rows(py, ft.iter().map(|(f, _)| f.to_array()))?;
         let t = rows(py, ft.iter().map(|(_, t)| t.to_array()))?;
@@ -280,11 +363,12 @@ impl Simulation {
     /// Body `body`'s (an index or a name) state as a dict of arrays: v (3,), w (3,), x (3,)
     /// and q (4,) ``[w, x, y, z]``.
     fn body_state<'py>(
-        &self,
+        slf: &Bound<'py, Self>,
         py: Python<'py>,
         body: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let b = &self.inner.bodies()[self.body_index(body)?];
+        let this = sim(slf)?;
+        let b = &this.inner.bodies()[this.body_index(body)?];
         let d = PyDict::new(py);
         d.set_item("v", row(py, b.v.to_array())?)?;
         d.set_item("w", row(py, b.w.to_array())?)?;
@@ -298,15 +382,16 @@ impl Simulation {
     /// number must be finite (ValueError otherwise); arrays must be float64 (TypeError).
     #[pyo3(signature = (body, *, v = None, w = None, x = None, q = None))]
     fn set_body_state(
-        &mut self,
+        slf: &Bound<'_, Self>,
         body: &Bound<'_, PyAny>,
         v: Option<PyReadonlyArrayDyn<'_, f64>>,
         w: Option<PyReadonlyArrayDyn<'_, f64>>,
         x: Option<PyReadonlyArrayDyn<'_, f64>>,
         q: Option<PyReadonlyArrayDyn<'_, f64>>,
     ) -> PyResult<()> {
-        let i = self.body_index(body)?;
-        let s = self.inner.bodies()[i].state();
+        let mut this = sim_mut(slf)?;
+        let i = this.body_index(body)?;
+        let s = this.inner.bodies()[i].state();
         let part = |name: &str, a: &Option<PyReadonlyArrayDyn<'_, f64>>, old: Vec<f64>| {
             a.as_ref().map_or(Ok(old), |a| {
                 read_rows(name, a, 1, if name == "q" { 4 } else { 3 }).map(|r| r[0].clone())
@@ -317,27 +402,28 @@ impl Simulation {
         let x = part("x", &x, s.x.to_array().to_vec())?;
         let q = part("q", &q, wxyz(s.q).to_vec())?;
         let state = state_from(&v, &w, &x, &q)?;
-        let h = self.inner.handles()[i];
-        self.inner.set_body_state(h, &state).map_err(crate::to_py)
+        let h = this.inner.handles()[i];
+        this.inner.set_body_state(h, &state).map_err(crate::to_py)
     }
 
     /// Sets the external force (N, on the centre of mass) and torque (N·m) on body `body`,
     /// world frame, float64 arrays of 3; they act every step, with gravity, until changed.
     #[pyo3(signature = (body, force, torque = None))]
     fn set_external_force(
-        &mut self,
+        slf: &Bound<'_, Self>,
         body: &Bound<'_, PyAny>,
         force: PyReadonlyArrayDyn<'_, f64>,
         torque: Option<PyReadonlyArrayDyn<'_, f64>>,
     ) -> PyResult<()> {
-        let i = self.body_index(body)?;
+        let mut this = sim_mut(slf)?;
+        let i = this.body_index(body)?;
         let f = read_rows("force", &force, 1, 3)?.remove(0);
         let t = match torque {
             Some(t) => read_rows("torque", &t, 1, 3)?.remove(0),
             None => vec![0.0; 3],
         };
-        let h = self.inner.handles()[i];
-        self.inner
+        let h = this.inner.handles()[i];
+        this.inner
             .set_external_force(h, Vec3::new(f[0], f[1], f[2]), Vec3::new(t[0], t[1], t[2]))
             .map_err(crate::to_py)
     }
@@ -347,8 +433,8 @@ impl Simulation {
     /// changes), "fixed" (held still) or "external" (moved by the caller's engine). A scene's
     /// ``dynamic = false`` body is kinematic if it has a velocity, fixed if not.
     #[getter]
-    fn motions(&self) -> Vec<&'static str> {
-        self.inner.bodies().iter().map(|b| motion_name(b.motion)).collect()
+    fn motions(slf: &Bound<'_, Self>) -> PyResult<Vec<&'static str>> {
+        Ok(sim(slf)?.inner.bodies().iter().map(|b| motion_name(b.motion)).collect())
     }
 
     /// Makes body `body` (an index or a name) kinematic: it moves along its own velocity and
@@ -358,9 +444,10 @@ impl Simulation {
     /// (a ``dynamic = false`` body without a velocity is fixed). A dynamic body made
     /// kinematic keeps its velocity; an external one (moved by the caller's engine) cannot
     /// be made kinematic (ValueError).
-    fn set_kinematic(&mut self, body: &Bound<'_, PyAny>) -> PyResult<()> {
-        let i = self.body_index(body)?;
-        let b = &mut self.inner.bodies_mut()[i];
+    fn set_kinematic(slf: &Bound<'_, Self>, body: &Bound<'_, PyAny>) -> PyResult<()> {
+        let mut this = sim_mut(slf)?;
+        let i = this.body_index(body)?;
+        let b = &mut this.inner.bodies_mut()[i];
         if b.motion == Motion::External {
             return Err(value_error(format!(
                 "body {:?} is moved by the caller's engine (external): it cannot be made \
@@ -374,64 +461,106 @@ impl Simulation {
 
     /// Marker particle positions, shape (particles, 3), m (a copy).
     #[getter]
-    fn particles<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        rows(py, self.inner.particles.iter().map(|p| p.to_array()))
+    fn particles<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        rows(py, sim(slf)?.inner.particles.iter().map(|p| p.to_array()))
     }
 
     /// Pressure at cell centres from the last solve, shape (nx, ny, nz), Pa (a copy; zero
     /// outside the liquid and before the first step).
     #[getter]
-    fn pressure<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        lattice(py, self.inner.grid().n, self.inner.pressure().to_vec())
+    fn pressure<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let this = sim(slf)?;
+        lattice(py, this.inner.grid().n, this.inner.pressure().to_vec())
     }
 
     /// The liquid signed distance at cell centres from the last step, shape (nx, ny, nz), m
     /// (negative in the liquid; zero before the first step; a copy).
     #[getter]
-    fn liquid_phi<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        lattice(py, self.inner.grid().n, self.inner.liquid_phi().to_vec())
+    fn liquid_phi<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let this = sim(slf)?;
+        lattice(py, this.inner.grid().n, this.inner.liquid_phi().to_vec())
     }
 
     /// The fluid velocity on the MAC faces: a tuple (u, v, w) of arrays of shapes
     /// (nx+1, ny, nz), (nx, ny+1, nz), (nx, ny, nz+1), m/s (copies).
     #[getter]
-    fn velocity<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
-        let shapes = self.face_shapes();
+    fn velocity<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyTuple>> {
+        let this = sim(slf)?;
+        let shapes = this.face_shapes();
         let parts: Vec<Bound<'py, PyAny>> = (0..3)
-            .map(|a| lattice(py, shapes[a], self.inner.u.c[a].clone()))
+            .map(|a| lattice(py, shapes[a], this.inner.u.c[a].clone()))
             .collect::<PyResult<_>>()?;
         PyTuple::new(py, parts)
     }
 
     /// The fluid velocity as one flat array: u, v then w, each x-fastest (the order
     /// :func:`diffluid.torch.rollout` takes and returns it in).
-    fn velocity_flat<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let flat: Vec<f64> = self.inner.u.c.iter().flatten().copied().collect();
+    fn velocity_flat<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let flat: Vec<f64> = sim(slf)?.inner.u.c.iter().flatten().copied().collect();
         crate::read_only(numpy::PyArray1::from_vec(py, flat))
     }
 
     /// Sets the fluid velocity from a flat array in :meth:`velocity_flat`'s order.
-    fn set_velocity_flat(&mut self, u: PyReadonlyArrayDyn<'_, f64>) -> PyResult<()> {
-        let flat = read_flat("u", &u, self.faces_len())?;
-        self.inner.u = self.mac_from_flat(&flat);
+    fn set_velocity_flat(slf: &Bound<'_, Self>, u: PyReadonlyArrayDyn<'_, f64>) -> PyResult<()> {
+        let mut this = sim_mut(slf)?;
+        let flat = read_flat("u", &u, this.faces_len())?;
+        this.inner.u = this.mac_from_flat(&flat);
         Ok(())
     }
 
     /// The value of the scene's `[loss]` at the current state (None without one).
-    fn scene_loss(&self) -> Option<f64> {
-        self.loss.as_ref().map(|l| l.value(&self.inner))
+    fn scene_loss(slf: &Bound<'_, Self>) -> PyResult<Option<f64>> {
+        let this = sim(slf)?;
+        Ok(this.loss.as_ref().map(|l| l.value(&this.inner)))
     }
 
-    fn __repr__(&self) -> String {
+    fn __repr__(slf: &Bound<'_, Self>) -> String {
+        // A repr that raises would break debuggers and tracebacks: say it is busy instead.
+        let Ok(this) = slf.try_borrow() else {
+            return "Simulation(<in use by another thread>)".into();
+        };
         format!(
             "Simulation(shape={:?}, dx={}, t={:.4}, step={}, bodies={:?})",
-            self.inner.grid().n,
-            self.inner.grid().dx,
-            self.inner.time(),
-            self.inner.steps_taken(),
-            self.names()
+            this.inner.grid().n,
+            this.inner.grid().dx,
+            this.inner.time(),
+            this.inner.steps_taken(),
+            this.names()
         )
     }
+}
+
+/// Sets the masses of `sim`'s dynamic bodies from `masses`, one per body (each a finite
+/// number > 0: ValueError naming the entry otherwise); the entries of the other bodies are
+/// checked but not used.
+pub(crate) fn set_masses(sim: &mut RSim, masses: &PyReadonlyArrayDyn<'_, f64>) -> PyResult<()> {
+    let n = sim.bodies().len();
+    let m = read_flat("masses", masses, n)?;
+    for (i, &kg) in m.iter().enumerate() {
+        check_mass(&format!("masses[{i}]"), kg)?;
+    }
+    for (b, kg) in sim.bodies_mut().iter_mut().zip(m) {
+        if b.motion == Motion::Dynamic {
+            b.set_mass(kg);
+        }
+    }
+    Ok(())
+}
+
+/// ∂L/∂m per body of `sim` from a backward pass's mass adjoint (empty means zero): zero for
+/// the bodies that are not dynamic.
+pub(crate) fn mass_gradient(sim: &RSim, mass: &[f64]) -> Vec<f64> {
+    let at = |i: usize| mass.get(i).copied().unwrap_or(0.0);
+    let dynamic = |i: usize| sim.bodies()[i].motion == Motion::Dynamic;
+    (0..sim.bodies().len()).map(|i| if dynamic(i) { at(i) } else { 0.0 }).collect()
+}
+
+/// Checks that `kg` is a mass: a finite number > 0 (`name` names it in the error).
+pub(crate) fn check_mass(name: &str, kg: f64) -> PyResult<()> {
+    if !(kg.is_finite() && kg > 0.0) {
+        return Err(value_error(format!("{name}: a mass must be a finite number > 0, got {kg}")));
+    }
+    Ok(())
 }
 
 /// Panics inside the boundary guard: the test that a Rust panic reaches Python as

@@ -144,3 +144,17 @@ def test_optimize_runs_the_rust_optimiser(box_scene):
     assert box_scene.to_json() == text
     with pytest.raises(ValueError, match=r"no \[optimize\] section"):
         diffluid.optimize(box_scene)
+
+
+def test_the_cli_rules_hold_in_python(box_scene):
+    """What the CLI refuses, Python refuses with its words (issue 39, item 13): no epochs
+    (`--epochs 0`), a loss with no term (the scene's `[loss]` without position, orientation
+    or velocity)."""
+    s = diffluid.Scene.builtin("recover_box")
+    for bad in (0, -2):
+        with pytest.raises(ValueError, match=f"epochs: must be at least 1, got {bad}"):
+            diffluid.optimize(s, epochs=bad)
+    with pytest.raises(ValueError, match="give at least one of position, orientation, velocity"):
+        diffluid.BodyTargetLoss(0)
+    with pytest.raises(ValueError, match="give at least one of position, orientation, velocity"):
+        diffluid.BodyTargetLoss("box", position=None)

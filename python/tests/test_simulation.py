@@ -179,6 +179,37 @@ def test_steps_release_the_gil(box_scene):
     assert len(middle) > 100, len(middle)
 
 
+def test_a_simulation_in_use_by_another_thread_says_so(box_scene):
+    """A call from a second thread while the first steps the simulation (the GIL released)
+    is refused with a message that says why and what to do (issue 39, item 13), never a bare
+    "Already borrowed"; a copy taken before is free to use meanwhile, and the simulation is
+    fine once the first call returns."""
+    sim = diffluid.Simulation(box_scene)
+    other = sim.copy()
+    done = threading.Event()
+
+    def stepping():
+        sim.run(400)
+        done.set()
+
+    t = threading.Thread(target=stepping)
+    t.start()
+    errors = []
+    while not done.is_set() and len(errors) < 3:
+        for call in (lambda: sim.time, lambda: sim.step(), lambda: sim.positions):
+            try:
+                call()
+            except RuntimeError as e:
+                errors.append(str(e))
+    other.step()
+    t.join()
+    assert errors, "the second thread never found the simulation in use"
+    for e in errors:
+        assert "in use by another thread" in e and "copy()" in e, e
+    assert sim.steps_taken == 400
+    sim.step()
+
+
 def test_external_force_pushes_the_body(sim):
     other = sim.copy()
     sim.set_external_force("ball", np.array([3.0, 0.0, 0.0]), np.zeros(3))

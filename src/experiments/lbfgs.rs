@@ -4,7 +4,9 @@
 //! checked and checkpointed like a gradient-descent epoch. Its state (correction pairs, line
 //! search, iteration state) is saved with argmin's serde support.
 
-use super::optimize::{Checkpoint, EpochRecord, Optimization, OptimizerState, Outcome};
+use super::optimize::{
+    interrupted, Checkpoint, EpochRecord, Optimization, OptimizerState, Outcome,
+};
 use super::scene::OptimizerSpec;
 use crate::error::{Error, Result};
 use argmin::core::{CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus};
@@ -12,6 +14,7 @@ use argmin::solver::linesearch::MoreThuenteLineSearch;
 use argmin::solver::quasinewton::LBFGS;
 use serde::Serialize;
 use std::cell::{Cell, RefCell};
+use std::ops::ControlFlow;
 use std::path::Path;
 
 impl Optimization {
@@ -20,7 +23,7 @@ impl Optimization {
         &self,
         checkpoint: Option<&Path>,
         mut ck: Checkpoint,
-        mut on_epoch: impl FnMut(&EpochRecord),
+        mut on_epoch: impl FnMut(&EpochRecord) -> ControlFlow<()>,
     ) -> Result<Outcome> {
         let evaluations = Cell::new(ck.evaluations);
         let failure = RefCell::new(None);
@@ -91,8 +94,12 @@ impl Optimization {
                 params: self.from_vector(&x),
                 evaluations: ck.evaluations,
             };
-            on_epoch(&rec);
+            let flow = on_epoch(&rec);
             ck.history.push(rec);
+            if flow.is_break() {
+                stopped = Some(interrupted(ck.next_epoch));
+                break;
+            }
             problem.problem.as_ref().expect("the objective").epoch.set(ck.next_epoch);
             // argmin ends an iteration whose line search failed with a termination reason; an
             // error of the gradient after it comes back as an error.

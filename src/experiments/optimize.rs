@@ -24,6 +24,7 @@ use crate::gradients::{
 use crate::math::{so3, Rotation, Vec3};
 use crate::world::Simulation;
 use serde::{Deserialize, Serialize};
+use std::ops::ControlFlow;
 use std::path::Path;
 
 /// One epoch of the history.
@@ -92,6 +93,11 @@ pub struct Checkpoint {
     pub settings: Option<serde_json::Value>,
 }
 
+/// [`Outcome::stopped`] of a run its caller ended after epoch `epoch`'s record.
+pub(super) fn interrupted(epoch: usize) -> String {
+    format!("epoch {epoch}: interrupted; kept its parameters")
+}
+
 /// The first dotted key at which two JSON values differ, with both values.
 fn first_difference(
     path: &str,
@@ -144,7 +150,8 @@ pub struct Outcome {
     /// The loss at those parameters.
     pub final_loss: f64,
     /// Set when the run stopped early (non-finite or exploding gradient, a failed step, a
-    /// failed line search): the reason. The parameters are then the last good ones.
+    /// failed line search, the caller's interrupt): the reason. The parameters are then the
+    /// last good ones.
     pub stopped: Option<String>,
     /// Set when L-BFGS met its convergence test before the last epoch: the reason. The run
     /// ended normally.
@@ -340,7 +347,22 @@ impl Optimization {
         &self,
         checkpoint: Option<&Path>,
         resume: Option<Checkpoint>,
-        on_epoch: impl FnMut(&EpochRecord),
+        mut on_epoch: impl FnMut(&EpochRecord),
+    ) -> Result<Outcome> {
+        self.run_while(checkpoint, resume, |r| {
+            on_epoch(r);
+            ControlFlow::Continue(())
+        })
+    }
+
+    /// [`Optimization::run`], where `on_epoch` may end the run after any epoch's record (an
+    /// interrupt): a [`ControlFlow::Break`] stops it there, [`Outcome::stopped`] saying so,
+    /// with that epoch's parameters and loss (not stepped from) and every record so far.
+    pub fn run_while(
+        &self,
+        checkpoint: Option<&Path>,
+        resume: Option<Checkpoint>,
+        on_epoch: impl FnMut(&EpochRecord) -> ControlFlow<()>,
     ) -> Result<Outcome> {
         let ck = match resume {
             Some(c) => {
@@ -410,7 +432,7 @@ impl Optimization {
         &self,
         checkpoint: Option<&Path>,
         mut ck: Checkpoint,
-        mut on_epoch: impl FnMut(&EpochRecord),
+        mut on_epoch: impl FnMut(&EpochRecord) -> ControlFlow<()>,
     ) -> Result<Outcome> {
         let mut stopped = None;
         while ck.next_epoch < self.epochs {
@@ -434,8 +456,12 @@ impl Optimization {
                 params: ck.params,
                 evaluations: ck.evaluations,
             };
-            on_epoch(&rec);
+            let flow = on_epoch(&rec);
             ck.history.push(rec);
+            if flow.is_break() {
+                stopped = Some(interrupted(ck.next_epoch));
+                break;
+            }
             let s = self.step(&mut ck.optimizer, &g);
             ck.params = self.apply_step(&ck.params, &s);
             ck.next_epoch += 1;

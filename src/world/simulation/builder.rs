@@ -264,6 +264,7 @@ impl SimulationBuilder {
             time: 0.0,
             warnings,
             spare: Arc::default(),
+            rollback: true,
         };
         // The particles the band does not need go before the first step.
         let geometry = sim.geometry();

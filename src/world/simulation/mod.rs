@@ -67,6 +67,8 @@ pub struct Simulation {
     /// The last step's whole-grid arrays, for the next step (or step adjoint) to build into;
     /// shared between clones.
     spare: Arc<Spare>,
+    /// Whether a step that fails is rolled back ([`Simulation::set_rollback`]).
+    rollback: bool,
 }
 
 /// A body's face fractions may miss its volume by this much (relative) before a step warns.

@@ -24,7 +24,7 @@
 
 use super::{Simulation, VOLUME_TOLERANCE};
 use crate::error::{Error, Result};
-use crate::geometry::body::RigidBody;
+use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::grid::Mac;
 use crate::math::pool::on_pool_spinning;
 use crate::math::{v3, Vec3};
@@ -41,6 +41,8 @@ use crate::world::step::{
 };
 use crate::world::tape::{ParticleRecord, Replay, Solves, StepRecord, Tape};
 use rayon::prelude::*;
+use std::ops::ControlFlow;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// A contact velocity change below this (a thousandth of what gravity adds in a step) is
@@ -69,6 +71,53 @@ struct Projection {
     v_after: Vec<[f64; 6]>,
     forces: Vec<[f64; 6]>,
     hold: ContactHold,
+}
+
+/// What a step changes before it can fail, kept so that a step that fails leaves the
+/// simulation as it was (see [`Simulation::set_rollback`]): the marker particles and the
+/// narrow band (stage 0; neither with a frozen surface), φ_L (whose memory the step builds
+/// into), the bodies (stages 4 and 6), their fluid forces, the step count and the time. The
+/// fluid velocity and the pressure are replaced only once the step has succeeded.
+struct Undo {
+    particles: Option<Vec<Vec3>>,
+    band: Option<Arc<Band>>,
+    phi: Vec<f64>,
+    bodies: Vec<BodyState>,
+    fluid_forces: Vec<[f64; 6]>,
+    step: usize,
+    time: f64,
+}
+
+impl Undo {
+    /// What `sim`'s next step may change.
+    fn take(sim: &Simulation) -> Undo {
+        let moving = sim.frozen_phi.is_none();
+        Undo {
+            particles: moving.then(|| sim.particles.clone()),
+            // Shared until the band's update changes it, which then copies it.
+            band: if moving { sim.band.clone() } else { None },
+            phi: sim.phi.clone(),
+            bodies: sim.bodies.iter().map(RigidBody::state).collect(),
+            fluid_forces: sim.fluid_forces.clone(),
+            step: sim.step,
+            time: sim.time,
+        }
+    }
+
+    /// Puts `sim` back as it was.
+    fn restore(self, sim: &mut Simulation) {
+        if let Some(p) = self.particles {
+            sim.particles = p;
+            sim.band = self.band;
+        }
+        sim.phi = self.phi;
+        for (b, s) in sim.bodies.iter_mut().zip(&self.bodies) {
+            b.set_state(s);
+        }
+        sim.fluid_forces = self.fluid_forces;
+        sim.step = self.step;
+        sim.time = self.time;
+    }
 }
 
 impl Simulation {
@@ -100,8 +149,20 @@ impl Simulation {
 
     /// Advances by `frame_dt` seconds in as many steps as [`Simulation::stable_dt`] asks for
     /// (a game or robot loop's frame). Each step is a step of the same map as
-    /// [`Simulation::step`] with a shorter Δt; gradients use the fixed-Δt path.
+    /// [`Simulation::step`] with a shorter Δt; gradients use the fixed-Δt path. A step that
+    /// fails is rolled back (see [`Simulation::step`]); the frame's steps before it stay.
     pub fn advance(&mut self, frame_dt: f64) -> Result<Vec<StepReport>> {
+        self.advance_while(frame_dt, |_| ControlFlow::Continue(()))
+    }
+
+    /// [`Simulation::advance`], asking `between` after each step whether to go on: a
+    /// [`ControlFlow::Break`] ends the frame there, with the steps taken so far (an
+    /// interrupted frame, for a caller that watches for a signal between steps).
+    pub fn advance_while(
+        &mut self,
+        frame_dt: f64,
+        mut between: impl FnMut(&StepReport) -> ControlFlow<()>,
+    ) -> Result<Vec<StepReport>> {
         if !(frame_dt.is_finite() && frame_dt > 0.0) {
             return Err(Error::InvalidSettings {
                 key: "frame_dt".into(),
@@ -113,8 +174,13 @@ impl Simulation {
         while left > 1e-12 * frame_dt {
             let n = (left / self.stable_dt()).ceil().max(1.0);
             let h = left / n;
-            reports.push(self.step_inner(h, None, Pressures::Solve)?);
+            let report = self.step_undoable(h)?;
             left -= h;
+            let flow = between(&report);
+            reports.push(report);
+            if flow.is_break() {
+                break;
+            }
         }
         Ok(reports)
     }
@@ -125,10 +191,41 @@ impl Simulation {
         self.settings.solver.spin_workers.unwrap_or(self.grid.num_cells() >= 1 << 18)
     }
 
-    /// Advances one step of the fixed Δt.
+    /// Advances one step of the fixed Δt. A step that fails is rolled back (see
+    /// [`Simulation::set_rollback`]).
     pub fn step(&mut self) -> Result<StepReport> {
         let dt = self.settings.dt;
-        self.step_inner(dt, None, Pressures::Solve)
+        self.step_undoable(dt)
+    }
+
+    /// Whether [`Simulation::step`] and [`Simulation::advance`] roll back a step that fails
+    /// (on unless [`Simulation::set_rollback`] turned it off).
+    pub fn rollback(&self) -> bool {
+        self.rollback
+    }
+
+    /// Whether a step that fails (a solve that does not converge, a body that leaves the
+    /// tank, a state that is not finite) is rolled back: the simulation is then left as it
+    /// was before the step (its particles, narrow band, φ_L, bodies, fluid forces, time and
+    /// step count; the velocity and the pressure change only once a step has succeeded), so
+    /// that the same step can be tried again after a change; only its warnings stay. On by
+    /// default. It keeps a copy of the particles, the narrow band and φ_L through every step
+    /// (on `large_tank`, a fifth more peak memory: docs/performance.md): a caller that stops
+    /// at the first error (the CLI's `run`) turns it off, and a step that fails then leaves
+    /// the particles and the bodies where it had moved them, the time and step count as
+    /// before. The gradients' taped steps never roll back (a failure ends their run).
+    pub fn set_rollback(&mut self, on: bool) {
+        self.rollback = on;
+    }
+
+    /// A step of `dt` that [`Simulation::rollback`] rolls back if it fails.
+    fn step_undoable(&mut self, dt: f64) -> Result<StepReport> {
+        let undo = self.rollback.then(|| Undo::take(self));
+        let report = self.step_inner(dt, None, Pressures::Solve);
+        if let (Err(_), Some(undo)) = (&report, undo) {
+            undo.restore(self);
+        }
+        report
     }
 
     /// Advances one step and records on `tape` what the backward pass needs.
