@@ -23,7 +23,7 @@ use crate::gradients::{
 use crate::math::{so3, Rotation, Vec3};
 use crate::world::Simulation;
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// One epoch of the history.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -69,6 +69,36 @@ pub enum OptimizerState {
     },
 }
 
+/// The optimiser of `spec`, in words.
+fn spec_kind(spec: &OptimizerSpec) -> &'static str {
+    match spec {
+        OptimizerSpec::Gd { .. } => "gradient descent",
+        OptimizerSpec::Adam { .. } => "Adam",
+        OptimizerSpec::Lbfgs { .. } => "L-BFGS",
+    }
+}
+
+impl OptimizerState {
+    /// The optimiser that keeps this state, in words.
+    fn kind(&self) -> &'static str {
+        match self {
+            OptimizerState::Gd => "gradient descent",
+            OptimizerState::Adam { .. } => "Adam",
+            OptimizerState::Lbfgs { .. } => "L-BFGS",
+        }
+    }
+
+    /// Whether this is the state `spec` keeps.
+    fn is_kind_of(&self, spec: &OptimizerSpec) -> bool {
+        matches!(
+            (spec, self),
+            (OptimizerSpec::Gd { .. }, OptimizerState::Gd)
+                | (OptimizerSpec::Adam { .. }, OptimizerState::Adam { .. })
+                | (OptimizerSpec::Lbfgs { .. }, OptimizerState::Lbfgs { .. })
+        )
+    }
+}
+
 /// Everything needed to continue a run: written after every epoch.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Checkpoint {
@@ -89,6 +119,9 @@ pub struct Checkpoint {
     /// see [`Optimization::fingerprint`]); absent in checkpoints of older versions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub settings: Option<serde_json::Value>,
+    /// The file it was read from ([`Checkpoint::load`]), which errors name; not saved.
+    #[serde(skip)]
+    pub source: Option<PathBuf>,
 }
 
 /// The first dotted key at which two JSON values differ, with both values.
@@ -115,14 +148,16 @@ fn first_difference(
 }
 
 impl Checkpoint {
-    /// Reads a checkpoint.
+    /// Reads a checkpoint (a regular file of at most
+    /// [`MAX_INPUT_BYTES`](crate::math::input::MAX_INPUT_BYTES)). Whether it fits the scene
+    /// is checked when a run resumes from it ([`Optimization::check_checkpoint`]).
     pub fn load(path: &Path) -> Result<Checkpoint> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| Error::ReadScene { path: path.to_path_buf(), source })?;
-        serde_json::from_str(&text).map_err(|e| Error::InvalidScene {
-            origin: path.display().to_string(),
-            message: format!("not a diffluid checkpoint: {e}"),
-        })
+        let fail = |message: String| Error::Checkpoint { path: path.to_path_buf(), message };
+        let text = crate::math::input::read_text(path).map_err(|e| fail(e.to_string()))?;
+        let mut ck: Checkpoint = serde_json::from_str(&text)
+            .map_err(|e| fail(format!("not a diffluid checkpoint: {e}")))?;
+        ck.source = Some(path.to_path_buf());
+        Ok(ck)
     }
 
     /// Writes it atomically (write, then rename) and durably (fsync of the file and its
@@ -319,6 +354,133 @@ impl Optimization {
         out
     }
 
+    /// Whether `c` is a checkpoint of this problem that a run can resume from: the same scene
+    /// and settings (when the checkpoint holds them: older ones do not), a history of
+    /// `next_epoch` epochs numbered in order, finite parameters that differ from the scene's
+    /// only where they are optimised, and the optimiser's own state, of the right size (for
+    /// L-BFGS, argmin's solver and iteration state, configured as the scene says). The error
+    /// names the checkpoint's key.
+    pub fn check_checkpoint(&self, c: &Checkpoint) -> std::result::Result<(), String> {
+        if c.scene != self.scene.name {
+            return Err(format!(
+                "written for scene {:?}, not {:?}: resume the scene that wrote it",
+                c.scene, self.scene.name
+            ));
+        }
+        if let Some(saved) = &c.settings {
+            if let Some((key, was, now)) = first_difference("", saved, &self.fingerprint()) {
+                return Err(format!(
+                    "cannot resume: {key} was {was} when the checkpoint was written and is \
+                     {now} now"
+                ));
+            }
+        }
+        if c.history.len() != c.next_epoch {
+            return Err(format!(
+                "next_epoch is {} but the history holds {} epochs",
+                c.next_epoch,
+                c.history.len()
+            ));
+        }
+        let mut evaluations = 0;
+        for (i, r) in c.history.iter().enumerate() {
+            if r.epoch != i {
+                return Err(format!("history[{i}].epoch is {}, not {i}", r.epoch));
+            }
+            if !(r.loss.is_finite() && r.grad_norm.is_finite() && r.grad_norm >= 0.0) {
+                return Err(format!(
+                    "history[{i}]: loss {} and grad_norm {} must be finite",
+                    r.loss, r.grad_norm
+                ));
+            }
+            if r.evaluations < evaluations || r.evaluations > c.evaluations {
+                return Err(format!(
+                    "history[{i}].evaluations is {}: the counts must grow and end at most at \
+                     evaluations ({})",
+                    r.evaluations, c.evaluations
+                ));
+            }
+            evaluations = r.evaluations;
+            self.check_params(&r.params, &format!("history[{i}].params"))?;
+        }
+        self.check_params(&c.params, "params")?;
+        let lbfgs = matches!(self.optimizer, OptimizerSpec::Lbfgs { .. });
+        // L-BFGS before its first iteration has no state of its own.
+        let unstarted = lbfgs && c.next_epoch == 0 && c.optimizer == OptimizerState::Gd;
+        if !(c.optimizer.is_kind_of(&self.optimizer) || unstarted) {
+            return Err(format!(
+                "it holds {} state, but the scene optimises with {}",
+                c.optimizer.kind(),
+                spec_kind(&self.optimizer)
+            ));
+        }
+        // Gradient descent and Adam evaluate once an epoch (older checkpoints count none).
+        if !lbfgs && c.evaluations != 0 && c.evaluations != c.next_epoch {
+            return Err(format!(
+                "evaluations is {}, but {} epochs took one each",
+                c.evaluations, c.next_epoch
+            ));
+        }
+        let n = 3 * self.params.len();
+        match &c.optimizer {
+            OptimizerState::Gd => Ok(()),
+            OptimizerState::Adam { m, v, t } => {
+                for (key, x) in [("m", m), ("v", v)] {
+                    if x.len() != n {
+                        return Err(format!(
+                            "optimizer.Adam.{key} has {} numbers; the scene optimises {n}",
+                            x.len()
+                        ));
+                    }
+                    let bad = |a: &&f64| !a.is_finite() || (key == "v" && **a < 0.0);
+                    if let Some(a) = x.iter().find(bad) {
+                        return Err(format!("optimizer.Adam.{key} holds {a}"));
+                    }
+                }
+                if *t != c.next_epoch as u64 {
+                    return Err(format!(
+                        "optimizer.Adam.t is {t}, but {} steps were taken",
+                        c.next_epoch
+                    ));
+                }
+                Ok(())
+            }
+            #[cfg(feature = "lbfgs")]
+            OptimizerState::Lbfgs { solver, state } => self.check_lbfgs(solver, state, c),
+            #[cfg(not(feature = "lbfgs"))]
+            OptimizerState::Lbfgs { .. } => {
+                Err("L-BFGS state needs diffluid's `lbfgs` feature (argmin)".into())
+            }
+        }
+    }
+
+    /// Parameters `key` of a checkpoint: finite, a unit quaternion, and the scene's initial
+    /// values where they are not optimised.
+    fn check_params(&self, p: &BodyState, key: &str) -> std::result::Result<(), String> {
+        let initial = self.initial_params();
+        for param in [Param::V, Param::W, Param::X, Param::Q] {
+            let name = param.to_string();
+            let (value, scene): (Vec<f64>, Vec<f64>) = match param {
+                Param::V => (p.v.to_array().into(), initial.v.to_array().into()),
+                Param::W => (p.w.to_array().into(), initial.w.to_array().into()),
+                Param::X => (p.x.to_array().into(), initial.x.to_array().into()),
+                Param::Q => (p.q.to_array().into(), initial.q.to_array().into()),
+            };
+            if !value.iter().all(|x| x.is_finite()) {
+                return Err(format!("{key}.{name} is {value:?}: not finite"));
+            }
+            if param == Param::Q && (p.q.length() - 1.0).abs() > 1e-9 {
+                return Err(format!("{key}.{name} is {value:?}: not a unit quaternion"));
+            }
+            if !self.params.contains(&param) && value != scene {
+                return Err(format!(
+                    "{key}.{name} is {value:?}, not the scene's {scene:?} ({name} is not optimised)"
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Runs the remaining epochs, from `resume` or from the start, writing a checkpoint to
     /// `checkpoint` after every epoch. `on_epoch` sees each record as it is made.
     pub fn run(
@@ -329,33 +491,10 @@ impl Optimization {
     ) -> Result<Outcome> {
         let ck = match resume {
             Some(c) => {
-                if c.scene != self.scene.name {
-                    return Err(Error::InvalidScene {
-                        origin: self.scene.name.clone(),
-                        message: format!("the checkpoint is for scene {:?}", c.scene),
-                    });
-                }
-                if let Some(saved) = &c.settings {
-                    if let Some((key, was, now)) = first_difference("", saved, &self.fingerprint())
-                    {
-                        return Err(Error::InvalidScene {
-                            origin: self.scene.name.clone(),
-                            message: format!(
-                                "cannot resume: {key} was {was} when the checkpoint was written \
-                                 and is {now} now"
-                            ),
-                        });
-                    }
-                }
-                let lbfgs_state = matches!(c.optimizer, OptimizerState::Lbfgs { .. });
-                let lbfgs = matches!(self.optimizer, OptimizerSpec::Lbfgs { .. });
-                let fresh = c.next_epoch == 0 && c.history.is_empty();
-                if lbfgs_state != lbfgs && !fresh {
-                    return Err(Error::InvalidScene {
-                        origin: self.scene.name.clone(),
-                        message: "the checkpoint was written by another optimiser".into(),
-                    });
-                }
+                self.check_checkpoint(&c).map_err(|message| Error::Checkpoint {
+                    path: c.source.clone().unwrap_or_else(|| "(not read from a file)".into()),
+                    message,
+                })?;
                 c
             }
             None => Checkpoint {
@@ -366,6 +505,7 @@ impl Optimization {
                 history: Vec::new(),
                 evaluations: 0,
                 settings: Some(self.fingerprint()),
+                source: None,
             },
         };
         match &self.optimizer {

@@ -89,7 +89,7 @@ fn shipped_mesh(path: &Path) -> Option<&'static [u8]> {
 fn read_obj(path: &Path) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
     let name = path.display();
     // Read the file ourselves: tobj only says "open file failed", not why.
-    let bytes = match std::fs::read(path) {
+    let bytes = match crate::math::input::read_file(path) {
         Ok(bytes) => Cow::Owned(bytes),
         Err(e) => Cow::Borrowed(
             shipped_mesh(path).ok_or_else(|| format!("cannot read mesh {name}: {e}"))?,
