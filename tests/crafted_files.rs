@@ -113,41 +113,32 @@ fn recover_scene(optimizer: &str) -> String {
     text
 }
 
+/// `diffluid optimize DIR/scene.toml --quiet --out DIR/out` with `extra`.
+fn optimize(dir: &Path, extra: &[&str]) -> Ended {
+    let (scene, out) = (dir.join("scene.toml"), dir.join("out"));
+    let mut args = vec!["optimize", scene.to_str().unwrap(), "--quiet", "--out"];
+    args.push(out.to_str().unwrap());
+    args.extend_from_slice(extra);
+    diffluid(&args)
+}
+
 /// A folder holding `scene.toml` for `optimizer` and the checkpoint of a 3-epoch run of it.
-fn checkpointed(test: &str, optimizer: &str) -> (TempDir, PathBuf, serde_json::Value) {
+fn checkpointed(test: &str, optimizer: &str) -> (TempDir, serde_json::Value) {
     let dir = TempDir::new(test);
-    let scene = dir.join("scene.toml");
-    std::fs::write(&scene, recover_scene(optimizer)).unwrap();
-    let out = dir.join("out");
-    let ended = diffluid(&[
-        "optimize",
-        scene.to_str().unwrap(),
-        "--epochs",
-        "3",
-        "--quiet",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    std::fs::write(dir.join("scene.toml"), recover_scene(optimizer)).unwrap();
+    let ended = optimize(&dir, &["--epochs", "3"]);
     assert_eq!(ended.code, Some(0), "{}", ended.stderr);
-    let text = std::fs::read_to_string(out.join("checkpoint.json")).unwrap();
+    let text = std::fs::read_to_string(dir.join("out/checkpoint.json")).unwrap();
     let ck: serde_json::Value = serde_json::from_str(&text).unwrap();
-    (dir, scene, ck)
+    (dir, ck)
 }
 
 /// Resumes the scene of `dir` from `checkpoint` (written over the run's) and asserts it is
 /// refused naming the checkpoint, with every needle, and no word of a scene file.
 fn resume_refused(dir: &Path, checkpoint: &serde_json::Value, needles: &[&str]) -> String {
-    let out = dir.join("out");
-    let path = out.join("checkpoint.json");
+    let path = dir.join("out/checkpoint.json");
     std::fs::write(&path, serde_json::to_string_pretty(checkpoint).unwrap()).unwrap();
-    let ended = diffluid(&[
-        "optimize",
-        dir.join("scene.toml").to_str().unwrap(),
-        "--resume",
-        "--quiet",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let ended = optimize(dir, &["--resume"]);
     let shown = path.display().to_string();
     let mut all = vec!["checkpoint", shown.as_str()];
     all.extend_from_slice(needles);
@@ -164,7 +155,7 @@ fn resume_refused(dir: &Path, checkpoint: &serde_json::Value, needles: &[&str]) 
 /// Each used to panic (`unreachable!`, an index out of bounds) or go on with a wrong state.
 #[test]
 fn adam_checkpoints_with_the_wrong_contents_are_refused() {
-    let (dir, _, ck) = checkpointed("adam", "optimizer = { kind = \"adam\", learning_rate = 0.1 }");
+    let (dir, ck) = checkpointed("adam", "optimizer = { kind = \"adam\", learning_rate = 0.1 }");
     assert_eq!(ck["next_epoch"], 3);
 
     let mut gd = ck.clone();
@@ -208,19 +199,9 @@ fn adam_checkpoints_with_the_wrong_contents_are_refused() {
 
 /// The checkpoint as written still resumes, for one more epoch (a positive control).
 fn resumes(dir: &Path, checkpoint: &serde_json::Value) {
-    let out = dir.join("out");
-    std::fs::write(out.join("checkpoint.json"), serde_json::to_string_pretty(checkpoint).unwrap())
-        .unwrap();
-    let ended = diffluid(&[
-        "optimize",
-        dir.join("scene.toml").to_str().unwrap(),
-        "--resume",
-        "--epochs",
-        "4",
-        "--quiet",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let path = dir.join("out/checkpoint.json");
+    std::fs::write(path, serde_json::to_string_pretty(checkpoint).unwrap()).unwrap();
+    let ended = optimize(dir, &["--resume", "--epochs", "4"]);
     assert_eq!(ended.code, Some(0), "{}", ended.stderr);
 }
 
@@ -230,7 +211,7 @@ fn resumes(dir: &Path, checkpoint: &serde_json::Value) {
 /// otherwise than the scene says, and text that is not TOML are each refused.
 #[test]
 fn lbfgs_checkpoints_with_the_wrong_contents_are_refused() {
-    let (dir, _, ck) = checkpointed("lbfgs", "optimizer = { kind = \"lbfgs\", memory = 5 }");
+    let (dir, ck) = checkpointed("lbfgs", "optimizer = { kind = \"lbfgs\", memory = 5 }");
     let state = ck["optimizer"]["Lbfgs"]["state"].as_str().unwrap().to_string();
     let solver = ck["optimizer"]["Lbfgs"]["solver"].as_str().unwrap().to_string();
     let line = |text: &str, key: &str| -> String {
@@ -275,19 +256,11 @@ fn lbfgs_checkpoints_with_the_wrong_contents_are_refused() {
 /// checkpoint (it used to say "cannot read scene file" and "scene ...").
 #[test]
 fn unreadable_checkpoints_name_the_checkpoint() {
-    let (dir, _, _) =
-        checkpointed("unreadable", "optimizer = { kind = \"gd\", learning_rate = 5.0 }");
+    let (dir, _) = checkpointed("unreadable", "optimizer = { kind = \"gd\", learning_rate = 5.0 }");
     let path = dir.join("out/checkpoint.json");
     for contents in ["{ not json", "[1, 2, 3]"] {
         std::fs::write(&path, contents).unwrap();
-        let ended = diffluid(&[
-            "optimize",
-            dir.join("scene.toml").to_str().unwrap(),
-            "--resume",
-            "--quiet",
-            "--out",
-            dir.join("out").to_str().unwrap(),
-        ]);
+        let ended = optimize(&dir, &["--resume"]);
         let line = assert_refused(&ended, &["checkpoint", &path.display().to_string()]);
         assert!(!line.contains("scene"), "{line}");
     }
@@ -425,22 +398,14 @@ fn devices_and_fifos_are_refused() {
     }
 
     // A checkpoint and a surface frame, as links to each.
-    let (ck_dir, scene, _) =
+    let (ck_dir, _) =
         checkpointed("special_ck", "optimizer = { kind = \"gd\", learning_rate = 5.0 }");
     let run = run_folder("special_ply", SUMMARY, b"");
     for special in [Path::new("/dev/zero"), fifo.as_path()] {
         let ck = ck_dir.join("out/checkpoint.json");
         std::fs::remove_file(&ck).unwrap();
         std::os::unix::fs::symlink(special, &ck).unwrap();
-        let ck_out = ck_dir.join("out");
-        let ended = diffluid(&[
-            "optimize",
-            scene.to_str().unwrap(),
-            "--resume",
-            "--quiet",
-            "--out",
-            ck_out.to_str().unwrap(),
-        ]);
+        let ended = optimize(&ck_dir, &["--resume"]);
         assert_refused(&ended, &["checkpoint", "not a regular file"]);
 
         let frame = run.join("surface/0000.ply");

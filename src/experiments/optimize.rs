@@ -87,16 +87,6 @@ impl OptimizerState {
             OptimizerState::Lbfgs { .. } => "L-BFGS",
         }
     }
-
-    /// Whether this is the state `spec` keeps.
-    fn is_kind_of(&self, spec: &OptimizerSpec) -> bool {
-        matches!(
-            (spec, self),
-            (OptimizerSpec::Gd { .. }, OptimizerState::Gd)
-                | (OptimizerSpec::Adam { .. }, OptimizerState::Adam { .. })
-                | (OptimizerSpec::Lbfgs { .. }, OptimizerState::Lbfgs { .. })
-        )
-    }
 }
 
 /// Everything needed to continue a run: written after every epoch.
@@ -407,7 +397,7 @@ impl Optimization {
         let lbfgs = matches!(self.optimizer, OptimizerSpec::Lbfgs { .. });
         // L-BFGS before its first iteration has no state of its own.
         let unstarted = lbfgs && c.next_epoch == 0 && c.optimizer == OptimizerState::Gd;
-        if !(c.optimizer.is_kind_of(&self.optimizer) || unstarted) {
+        if c.optimizer.kind() != spec_kind(&self.optimizer) && !unstarted {
             return Err(format!(
                 "it holds {} state, but the scene optimises with {}",
                 c.optimizer.kind(),
@@ -454,27 +444,31 @@ impl Optimization {
         }
     }
 
-    /// Parameters `key` of a checkpoint: finite, a unit quaternion, and the scene's initial
-    /// values where they are not optimised.
+    /// Parameters `key` of a checkpoint: finite, and the scene's initial values where they
+    /// are not optimised (to round-off: 1e-12 relative, an orientation within 3e-6 rad).
     fn check_params(&self, p: &BodyState, key: &str) -> std::result::Result<(), String> {
         let initial = self.initial_params();
-        for param in [Param::V, Param::W, Param::X, Param::Q] {
-            let name = param.to_string();
-            let (value, scene): (Vec<f64>, Vec<f64>) = match param {
-                Param::V => (p.v.to_array().into(), initial.v.to_array().into()),
-                Param::W => (p.w.to_array().into(), initial.w.to_array().into()),
-                Param::X => (p.x.to_array().into(), initial.x.to_array().into()),
-                Param::Q => (p.q.to_array().into(), initial.q.to_array().into()),
+        let wxyz = |q: Rotation| vec![q.w, q.x, q.y, q.z];
+        for param in Param::ALL {
+            let (value, scene) = match param {
+                Param::V => (p.v.to_array().to_vec(), initial.v.to_array().to_vec()),
+                Param::W => (p.w.to_array().to_vec(), initial.w.to_array().to_vec()),
+                Param::X => (p.x.to_array().to_vec(), initial.x.to_array().to_vec()),
+                Param::Q => (wxyz(p.q), wxyz(initial.q)),
             };
             if !value.iter().all(|x| x.is_finite()) {
-                return Err(format!("{key}.{name} is {value:?}: not finite"));
+                return Err(format!("{key}.{param} is {value:?}: not finite"));
             }
-            if param == Param::Q && (p.q.length() - 1.0).abs() > 1e-9 {
-                return Err(format!("{key}.{name} is {value:?}: not a unit quaternion"));
-            }
-            if !self.params.contains(&param) && value != scene {
+            let same = match param {
+                Param::Q => p.q.dot(initial.q).abs() >= 1.0 - 1e-12,
+                _ => {
+                    value.iter().zip(&scene).all(|(a, b)| (a - b).abs() <= 1e-12 * b.abs().max(1.0))
+                }
+            };
+            if !self.params.contains(&param) && !same {
                 return Err(format!(
-                    "{key}.{name} is {value:?}, not the scene's {scene:?} ({name} is not optimised)"
+                    "{key}.{param} is {value:?}, not the scene's {scene:?} ({param} is not \
+                     optimised)"
                 ));
             }
         }
