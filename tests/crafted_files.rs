@@ -363,7 +363,7 @@ fn crafted_summaries_are_refused() {
     }
     let tall = r#"{"scene": "s", "grid": [1, 100000000, 1], "dx": 0.05, "dt": 0.01}"#;
     let dir = run_folder("summary_tall", tall, &frame);
-    assert_refused(&render(&dir), &["taller than wide", "at most 8192"]);
+    assert_refused(&render(&dir), &["pixels"]);
 }
 
 // ---------------------------------------------------------------------------------------
