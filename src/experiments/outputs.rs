@@ -210,7 +210,8 @@ pub struct RenderRequest {
 /// file written and the number of frames drawn.
 pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::PathBuf, usize)> {
     let fail = |path: &Path, message: String| Error::Read { path: path.to_path_buf(), message };
-    let RunSummary { name, domain, dt } = RunSummary::read(&dir.join("summary.json"))?;
+    let summary_path = dir.join("summary.json");
+    let RunSummary { name, domain, dt } = RunSummary::read(&summary_path)?;
     // The surface frames by step.
     let surface = dir.join("surface");
     let mut frames: Vec<(usize, std::path::PathBuf)> = std::fs::read_dir(&surface)
@@ -234,6 +235,8 @@ pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::Pat
     if frames.is_empty() {
         return Err(fail(&surface, "no surface frames (NNNN.ply or NNNN.obj)".into()));
     }
+    // A summary can describe a tank of any shape: its picture must still fit in memory.
+    picture_height(domain, request.view, request.width.max(64))?;
     let body_files: Vec<std::path::PathBuf> = std::fs::read_dir(dir.join("bodies"))
         .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).collect())
         .unwrap_or_default();
@@ -254,7 +257,8 @@ pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::Pat
     }
     let width = request.width.max(64);
     // The plot's margins and caption take about 60 pixels around the tank's side.
-    let height = picture_height(domain, request.view, width)?;
+    let up = request.view.extent(domain).1;
+    let height = ((width as f64 - 45.0) * up / domain.x + 60.0).round() as u32;
     let out = match (&request.out, request.frame) {
         (Some(p), _) => p.clone(),
         (None, Some(n)) => dir.join(format!("render_{n:04}.png")),
