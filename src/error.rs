@@ -101,6 +101,16 @@ pub enum Error {
         /// Why.
         message: String,
     },
+    /// A checkpoint to resume from that cannot be read, is not one, or does not fit the
+    /// scene being resumed (another scene, changed settings, a state of another optimiser or
+    /// of the wrong size, a history that does not add up).
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, naming the checkpoint's key.
+        message: String,
+    },
     /// Writing an output failed.
     #[error("cannot write {path}: {source}")]
     Write {

@@ -68,6 +68,26 @@ def test_missing_file_is_file_not_found(tmp_path):
         diffluid.Scene.from_file(tmp_path / "missing.toml")
 
 
+@pytest.mark.parametrize("special", ["/dev/zero", "fifo"])
+def test_mesh_paths_that_are_not_regular_files_are_refused(tmp_path, small_toml, special):
+    """A body's mesh that is /dev/zero used to be read until memory ran out, and a FIFO
+    with no writer waited for ever, also through Scene.from_json (issue 39): both are
+    refused as not regular files."""
+    if special == "fifo":
+        special = str(tmp_path / "mesh.obj")
+        os.mkfifo(special)
+    cube = str(ROOT / "assets" / "meshes" / "cube.obj")
+    ball = 'shape = { kind = "ball", radius = 0.06 }'
+    assert ball in small_toml
+    text = small_toml.replace(ball, f'shape = {{ kind = "mesh", obj = "{cube}", scale = 0.5 }}')
+    good = diffluid.Scene.from_toml(text, origin="mesh.toml").to_json()
+    assert cube in good
+    with pytest.raises(ValueError, match="not a regular file"):
+        diffluid.Scene.from_json(good.replace(cube, special))
+    with pytest.raises(ValueError, match="not a regular file"):
+        diffluid.Scene.from_toml(text.replace(cube, special), origin="mesh.toml")
+
+
 CLI = os.environ.get("DIFFLUID_CLI")
 
 

@@ -36,7 +36,12 @@ impl Optimization {
         });
         let restored = match &ck.optimizer {
             OptimizerState::Lbfgs { solver, state } => {
-                Some((from_toml::<LbfgsSolver>(solver)?, from_toml::<LbfgsState>(state)?))
+                let read = from_toml::<LbfgsSolver>(solver)
+                    .and_then(|s| Ok((s, from_toml::<LbfgsState>(state)?)));
+                Some(read.map_err(|message| Error::Checkpoint {
+                    path: ck.source.clone().unwrap_or_default(),
+                    message,
+                })?)
             }
             _ => None,
         };
@@ -155,6 +160,141 @@ impl Optimization {
     }
 }
 
+impl Optimization {
+    /// The L-BFGS part of [`Optimization::check_checkpoint`]: argmin's iteration state holds
+    /// finite parameters and gradient of the problem's size, at iteration `next_epoch`, not
+    /// terminated, the same parameters as the checkpoint's; the solver holds at most `memory`
+    /// finite correction pairs of that size and is otherwise configured exactly as the
+    /// scene's L-BFGS (memory, tolerances, line search).
+    pub(super) fn check_lbfgs(
+        &self,
+        solver: &str,
+        state: &str,
+        c: &Checkpoint,
+    ) -> std::result::Result<(), String> {
+        let n = 3 * self.params.len();
+        let vector = |key: &str, x: Option<&Vector>| -> std::result::Result<(), String> {
+            match x {
+                None => Err(format!("{key} is missing")),
+                Some(x) if x.len() != n => {
+                    Err(format!("{key} has {} numbers; the scene optimises {n}", x.len()))
+                }
+                Some(x) if !x.iter().all(|a| a.is_finite()) => Err(format!("{key} is not finite")),
+                Some(_) => Ok(()),
+            }
+        };
+
+        let key = "optimizer.Lbfgs.state";
+        let st: LbfgsState = toml::from_str(state)
+            .map_err(|e| format!("{key}: not argmin's L-BFGS state: {}", one_line(&e)))?;
+        vector(&format!("{key}: param"), st.get_param())?;
+        vector(&format!("{key}: grad"), st.get_gradient())?;
+        for (name, x) in [
+            ("best_param", st.get_best_param()),
+            ("prev_param", st.get_prev_param()),
+            ("prev_best_param", st.get_prev_best_param()),
+        ] {
+            if x.is_some() {
+                vector(&format!("{key}: {name}"), x)?;
+            }
+        }
+        if !st.get_cost().is_finite() {
+            return Err(format!("{key}: cost is {}", st.get_cost()));
+        }
+        if st.get_iter() != c.next_epoch as u64 {
+            return Err(format!(
+                "{key}: iter is {}, but next_epoch is {}",
+                st.get_iter(),
+                c.next_epoch
+            ));
+        }
+        if st.terminated() {
+            return Err(format!("{key}: the run it holds has ended"));
+        }
+        let at = self.from_vector(st.get_param().expect("checked"));
+        if at != c.params {
+            return Err(format!("params are not those of {key} (its param)"));
+        }
+
+        let key = "optimizer.Lbfgs.solver";
+        let unreadable =
+            |e: toml::de::Error| format!("{key}: not argmin's L-BFGS: {}", one_line(&e));
+        let mut saved: toml::Table = toml::from_str(solver).map_err(unreadable)?;
+        let mut fresh: toml::Table =
+            toml::from_str(&to_toml(&new_lbfgs(&self.optimizer).map_err(|e| e.to_string())?))
+                .expect("argmin's solver reads back");
+        let memory = fresh.get("m").and_then(toml::Value::as_integer).unwrap_or(0);
+        let mut pairs = [0, 0];
+        for (k, name) in ["s", "y"].into_iter().enumerate() {
+            fresh.remove(name);
+            let Some(list) = saved.remove(name) else {
+                return Err(format!("{key}: {name} is missing"));
+            };
+            let vectors: Vec<Vector> =
+                list.try_into().map_err(|_| format!("{key}: {name} is not a list of vectors"))?;
+            for v in &vectors {
+                vector(&format!("{key}: {name}"), Some(v))?;
+            }
+            pairs[k] = vectors.len();
+        }
+        if pairs[0] != pairs[1] || pairs[0] as i64 > memory {
+            return Err(format!(
+                "{key}: s and y hold {} and {} correction pairs (the same number, at most \
+                 memory = {memory}, expected)",
+                pairs[0], pairs[1]
+            ));
+        }
+        let search = |t: &mut toml::Table| {
+            t.get_mut("linesearch")
+                .and_then(toml::Value::as_table_mut)
+                .and_then(|l| l.remove("search_direction"))
+        };
+        if let Some(d) = search(&mut saved) {
+            let d: Vector = d
+                .try_into()
+                .map_err(|_| format!("{key}: linesearch.search_direction is not a vector"))?;
+            vector(&format!("{key}: linesearch.search_direction"), Some(&d))?;
+        }
+        search(&mut fresh);
+        if let Some((name, was, now)) = table_difference("", &saved, &fresh) {
+            return Err(format!("{key}: {name} is {was}; the scene's L-BFGS has {now}"));
+        }
+        // What is left is checked: argmin reads it back.
+        from_toml::<LbfgsSolver>(solver).map_err(|e| format!("{key}: {e}"))?;
+        Ok(())
+    }
+}
+
+/// A toml error's message on one line.
+fn one_line(e: &toml::de::Error) -> String {
+    e.message().trim().replace('\n', " ")
+}
+
+/// The first dotted key at which two TOML tables differ (compared as TOML text, so NaN
+/// equals NaN), with both values.
+fn table_difference(
+    path: &str,
+    a: &toml::Table,
+    b: &toml::Table,
+) -> Option<(String, String, String)> {
+    let mut keys: Vec<&String> = a.keys().chain(b.keys()).collect();
+    keys.sort();
+    keys.dedup();
+    keys.into_iter().find_map(|k| {
+        let p = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+        match (a.get(k), b.get(k)) {
+            (Some(toml::Value::Table(x)), Some(toml::Value::Table(y))) => {
+                table_difference(&p, x, y)
+            }
+            (x, y) => {
+                let text = |v: Option<&toml::Value>| v.map_or("nothing".into(), |v| v.to_string());
+                let (x, y) = (text(x), text(y));
+                (x != y).then_some((p, x, y))
+            }
+        }
+    })
+}
+
 type Vector = Vec<f64>;
 type LbfgsState = IterState<Vector, Vector, (), (), (), f64>;
 
@@ -180,11 +320,9 @@ fn to_toml<T: Serialize>(x: &T) -> String {
     toml::to_string(x).expect("argmin's state serialises")
 }
 
-fn from_toml<T: serde::de::DeserializeOwned>(text: &str) -> Result<T> {
-    toml::from_str(text).map_err(|e| Error::InvalidScene {
-        origin: "checkpoint".into(),
-        message: format!("L-BFGS state unreadable: {e}"),
-    })
+/// argmin's state read back from a checkpoint; [`Optimization::check_lbfgs`] has checked it.
+fn from_toml<T: serde::de::DeserializeOwned>(text: &str) -> std::result::Result<T, String> {
+    toml::from_str(text).map_err(|e| format!("L-BFGS state unreadable: {}", one_line(&e)))
 }
 
 /// The loss as argmin sees it. The line searches ask for the loss and then the gradient at

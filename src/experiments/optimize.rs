@@ -25,7 +25,7 @@ use crate::math::{so3, Rotation, Vec3};
 use crate::world::Simulation;
 use serde::{Deserialize, Serialize};
 use std::ops::ControlFlow;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// One epoch of the history.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -71,6 +71,26 @@ pub enum OptimizerState {
     },
 }
 
+/// The optimiser of `spec`, in words.
+fn spec_kind(spec: &OptimizerSpec) -> &'static str {
+    match spec {
+        OptimizerSpec::Gd { .. } => "gradient descent",
+        OptimizerSpec::Adam { .. } => "Adam",
+        OptimizerSpec::Lbfgs { .. } => "L-BFGS",
+    }
+}
+
+impl OptimizerState {
+    /// The optimiser that keeps this state, in words.
+    fn kind(&self) -> &'static str {
+        match self {
+            OptimizerState::Gd => "gradient descent",
+            OptimizerState::Adam { .. } => "Adam",
+            OptimizerState::Lbfgs { .. } => "L-BFGS",
+        }
+    }
+}
+
 /// Everything needed to continue a run: written after every epoch.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Checkpoint {
@@ -91,6 +111,9 @@ pub struct Checkpoint {
     /// see [`Optimization::fingerprint`]); absent in checkpoints of older versions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub settings: Option<serde_json::Value>,
+    /// The file it was read from ([`Checkpoint::load`]), which errors name; not saved.
+    #[serde(skip)]
+    pub source: Option<PathBuf>,
 }
 
 /// [`Outcome::stopped`] of a run its caller ended after epoch `epoch`'s record.
@@ -122,14 +145,16 @@ fn first_difference(
 }
 
 impl Checkpoint {
-    /// Reads a checkpoint.
+    /// Reads a checkpoint (a regular file of at most
+    /// [`MAX_INPUT_BYTES`](crate::math::input::MAX_INPUT_BYTES)). Whether it fits the scene
+    /// is checked when a run resumes from it ([`Optimization::check_checkpoint`]).
     pub fn load(path: &Path) -> Result<Checkpoint> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| Error::ReadScene { path: path.to_path_buf(), source })?;
-        serde_json::from_str(&text).map_err(|e| Error::InvalidScene {
-            origin: path.display().to_string(),
-            message: format!("not a diffluid checkpoint: {e}"),
-        })
+        let fail = |message: String| Error::Checkpoint { path: path.to_path_buf(), message };
+        let text = crate::math::input::read_text(path).map_err(|e| fail(e.to_string()))?;
+        let mut ck: Checkpoint = serde_json::from_str(&text)
+            .map_err(|e| fail(format!("not a diffluid checkpoint: {e}")))?;
+        ck.source = Some(path.to_path_buf());
+        Ok(ck)
     }
 
     /// Writes it atomically (write, then rename) and durably (fsync of the file and its
@@ -341,6 +366,137 @@ impl Optimization {
         out
     }
 
+    /// Whether `c` is a checkpoint of this problem that a run can resume from: the same scene
+    /// and settings (when the checkpoint holds them: older ones do not), a history of
+    /// `next_epoch` epochs numbered in order, finite parameters that differ from the scene's
+    /// only where they are optimised, and the optimiser's own state, of the right size (for
+    /// L-BFGS, argmin's solver and iteration state, configured as the scene says). The error
+    /// names the checkpoint's key.
+    pub fn check_checkpoint(&self, c: &Checkpoint) -> std::result::Result<(), String> {
+        if c.scene != self.scene.name {
+            return Err(format!(
+                "written for scene {:?}, not {:?}: resume the scene that wrote it",
+                c.scene, self.scene.name
+            ));
+        }
+        if let Some(saved) = &c.settings {
+            if let Some((key, was, now)) = first_difference("", saved, &self.fingerprint()) {
+                return Err(format!(
+                    "cannot resume: {key} was {was} when the checkpoint was written and is \
+                     {now} now"
+                ));
+            }
+        }
+        if c.history.len() != c.next_epoch {
+            return Err(format!(
+                "next_epoch is {} but the history holds {} epochs",
+                c.next_epoch,
+                c.history.len()
+            ));
+        }
+        let mut evaluations = 0;
+        for (i, r) in c.history.iter().enumerate() {
+            if r.epoch != i {
+                return Err(format!("history[{i}].epoch is {}, not {i}", r.epoch));
+            }
+            if !(r.loss.is_finite() && r.grad_norm.is_finite() && r.grad_norm >= 0.0) {
+                return Err(format!(
+                    "history[{i}]: loss {} and grad_norm {} must be finite",
+                    r.loss, r.grad_norm
+                ));
+            }
+            if r.evaluations < evaluations || r.evaluations > c.evaluations {
+                return Err(format!(
+                    "history[{i}].evaluations is {}: the counts must grow and end at most at \
+                     evaluations ({})",
+                    r.evaluations, c.evaluations
+                ));
+            }
+            evaluations = r.evaluations;
+            self.check_params(&r.params, &format!("history[{i}].params"))?;
+        }
+        self.check_params(&c.params, "params")?;
+        let lbfgs = matches!(self.optimizer, OptimizerSpec::Lbfgs { .. });
+        // L-BFGS before its first iteration has no state of its own.
+        let unstarted = lbfgs && c.next_epoch == 0 && c.optimizer == OptimizerState::Gd;
+        if c.optimizer.kind() != spec_kind(&self.optimizer) && !unstarted {
+            return Err(format!(
+                "it holds {} state, but the scene optimises with {}",
+                c.optimizer.kind(),
+                spec_kind(&self.optimizer)
+            ));
+        }
+        // Gradient descent and Adam evaluate once an epoch (older checkpoints count none).
+        if !lbfgs && c.evaluations != 0 && c.evaluations != c.next_epoch {
+            return Err(format!(
+                "evaluations is {}, but {} epochs took one each",
+                c.evaluations, c.next_epoch
+            ));
+        }
+        let n = 3 * self.params.len();
+        match &c.optimizer {
+            OptimizerState::Gd => Ok(()),
+            OptimizerState::Adam { m, v, t } => {
+                for (key, x) in [("m", m), ("v", v)] {
+                    if x.len() != n {
+                        return Err(format!(
+                            "optimizer.Adam.{key} has {} numbers; the scene optimises {n}",
+                            x.len()
+                        ));
+                    }
+                    let bad = |a: &&f64| !a.is_finite() || (key == "v" && **a < 0.0);
+                    if let Some(a) = x.iter().find(bad) {
+                        return Err(format!("optimizer.Adam.{key} holds {a}"));
+                    }
+                }
+                if *t != c.next_epoch as u64 {
+                    return Err(format!(
+                        "optimizer.Adam.t is {t}, but {} steps were taken",
+                        c.next_epoch
+                    ));
+                }
+                Ok(())
+            }
+            #[cfg(feature = "lbfgs")]
+            OptimizerState::Lbfgs { solver, state } => self.check_lbfgs(solver, state, c),
+            #[cfg(not(feature = "lbfgs"))]
+            OptimizerState::Lbfgs { .. } => {
+                Err("L-BFGS state needs diffluid's `lbfgs` feature (argmin)".into())
+            }
+        }
+    }
+
+    /// Parameters `key` of a checkpoint: finite, and the scene's initial values where they
+    /// are not optimised (to round-off: 1e-12 relative, an orientation within 3e-6 rad).
+    fn check_params(&self, p: &BodyState, key: &str) -> std::result::Result<(), String> {
+        let initial = self.initial_params();
+        let wxyz = |q: Rotation| vec![q.w, q.x, q.y, q.z];
+        for param in Param::ALL {
+            let (value, scene) = match param {
+                Param::V => (p.v.to_array().to_vec(), initial.v.to_array().to_vec()),
+                Param::W => (p.w.to_array().to_vec(), initial.w.to_array().to_vec()),
+                Param::X => (p.x.to_array().to_vec(), initial.x.to_array().to_vec()),
+                Param::Q => (wxyz(p.q), wxyz(initial.q)),
+            };
+            if !value.iter().all(|x| x.is_finite()) {
+                return Err(format!("{key}.{param} is {value:?}: not finite"));
+            }
+            let same = match param {
+                Param::Q => p.q.dot(initial.q).abs() >= 1.0 - 1e-12,
+                _ => {
+                    value.iter().zip(&scene).all(|(a, b)| (a - b).abs() <= 1e-12 * b.abs().max(1.0))
+                }
+            };
+            if !self.params.contains(&param) && !same {
+                return Err(format!(
+                    "{key}.{param} is {value:?}, not the scene's {scene:?} ({param} is not \
+                     optimised)"
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Runs the remaining epochs, from `resume` or from the start, writing a checkpoint to
     /// `checkpoint` after every epoch. `on_epoch` sees each record as it is made.
     pub fn run(
@@ -366,33 +522,10 @@ impl Optimization {
     ) -> Result<Outcome> {
         let ck = match resume {
             Some(c) => {
-                if c.scene != self.scene.name {
-                    return Err(Error::InvalidScene {
-                        origin: self.scene.name.clone(),
-                        message: format!("the checkpoint is for scene {:?}", c.scene),
-                    });
-                }
-                if let Some(saved) = &c.settings {
-                    if let Some((key, was, now)) = first_difference("", saved, &self.fingerprint())
-                    {
-                        return Err(Error::InvalidScene {
-                            origin: self.scene.name.clone(),
-                            message: format!(
-                                "cannot resume: {key} was {was} when the checkpoint was written \
-                                 and is {now} now"
-                            ),
-                        });
-                    }
-                }
-                let lbfgs_state = matches!(c.optimizer, OptimizerState::Lbfgs { .. });
-                let lbfgs = matches!(self.optimizer, OptimizerSpec::Lbfgs { .. });
-                let fresh = c.next_epoch == 0 && c.history.is_empty();
-                if lbfgs_state != lbfgs && !fresh {
-                    return Err(Error::InvalidScene {
-                        origin: self.scene.name.clone(),
-                        message: "the checkpoint was written by another optimiser".into(),
-                    });
-                }
+                self.check_checkpoint(&c).map_err(|message| Error::Checkpoint {
+                    path: c.source.clone().unwrap_or_else(|| "(not read from a file)".into()),
+                    message,
+                })?;
                 c
             }
             None => Checkpoint {
@@ -403,6 +536,7 @@ impl Optimization {
                 history: Vec::new(),
                 evaluations: 0,
                 settings: Some(self.fingerprint()),
+                source: None,
             },
         };
         match &self.optimizer {

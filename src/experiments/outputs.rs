@@ -211,21 +211,7 @@ pub struct RenderRequest {
 pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::PathBuf, usize)> {
     let fail = |path: &Path, message: String| Error::Read { path: path.to_path_buf(), message };
     let summary_path = dir.join("summary.json");
-    let text = std::fs::read_to_string(&summary_path)
-        .map_err(|e| fail(&summary_path, format!("{e} (not a folder `diffluid run` wrote?)")))?;
-    let summary: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| fail(&summary_path, e.to_string()))?;
-    let grid: Vec<f64> = summary["grid"]
-        .as_array()
-        .map(|a| a.iter().filter_map(|n| n.as_f64()).collect())
-        .unwrap_or_default();
-    let (Some(dx), Some(dt), [nx, ny, nz]) =
-        (summary["dx"].as_f64(), summary["dt"].as_f64(), grid.as_slice())
-    else {
-        return Err(fail(&summary_path, "no grid, dx and dt".into()));
-    };
-    let domain = Vec3::new(nx * dx, ny * dx, nz * dx);
-    let name = summary["scene"].as_str().unwrap_or("run").to_string();
+    let RunSummary { name, domain, dt } = RunSummary::read(&summary_path)?;
     // The surface frames by step.
     let surface = dir.join("surface");
     let mut frames: Vec<(usize, std::path::PathBuf)> = std::fs::read_dir(&surface)
@@ -249,6 +235,8 @@ pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::Pat
     if frames.is_empty() {
         return Err(fail(&surface, "no surface frames (NNNN.ply or NNNN.obj)".into()));
     }
+    // A summary can describe a tank of any shape: its picture must still fit in memory.
+    picture_height(domain, request.view, request.width.max(64))?;
     let body_files: Vec<std::path::PathBuf> = std::fs::read_dir(dir.join("bodies"))
         .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).collect())
         .unwrap_or_default();
@@ -286,6 +274,73 @@ pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::Pat
         }
     }
     Ok((out, drawn.len()))
+}
+
+/// The tallest picture `render` draws, in pixels: a tank much taller than wide (or deep, from
+/// above) would otherwise ask for a picture of any size.
+pub const MAX_PICTURE_HEIGHT: u32 = 8192;
+
+/// What `render` reads of a run's `summary.json`: the scene's name, the tank's extent and
+/// the step.
+struct RunSummary {
+    name: String,
+    domain: Vec3,
+    dt: f64,
+}
+
+impl RunSummary {
+    /// Reads and checks `summary.json`: three whole positive cell counts, a positive dx and dt,
+    /// a finite tank.
+    fn read(path: &Path) -> Result<RunSummary> {
+        let fail = |message: String| Error::Read { path: path.to_path_buf(), message };
+        let text = crate::math::input::read_text(path)
+            .map_err(|e| fail(format!("{e} (not a folder `diffluid run` wrote?)")))?;
+        let summary: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| fail(e.to_string()))?;
+        let grid: Option<Vec<u64>> = summary["grid"]
+            .as_array()
+            .and_then(|a| a.iter().map(serde_json::Value::as_u64).collect());
+        let (Some(dx), Some(dt), Some(grid)) =
+            (summary["dx"].as_f64(), summary["dt"].as_f64(), grid)
+        else {
+            return Err(fail("no grid, dx and dt".into()));
+        };
+        let [nx, ny, nz] = grid[..] else {
+            return Err(fail(format!("grid {grid:?}: three cell counts expected")));
+        };
+        if grid.contains(&0) {
+            return Err(fail(format!("grid {grid:?}: every axis needs at least one cell")));
+        }
+        if !(dx.is_finite() && dx > 0.0 && dt.is_finite() && dt > 0.0) {
+            return Err(fail(format!("dx {dx} and dt {dt} must be positive")));
+        }
+        let domain = Vec3::new(nx as f64, ny as f64, nz as f64) * dx;
+        if !domain.is_finite() {
+            return Err(fail(format!("a tank of {grid:?} cells of {dx} m is not finite")));
+        }
+        let name = summary["scene"].as_str().unwrap_or("run").to_string();
+        Ok(RunSummary { name, domain, dt })
+    }
+}
+
+/// The height of a picture `width` pixels wide of a tank of extent `domain` seen from
+/// `view`: the tank's aspect in the view, and about 60 pixels for the plot's margins and
+/// caption. At most [`MAX_PICTURE_HEIGHT`].
+fn picture_height(domain: Vec3, view: View, width: u32) -> Result<u32> {
+    let (right, up) = view.extent(domain);
+    let height = ((width as f64 - 45.0) * up / right + 60.0).round();
+    if height.is_nan() || height > MAX_PICTURE_HEIGHT as f64 {
+        return Err(Error::InvalidSettings {
+            key: "render".into(),
+            message: format!(
+                "the tank is {:.0} times taller than wide in this view: a picture {width} \
+                 pixels wide would be {height} high (at most {MAX_PICTURE_HEIGHT}); give a \
+                 smaller --width or the other --view",
+                up / right
+            ),
+        });
+    }
+    Ok(height as u32)
 }
 
 /// The smoothness study's two charts: the spread of the central differences over ε

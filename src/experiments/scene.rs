@@ -528,7 +528,7 @@ fn problem(key: impl Into<String>, message: impl Into<String>) -> Problem {
 impl Scene {
     /// Reads and validates a scene file.
     pub fn from_file(path: &Path) -> Result<Scene> {
-        let text = std::fs::read_to_string(path)
+        let text = crate::math::input::read_text(path)
             .map_err(|source| Error::ReadScene { path: path.to_path_buf(), source })?;
         let base = path.parent().map(Path::to_path_buf).unwrap_or_default();
         Scene::from_toml_in(&text, &path.display().to_string(), base)

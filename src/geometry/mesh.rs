@@ -183,7 +183,7 @@ fn shipped_mesh(path: &Path) -> Option<&'static [u8]> {
 fn read_obj(path: &Path) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
     let name = path.display();
     // Read the file ourselves: tobj only says "open file failed", not why.
-    let bytes = match std::fs::read(path) {
+    let bytes = match crate::math::input::read_file(path) {
         Ok(bytes) => Cow::Owned(bytes),
         Err(e) => Cow::Borrowed(
             shipped_mesh(path).ok_or_else(|| format!("cannot read mesh {name}: {e}"))?,
@@ -255,18 +255,25 @@ impl ClosedMesh {
             return Err(format!("has a zero-area triangle (number {}, corners collinear)", n + 1));
         }
 
-        // Every undirected edge in exactly two triangles, every directed edge once.
-        let mut undirected: HashMap<(u32, u32), u32> = HashMap::new();
-        let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
-        for t in &tris {
-            for k in 0..3 {
-                let (a, b) = (t[k], t[(k + 1) % 3]);
-                *undirected.entry((a.min(b), a.max(b))).or_insert(0) += 1;
-                *directed.entry((a, b)).or_insert(0) += 1;
-            }
+        // Every undirected edge in exactly two triangles, every directed edge once: the
+        // edges as (low, high, whether written low to high), sorted, so that the copies of
+        // an undirected edge are a run.
+        let mut edges: Vec<(u32, u32, bool)> = tris
+            .iter()
+            .flat_map(|t| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])])
+            .map(|(a, b)| (a.min(b), a.max(b), a < b))
+            .collect();
+        {
+            use rayon::slice::ParallelSliceMut;
+            edges.par_sort_unstable();
         }
-        let boundary = undirected.values().filter(|&&n| n == 1).count();
-        let non_manifold = undirected.values().filter(|&&n| n > 2).count();
+        let (mut boundary, mut non_manifold, mut twice) = (0, 0, 0);
+        for run in edges.chunk_by(|x, y| (x.0, x.1) == (y.0, y.1)) {
+            boundary += (run.len() == 1) as usize;
+            non_manifold += (run.len() > 2) as usize;
+            let forward = run.iter().filter(|e| e.2).count();
+            twice += (forward > 1) as usize + (run.len() - forward > 1) as usize;
+        }
         if boundary > 0 || non_manifold > 0 {
             let mut parts = Vec::new();
             if boundary > 0 {
@@ -292,7 +299,6 @@ impl ClosedMesh {
                 parts.join(" and ")
             ));
         }
-        let twice = directed.values().filter(|&&n| n > 1).count();
         if twice > 0 {
             return Err(format!(
                 "has inconsistent orientation: {twice} directed edge{} appear{} twice \
@@ -479,21 +485,37 @@ fn winding(vertices: &[Vec3], shell: &[[u32; 3]], p: Vec3) -> f64 {
 /// nested with the same orientation, or a loose shell turned inside out, make parry's
 /// inside/outside and the mass properties wrong.
 fn check_shells(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String> {
+    shell_nesting(vertices, tris).0
+}
+
+/// [`check_shells`], and the work it took: the triangles whose solid angle it summed.
+///
+/// A shell's depth is the number of other shells whose winding number at one of its
+/// vertices is ±1. A closed shell's winding number is 0 outside its bounding box, so only
+/// the shells whose box holds the vertex are summed over: a BVH of the shells' boxes
+/// (parry's) finds them, and disjoint shells cost one pass over the triangles in all
+/// instead of one per pair of shells.
+fn shell_nesting(vertices: &[Vec3], tris: &[[u32; 3]]) -> (Result<(), String>, usize) {
+    use parry3d_f64::bounding_volume::Aabb;
+    use parry3d_f64::partitioning::{Bvh, BvhBuildStrategy};
     let mut sets = Sets::new(vertices.len());
     for t in tris {
         sets.join(t[0] as usize, t[1] as usize);
         sets.join(t[1] as usize, t[2] as usize);
     }
-    let mut shells: Vec<(usize, Vec<[u32; 3]>)> = Vec::new();
+    // Shells numbered in order of their first triangle.
+    let mut number: HashMap<usize, usize> = HashMap::new();
+    let mut shells: Vec<Vec<[u32; 3]>> = Vec::new();
     for t in tris {
         let root = sets.find(t[0] as usize);
-        match shells.iter_mut().find(|(r, _)| *r == root) {
-            Some((_, s)) => s.push(*t),
-            None => shells.push((root, vec![*t])),
-        }
+        let k = *number.entry(root).or_insert_with(|| {
+            shells.push(Vec::new());
+            shells.len() - 1
+        });
+        shells[k].push(*t);
     }
     if shells.len() < 2 {
-        return Ok(());
+        return (Ok(()), 0);
     }
     let signed = |s: &[[u32; 3]]| -> f64 {
         s.iter()
@@ -504,67 +526,92 @@ fn check_shells(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String> {
             .sum::<f64>()
             / 6.0
     };
-    let volumes: Vec<f64> = shells.iter().map(|(_, s)| signed(s)).collect();
+    let volumes: Vec<f64> = shells.iter().map(|s| signed(s)).collect();
     let outermost = (0..shells.len())
         .max_by(|&a, &b| volumes[a].abs().total_cmp(&volumes[b].abs()))
         .expect("two shells");
     let whole = volumes[outermost].signum();
-    for (i, (_, shell)) in shells.iter().enumerate() {
+    let boxes: Vec<Aabb> = shells
+        .iter()
+        .map(|s| Aabb::from_points(s.iter().flatten().map(|&i| vertices[i as usize])))
+        .collect();
+    let bvh = Bvh::from_leaves(BvhBuildStrategy::Binned, &boxes);
+    let mut work = 0;
+    for (i, shell) in shells.iter().enumerate() {
         let p = vertices[shell[0][0] as usize];
-        let depth = shells
-            .iter()
-            .enumerate()
-            .filter(|(j, (_, other))| *j != i && winding(vertices, other, p).abs() > 0.5)
-            .count();
+        let at = Aabb::new(p, p);
+        let mut depth = 0;
+        for j in bvh.intersect_aabb(&at).map(|j| j as usize).filter(|&j| j != i) {
+            work += shells[j].len();
+            if winding(vertices, &shells[j], p).abs() > 0.5 {
+                depth += 1;
+            }
+        }
         let expected = if depth % 2 == 0 { whole } else { -whole };
         if volumes[i].signum() != expected {
-            return Err(format!(
-                "has {} shells and shell {} (inside {depth} other{}) faces the wrong way:                  nested shells must alternate in orientation",
+            let message = format!(
+                "has {} shells and shell {} (inside {depth} other{}) faces the wrong way: \
+                 nested shells must alternate in orientation",
                 shells.len(),
                 i + 1,
                 plural(depth)
-            ));
+            );
+            return (Err(message), work);
         }
     }
-    Ok(())
+    (Ok(()), work)
 }
 
-/// No two triangles that share no vertex may intersect. A sweep over the triangles'
-/// bounding boxes along x finds the candidate pairs; parry's intersection test decides.
+/// No two triangles that share no vertex may intersect.
 fn check_self_intersections(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String> {
+    match first_crossing(vertices, tris).0 {
+        None => Ok(()),
+        Some((i, j)) => Err(format!("intersects itself (triangles {} and {} cross)", i + 1, j + 1)),
+    }
+}
+
+/// The first pair of triangles (i < j, by i then j) that share no vertex and intersect, and
+/// the work it took: the pairs whose bounding boxes touch, each tested. A BVH of the
+/// triangles' boxes (parry's) finds each triangle's candidates; parry's intersection test
+/// decides. The triangles are taken in parallel, and the first pair in order is kept.
+fn first_crossing(vertices: &[Vec3], tris: &[[u32; 3]]) -> (Option<(usize, usize)>, usize) {
+    use parry3d_f64::bounding_volume::Aabb;
+    use parry3d_f64::partitioning::{Bvh, BvhBuildStrategy};
     use parry3d_f64::shape::Triangle;
+    use rayon::prelude::*;
+    use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
     let shapes: Vec<Triangle> = tris
         .iter()
         .map(|t| {
             Triangle::new(vertices[t[0] as usize], vertices[t[1] as usize], vertices[t[2] as usize])
         })
         .collect();
-    let boxes: Vec<(Vec3, Vec3)> =
-        shapes.iter().map(|s| (s.a.min(s.b).min(s.c), s.a.max(s.b).max(s.c))).collect();
-    let mut order: Vec<usize> = (0..tris.len()).collect();
-    order.sort_by(|&a, &b| boxes[a].0.x.total_cmp(&boxes[b].0.x));
+    let boxes: Vec<Aabb> = shapes.iter().map(Triangle::local_aabb).collect();
+    let bvh = Bvh::from_leaves(BvhBuildStrategy::Binned, &boxes);
     let identity = crate::math::Pose::IDENTITY;
-    for (k, &i) in order.iter().enumerate() {
-        for &j in &order[k + 1..] {
-            if boxes[j].0.x > boxes[i].1.x {
-                break;
-            }
-            let overlap = boxes[i].0.cmple(boxes[j].1).all() && boxes[j].0.cmple(boxes[i].1).all();
-            if !overlap || tris[i].iter().any(|v| tris[j].contains(v)) {
-                continue;
-            }
-            if parry3d_f64::query::intersection_test(&identity, &shapes[i], &identity, &shapes[j])
-                .is_ok_and(|hit| hit.intersecting)
-            {
-                return Err(format!(
-                    "intersects itself (triangles {} and {} cross)",
-                    i.min(j) + 1,
-                    i.max(j) + 1
-                ));
-            }
-        }
-    }
-    Ok(())
+    let work = AtomicUsize::new(0);
+    let first = (0..tris.len())
+        .into_par_iter()
+        .with_min_len(crate::math::par::MIN_LEN)
+        .find_map_first(|i| {
+            let mut candidates: Vec<usize> = bvh
+                .intersect_aabb(&boxes[i])
+                .map(|j| j as usize)
+                .filter(|&j| j > i && !tris[i].iter().any(|v| tris[j].contains(v)))
+                .collect();
+            work.fetch_add(candidates.len(), Relaxed);
+            candidates.sort_unstable();
+            candidates
+                .into_iter()
+                .find(|&j| {
+                    parry3d_f64::query::intersection_test(
+                        &identity, &shapes[i], &identity, &shapes[j],
+                    )
+                    .is_ok_and(|hit| hit.intersecting)
+                })
+                .map(|j| (i, j))
+        });
+    (first, work.into_inner())
 }
 
 fn plural(n: usize) -> &'static str {
@@ -1086,5 +1133,215 @@ mod tests {
         assert!(t.iter().flatten().all(|&i| (i as usize) < v.len()));
         let (v, t) = surface_mesh(&SharedShape::halfspace(Vec3::Y));
         assert!(v.is_empty() && t.is_empty());
+    }
+
+    /// A seeded generator (xorshift64*), so that the random meshes are the same every run.
+    struct Rng(u64);
+
+    impl Rng {
+        fn unit(&mut self) -> f64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 / (1u64 << 53) as f64
+        }
+        fn range(&mut self, lo: f64, hi: f64) -> f64 {
+            lo + (hi - lo) * self.unit()
+        }
+    }
+
+    /// Appends the outward (or inward) cube of half-side `h` centred at `c`, turned by `r`.
+    fn push_cube(
+        mesh: &mut (Vec<Vec3>, Vec<[u32; 3]>),
+        c: Vec3,
+        h: f64,
+        r: Rotation,
+        inward: bool,
+    ) {
+        let base = mesh.0.len() as u32;
+        for line in CUBE_VERTICES.lines() {
+            let p: Vec<f64> = line[2..].split(' ').map(|x| x.parse().unwrap()).collect();
+            mesh.0.push(c + r * (Vec3::new(p[0], p[1], p[2]) * (h / 0.1)));
+        }
+        for f in CUBE_FACES {
+            let [a, b, c] = f.map(|i| i - 1 + base);
+            mesh.1.push(if inward { [a, c, b] } else { [a, b, c] });
+        }
+    }
+
+    /// A closed tube along z: `k` sides, `n` segments, 2kn + 2k triangles, outward.
+    fn tube(k: u32, n: u32, radius: f64, length: f64) -> (Vec<Vec3>, Vec<[u32; 3]>) {
+        let mut v = Vec::new();
+        for s in 0..=n {
+            for a in 0..k {
+                let t = std::f64::consts::TAU * a as f64 / k as f64;
+                v.push(Vec3::new(radius * t.cos(), radius * t.sin(), length * s as f64 / n as f64));
+            }
+        }
+        let ring = |s: u32, a: u32| s * k + a % k;
+        let (bottom, top) = (v.len() as u32, v.len() as u32 + 1);
+        v.push(Vec3::ZERO);
+        v.push(Vec3::new(0.0, 0.0, length));
+        let mut t = Vec::new();
+        for s in 0..n {
+            for a in 0..k {
+                let (p, q, r, u) = (ring(s, a), ring(s, a + 1), ring(s + 1, a + 1), ring(s + 1, a));
+                t.push([p, q, r]);
+                t.push([p, r, u]);
+            }
+        }
+        for a in 0..k {
+            t.push([bottom, ring(0, a + 1), ring(0, a)]);
+            t.push([top, ring(n, a), ring(n, a + 1)]);
+        }
+        (v, t)
+    }
+
+    /// Every crossing pair (i < j, sharing no vertex), by testing all pairs: what the checks
+    /// must agree with.
+    fn all_crossings(vertices: &[Vec3], tris: &[[u32; 3]]) -> Vec<(usize, usize)> {
+        use parry3d_f64::shape::Triangle;
+        let shape = |t: &[u32; 3]| t.map(|i| vertices[i as usize]);
+        let mut out = Vec::new();
+        for i in 0..tris.len() {
+            for j in i + 1..tris.len() {
+                if tris[i].iter().any(|v| tris[j].contains(v)) {
+                    continue;
+                }
+                let ([a, b, c], [d, e, f]) = (shape(&tris[i]), shape(&tris[j]));
+                let hit = parry3d_f64::query::intersection_test(
+                    &Pose::IDENTITY,
+                    &Triangle::new(a, b, c),
+                    &Pose::IDENTITY,
+                    &Triangle::new(d, e, f),
+                );
+                if hit.is_ok_and(|h| h.intersecting) {
+                    out.push((i, j));
+                }
+            }
+        }
+        out
+    }
+
+    /// The shell check as it was before the BVH: every shell's depth from the winding
+    /// number of every other shell.
+    fn all_pairs_shells(vertices: &[Vec3], tris: &[[u32; 3]]) -> Result<(), String> {
+        let mut sets = Sets::new(vertices.len());
+        for t in tris {
+            sets.join(t[0] as usize, t[1] as usize);
+            sets.join(t[1] as usize, t[2] as usize);
+        }
+        let mut shells: Vec<(usize, Vec<[u32; 3]>)> = Vec::new();
+        for t in tris {
+            let root = sets.find(t[0] as usize);
+            match shells.iter_mut().find(|(r, _)| *r == root) {
+                Some((_, s)) => s.push(*t),
+                None => shells.push((root, vec![*t])),
+            }
+        }
+        if shells.len() < 2 {
+            return Ok(());
+        }
+        let signed = |s: &[[u32; 3]]| -> f64 {
+            s.iter()
+                .map(|t| {
+                    let [a, b, c] = t.map(|i| vertices[i as usize]);
+                    a.dot(b.cross(c))
+                })
+                .sum::<f64>()
+                / 6.0
+        };
+        let volumes: Vec<f64> = shells.iter().map(|(_, s)| signed(s)).collect();
+        let outermost = (0..shells.len())
+            .max_by(|&a, &b| volumes[a].abs().total_cmp(&volumes[b].abs()))
+            .unwrap();
+        let whole = volumes[outermost].signum();
+        for (i, (_, shell)) in shells.iter().enumerate() {
+            let p = vertices[shell[0][0] as usize];
+            let depth = shells
+                .iter()
+                .enumerate()
+                .filter(|(j, (_, other))| *j != i && winding(vertices, other, p).abs() > 0.5)
+                .count();
+            let expected = if depth % 2 == 0 { whole } else { -whole };
+            if volumes[i].signum() != expected {
+                return Err(format!(
+                    "has {} shells and shell {} (inside {depth} other{}) faces the wrong way: \
+                     nested shells must alternate in orientation",
+                    shells.len(),
+                    i + 1,
+                    plural(depth)
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The BVH checks find exactly what testing every pair finds: on 300 seeded random sets
+    /// of up to seven cubes (turned, sized, placed at random, so that they cross, nest,
+    /// touch or stand apart; a quarter wound inward), the first crossing pair is the first of
+    /// all crossing pairs, and the shell check gives the same verdict and message as the
+    /// winding number of every shell at every other. Measured: 144 of the sets cross; of the
+    /// others, 116 have several shells and 61 are refused as wrongly nested.
+    #[test]
+    fn bvh_checks_agree_with_testing_every_pair() {
+        let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+        let (mut crossing, mut nested, mut refused) = (0, 0, 0);
+        for _ in 0..300 {
+            let mut mesh = (Vec::new(), Vec::new());
+            for _ in 0..1 + (rng.unit() * 7.0) as usize {
+                let c = Vec3::new(rng.range(-0.3, 0.3), rng.range(-0.3, 0.3), rng.range(-0.3, 0.3));
+                let axis =
+                    Vec3::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0));
+                let r = if rng.unit() < 0.3 {
+                    Rotation::IDENTITY
+                } else {
+                    Rotation::from_axis_angle(axis.normalize_or(Vec3::X), rng.range(0.0, 3.0))
+                };
+                let h = if rng.unit() < 0.2 { 0.4 } else { rng.range(0.02, 0.08) };
+                push_cube(&mut mesh, c, h, r, rng.unit() < 0.25);
+            }
+            let (v, t) = &mesh;
+            let all = all_crossings(v, t);
+            let (first, _) = first_crossing(v, t);
+            assert_eq!(first, all.first().copied(), "{} crossings", all.len());
+            if first.is_some() {
+                crossing += 1;
+                continue;
+            }
+            let reference = all_pairs_shells(v, t);
+            assert_eq!(shell_nesting(v, t).0, reference);
+            if t.len() > 12 {
+                nested += 1;
+            }
+            refused += reference.is_err() as usize;
+        }
+        eprintln!("{crossing} crossing, {nested} of several shells, {refused} wrongly nested");
+        assert!(crossing > 50 && nested > 50 && refused > 10, "{crossing} {nested} {refused}");
+    }
+
+    /// The checks' work grows with the mesh, not with its square: a long thin tube along z
+    /// (8 sides, 2,500 segments, 40,016 triangles), where every triangle's x-range overlaps
+    /// every other's, has each triangle test a few neighbours, not all 40,000 (the sweep along
+    /// x it replaced tested 4.3·10⁸ pairs here); 1,000 disjoint cubes sum the solid angle of
+    /// a few triangles each, not of every other shell (1.2·10⁷ triangles before). Measured:
+    /// 99,988 pairs for the tube, no triangle for the cubes. Work is counted, not timed.
+    #[test]
+    fn mesh_checks_scale_with_the_mesh() {
+        let (v, t) = tube(8, 2500, 0.01, 1.0);
+        assert_eq!(t.len(), 40_016);
+        let (first, work) = first_crossing(&v, &t);
+        assert_eq!(first, None);
+        assert!(work < 20 * t.len(), "{work} pairs tested for {} triangles", t.len());
+        assert!(ClosedMesh::new(&v, &t).is_ok());
+
+        let mut cubes = (Vec::new(), Vec::new());
+        for n in 0..1000 {
+            let c = Vec3::new((n % 10) as f64, ((n / 10) % 10) as f64, (n / 100) as f64) * 0.1;
+            push_cube(&mut cubes, c, 0.02, Rotation::IDENTITY, false);
+        }
+        let (result, work) = shell_nesting(&cubes.0, &cubes.1);
+        assert_eq!(result, Ok(()));
+        assert!(work <= 12, "{work} triangles summed for 1,000 disjoint cubes");
     }
 }

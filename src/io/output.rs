@@ -133,32 +133,44 @@ fn check_triangles(path: &Path, count: usize, triangles: &[[u32; 3]]) -> Result<
 
 /// Reads a triangle mesh written by [`MeshFormat::write`], by the file's extension: a binary
 /// little-endian PLY of `float x y z` vertices and `uchar`-counted `int` (or `uint`) index
-/// lists of three, or an OBJ (through tobj, triangulated).
+/// lists of three, or an OBJ (through tobj, triangulated; a material library it names is not
+/// opened). Only a regular file of at most [`MAX_INPUT_BYTES`](crate::math::input) is read.
 pub fn read_mesh(path: &Path) -> Result<TriangleMesh> {
     let fail = |message: String| Error::Read { path: path.to_path_buf(), message };
-    match path.extension().and_then(|e| e.to_str()) {
-        Some("ply") => {
-            let bytes = std::fs::read(path).map_err(|e| fail(e.to_string()))?;
-            read_ply_mesh(&bytes).map_err(fail)
-        }
-        Some("obj") => {
-            let options = tobj::LoadOptions { triangulate: true, ..Default::default() };
-            let (models, _) = tobj::load_obj(path, &options).map_err(|e| fail(e.to_string()))?;
-            let mut mesh = TriangleMesh::default();
-            for m in models {
-                let base = mesh.vertices.len() as u32;
-                mesh.vertices
-                    .extend(m.mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
-                mesh.triangles
-                    .extend(m.mesh.indices.chunks_exact(3).map(|t| [0, 1, 2].map(|k| base + t[k])));
-            }
-            Ok(mesh)
-        }
-        _ => Err(fail("not a .ply or .obj mesh".into())),
+    let ext = path.extension().and_then(|e| e.to_str());
+    if !matches!(ext, Some("ply" | "obj")) {
+        return Err(fail("not a .ply or .obj mesh".into()));
     }
+    let bytes = crate::math::input::read_file(path).map_err(|e| fail(e.to_string()))?;
+    if ext == Some("ply") {
+        return read_ply_mesh(&bytes).map_err(fail);
+    }
+    let options = tobj::LoadOptions { triangulate: true, ..Default::default() };
+    let (models, _) =
+        tobj::load_obj_buf(&mut &*bytes, &options, |_| Err(tobj::LoadError::OpenFileFailed))
+            .map_err(|e| fail(e.to_string()))?;
+    let mut mesh = TriangleMesh::default();
+    for m in models {
+        let base = mesh.vertices.len();
+        mesh.vertices.extend(m.mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
+        for t in m.mesh.indices.chunks_exact(3) {
+            let tri = [0, 1, 2].map(|k| u32::try_from(base + t[k] as usize).ok());
+            match tri {
+                [Some(a), Some(b), Some(c)]
+                    if [a, b, c].iter().all(|&i| (i as usize) < mesh.vertices.len()) =>
+                {
+                    mesh.triangles.push([a, b, c])
+                }
+                _ => return Err(fail(format!("face {t:?} refers past the vertices"))),
+            }
+        }
+    }
+    Ok(mesh)
 }
 
-/// The PLY reader of [`read_mesh`]; the error says what is not as written.
+/// The PLY reader of [`read_mesh`]; the error says what is not as written. The counts of
+/// the header are checked against the data's length (in checked arithmetic: a count whose
+/// size overflows is refused) before anything is allocated.
 fn read_ply_mesh(bytes: &[u8]) -> std::result::Result<TriangleMesh, String> {
     const END: &[u8] = b"end_header\n";
     let at =
@@ -180,17 +192,15 @@ fn read_ply_mesh(bytes: &[u8]) -> std::result::Result<TriangleMesh, String> {
             }
             ["element", name, count] => {
                 let count: usize = count.parse().map_err(|_| format!("bad count in '{line}'"))?;
-                element = match *name {
-                    "vertex" => {
-                        vertices = Some(count);
-                        "vertex"
-                    }
-                    "face" => {
-                        faces = Some(count);
-                        "face"
-                    }
+                let seen = match *name {
+                    "vertex" => vertices.replace(count),
+                    "face" => faces.replace(count),
                     other => return Err(format!("unexpected PLY element '{other}'")),
                 };
+                if seen.is_some() {
+                    return Err(format!("a second '{name}' element"));
+                }
+                element = name;
             }
             ["property", "float", name] if element == "vertex" => vertex_props.push(*name),
             ["property", "list", "uchar", t, "vertex_indices"] if element == "face" => {
@@ -212,15 +222,22 @@ fn read_ply_mesh(bytes: &[u8]) -> std::result::Result<TriangleMesh, String> {
         return Err("faces without vertex_indices".into());
     }
     let body = &bytes[at..];
-    if body.len() != 12 * nv + 13 * nf {
+    let vertex_bytes = nv.checked_mul(12);
+    let expected = vertex_bytes.zip(nf.checked_mul(13)).and_then(|(v, f)| v.checked_add(f));
+    let (Some(vertex_bytes), Some(expected)) = (vertex_bytes, expected) else {
         return Err(format!(
-            "{} bytes of data for {nv} vertices and {nf} triangles (expected {})",
-            body.len(),
-            12 * nv + 13 * nf
+            "{nv} vertices and {nf} triangles: more than a file can hold ({} bytes of data)",
+            body.len()
+        ));
+    };
+    if body.len() != expected {
+        return Err(format!(
+            "{} bytes of data for {nv} vertices and {nf} triangles (expected {expected})",
+            body.len()
         ));
     }
     let word = |b: &[u8], i: usize| -> [u8; 4] { b[4 * i..4 * i + 4].try_into().expect("4 bytes") };
-    let vertices: Vec<Vec3> = body[..12 * nv]
+    let vertices: Vec<Vec3> = body[..vertex_bytes]
         .chunks_exact(12)
         .map(|b| {
             Vec3::new(
@@ -231,7 +248,7 @@ fn read_ply_mesh(bytes: &[u8]) -> std::result::Result<TriangleMesh, String> {
         })
         .collect();
     let mut triangles = Vec::with_capacity(nf);
-    for (n, f) in body[12 * nv..].chunks_exact(13).enumerate() {
+    for (n, f) in body[vertex_bytes..].chunks_exact(13).enumerate() {
         if f[0] != 3 {
             return Err(format!("face {n} has {} vertices, not 3", f[0]));
         }

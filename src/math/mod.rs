@@ -6,6 +6,7 @@
 
 pub mod buffer;
 pub mod dual;
+pub mod input;
 pub mod memory;
 pub mod par;
 pub mod pool;
