@@ -89,7 +89,8 @@ pub struct Scene {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BodySpec {
-    /// Name used in outputs (default `body<i>`).
+    /// Name used in outputs and by `[loss]` and `[control]` (default `body<i>`): a name
+    /// files can take, as the scene's, and no other body's.
     #[serde(default)]
     pub name: String,
     /// The shape.
@@ -771,7 +772,35 @@ impl Scene {
         Some(Schedule::new(sim, &handles, c.steps_per_action, actions))
     }
 
+    /// The scene's and the bodies' names: each may name files (see
+    /// [`crate::io::output::check_name`]), and no two bodies share one (a body's name is its
+    /// key: its frames, its rows in `bodies.csv`, the body `[loss]` and `[control]` mean).
+    fn check_names(&self) -> std::result::Result<(), Problem> {
+        use crate::io::output::check_name;
+        check_name(&self.name).map_err(|m| problem("name", m))?;
+        let mut names: Vec<String> = Vec::with_capacity(self.body.len());
+        for (i, b) in self.body.iter().enumerate() {
+            let name = b.name_or_default(i);
+            let key = format!("body[{i}].name");
+            check_name(&name).map_err(|m| problem(&key, m))?;
+            if let Some(j) = names.iter().position(|n| *n == name) {
+                let default =
+                    if b.name.is_empty() { ", the name an unnamed body gets" } else { "" };
+                return Err(problem(
+                    key,
+                    format!(
+                        "{name:?}{default} is body[{j}]'s name too: each body needs its own \
+                         (it names the body's files and rows, and the body a loss means)"
+                    ),
+                ));
+            }
+            names.push(name);
+        }
+        Ok(())
+    }
+
     fn validate(&self) -> std::result::Result<(), Problem> {
+        self.check_names()?;
         if self.time.steps == 0 {
             return Err(problem("time.steps", "must be at least 1"));
         }
