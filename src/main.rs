@@ -389,6 +389,16 @@ fn optimize(args: OptimizeArgs) -> Outcome {
     let ck_path = out.join("checkpoint.json");
     let resume = if args.resume { Some(Checkpoint::load(&ck_path)?) } else { None };
     let problem = Optimization::new(scene)?;
+    if let Some(done) = resume.as_ref().map(|c| c.next_epoch).filter(|&n| n >= problem.epochs) {
+        let asked = match args.epochs {
+            Some(n) => format!("--epochs {n} counts every epoch, those before it too"),
+            None => format!("optimize.epochs is {}", problem.epochs),
+        };
+        return Err(Failure::new(format!(
+            "the checkpoint has run {done} epochs already and {asked}: give --epochs more than \
+             {done} to go on"
+        )));
+    }
     let _lock = RunFolder::lock(&out)?;
     let start = Instant::now();
     let bar =

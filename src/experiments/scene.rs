@@ -493,7 +493,11 @@ fn locate(src: &str, path: &str) -> Option<usize> {
 /// header (`key` alone at the top level).
 fn dotted_key(src: &str, l: usize) -> Option<String> {
     let lines: Vec<&str> = src.lines().collect();
-    let key = lines.get(l - 1)?.split_once('=')?.0.trim();
+    let line = lines.get(l - 1)?;
+    if line.trim_start().starts_with('#') {
+        return None;
+    }
+    let key = line.split_once('=')?.0.trim();
     if key.is_empty() || key.contains(['[', '{', '"']) {
         return None;
     }
@@ -540,8 +544,22 @@ impl Scene {
 
     fn parse(text: &str, origin: &str) -> Result<Scene> {
         toml::from_str(text).map_err(|e| {
-            let line = e.span().map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             let msg = e.message().trim().replace('\n', " ");
+            // A field the whole file lacks (span 0..0): no line to point at (it said
+            // `line 1: name: missing field `fluid``, naming whatever came first).
+            if e.span() == Some(0..0) {
+                if let Some(field) =
+                    msg.strip_prefix("missing field `").and_then(|m| m.strip_suffix('`'))
+                {
+                    let what = if ["domain", "time", "fluid"].contains(&field) {
+                        format!("the [{field}] table is missing")
+                    } else {
+                        format!("the key `{field}` is missing (at the top, before any table)")
+                    };
+                    return Error::ParseScene { origin: origin.to_string(), message: what };
+                }
+            }
+            let line = e.span().map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             Error::ParseScene {
                 origin: origin.to_string(),
                 message: match line {

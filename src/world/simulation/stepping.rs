@@ -22,7 +22,7 @@
 //!
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
-use super::{Simulation, VOLUME_TOLERANCE};
+use super::{BodyHandle, Simulation, VOLUME_TOLERANCE};
 use crate::error::{Error, Result};
 use crate::geometry::body::RigidBody;
 use crate::geometry::grid::Mac;
@@ -329,23 +329,26 @@ impl Simulation {
             .map(|(b, f)| f.volume_error(&grid, b.volume()))
             .collect();
         let mut warnings = Vec::new();
-        let found: Vec<String> = self
+        let found: Vec<(BodyHandle, String)> = self
             .bodies
             .iter()
+            .zip(&self.handles)
             .zip(&volume_errors)
             .filter(|(_, e)| **e > VOLUME_TOLERANCE)
-            .map(|(b, e)| {
-                format!(
+            .map(|((b, h), e)| {
+                let w = format!(
                     "body {}: its face fractions miss {:.1}% of its volume, so its buoyancy \
-                     is off by as much (it is too small or thin for cells of {} m)",
+                     is off by as much (it is too small or thin for cells of {} m; each step's \
+                     report has its volume_error)",
                     b.name,
                     100.0 * e,
                     grid.dx
-                )
+                );
+                (*h, w)
             })
             .collect();
-        for w in found {
-            self.warn(&mut warnings, w);
+        for (h, w) in found {
+            self.warn_about(&mut warnings, "volume", h, w);
         }
         lap(&mut times.geometry);
 
