@@ -73,11 +73,11 @@ pub enum Error {
         tolerance: f64,
     },
     /// A non-finite value appeared in the state.
-    #[error("the simulation blew up at step {step}: {what} is not finite")]
+    #[error("the simulation blew up at step {step}: {what}")]
     NonFinite {
         /// The step.
         step: usize,
-        /// Which quantity.
+        /// Which quantity, and how: "the fluid velocity is not finite".
         what: String,
     },
     /// A body left the tank (contact is off).

@@ -6,13 +6,15 @@ use diffluid::experiments::outputs::{
     render_run, write_bench, write_control, write_optimization, RenderRequest, Study,
 };
 use diffluid::gradients::{gradcheck, GradcheckSettings};
-use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
+use diffluid::io::recorder::{Frames, RunFolder, RunRecorder, SurfaceFrames};
 use diffluid::io::render::View;
 use diffluid::math::memory::GridAllocator;
 use diffluid::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 #[derive(Parser)]
@@ -82,12 +84,22 @@ fn render(args: RenderArgs) -> Outcome {
     Ok(())
 }
 
-/// What ends a command, as the one line it prints: a library error or a bad argument.
-struct Failure(String);
+/// What ends a command: the one line it prints (a library error or a bad argument) and its
+/// exit status (1; 130, as a shell reports a process SIGINT ended, for an interrupted run).
+struct Failure {
+    message: String,
+    status: u8,
+}
+
+impl Failure {
+    fn new(message: String) -> Failure {
+        Failure { message, status: 1 }
+    }
+}
 
 impl From<diffluid::Error> for Failure {
     fn from(e: diffluid::Error) -> Self {
-        Failure(e.to_string())
+        Failure::new(e.to_string())
     }
 }
 
@@ -109,6 +121,10 @@ struct RunArgs {
     /// Also write the liquid's surface mesh per frame to DIR/surface/ (output.surface = true).
     #[arg(long)]
     surface: bool,
+    /// Write into an --out folder that holds files a run does not write (they are kept; an
+    /// earlier run's files are cleared in any case).
+    #[arg(long)]
+    force: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -140,10 +156,11 @@ fn control(args: ControlArgs) -> Outcome {
         args.out.unwrap_or_else(|| PathBuf::from("out").join(format!("{}-control", scene.name)));
     let problem = ControlProblem::new(scene)?;
     let epochs = match args.epochs {
-        Some(0) => return Err(Failure("--epochs must be at least 1".into())),
+        Some(0) => return Err(Failure::new("--epochs must be at least 1".into())),
         Some(n) => n,
         None => problem.epochs,
     };
+    let _lock = RunFolder::lock(&out)?;
     let start = Instant::now();
     let bar = bar(epochs + 1, args.quiet, "{msg} [{bar:30}] epoch {pos}/{len} ({elapsed} < {eta})");
     let outcome = optimise(&problem, epochs, |r| {
@@ -155,7 +172,7 @@ fn control(args: ControlArgs) -> Outcome {
     let swarm = if args.swarm { Some(particle_swarm(&problem, calls)?) } else { None };
     write_control(&problem, &outcome, swarm.as_deref(), &out, start.elapsed().as_secs_f64())?;
     if let Some(reason) = &outcome.stopped {
-        return Err(Failure(format!("control stopped at {reason}; wrote {}", out.display())));
+        return Err(Failure::new(format!("control stopped at {reason}; wrote {}", out.display())));
     }
     let initial = outcome.history.first().map_or(f64::NAN, |r| r.loss);
     println!(
@@ -259,10 +276,31 @@ fn bar(len: usize, quiet: bool, template: &str) -> ProgressBar {
     bar
 }
 
+/// A flag Ctrl-C (SIGINT) or SIGTERM sets, so a run stops after the step in progress and
+/// writes what it has; a second one ends the process at once (status 130). The first call
+/// installs the handler.
+fn on_interrupt() -> Arc<AtomicBool> {
+    static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
+    FLAG.get_or_init(|| {
+        let flag = Arc::new(AtomicBool::new(false));
+        let set = flag.clone();
+        let installed = ctrlc::set_handler(move || {
+            if set.swap(true, Ordering::SeqCst) {
+                std::process::exit(130);
+            }
+        });
+        if let Err(e) = installed {
+            eprintln!("warning: Ctrl-C will end the run without its summary: {e}");
+        }
+        flag
+    })
+    .clone()
+}
+
 fn run(args: RunArgs) -> Outcome {
     let mut scene = load_scene(args.scene.as_deref())?;
     match args.steps {
-        Some(0) => return Err(Failure("--steps must be at least 1".into())),
+        Some(0) => return Err(Failure::new("--steps must be at least 1".into())),
         Some(n) => scene.time.steps = n,
         None => {}
     }
@@ -283,16 +321,29 @@ fn run(args: RunArgs) -> Outcome {
             format: scene.output.surface_format,
         }),
     };
-    let mut rec = RunRecorder::new(&out, &scene.name, frames, &sim)?;
+    let folder = RunFolder::claim(&out, args.force)?;
+    let interrupted = on_interrupt();
+    let mut rec = RunRecorder::new(folder, &scene.name, frames, &sim)?;
     let bar = bar(
         scene.time.steps,
         args.quiet,
         "{spinner} {msg} [{bar:30}] step {pos}/{len} ({elapsed} < {eta})",
     );
     bar.set_message(scene.name.clone());
-    let start = Instant::now();
-    let mut failure = None;
+    let mut stopped = None;
     for _ in 0..scene.time.steps {
+        if interrupted.load(Ordering::SeqCst) {
+            let done = sim.steps_taken();
+            stopped = Some(Failure {
+                message: format!(
+                    "interrupted after step {done} of {}; wrote the {done} finished steps to {}",
+                    scene.time.steps,
+                    out.display()
+                ),
+                status: 130,
+            });
+            break;
+        }
         match sim.step() {
             Ok(r) => {
                 for w in &r.warnings {
@@ -303,16 +354,15 @@ fn run(args: RunArgs) -> Outcome {
                 bar.inc(1);
             }
             Err(e) => {
-                failure = Some(e);
+                stopped = Some(e.into());
                 break;
             }
         }
     }
-    let total = start.elapsed().as_secs_f64();
     bar.finish_and_clear();
-    rec.finish(&sim, total)?;
-    if let Some(e) = failure {
-        return Err(e.into());
+    let total = rec.finish(stopped.as_ref().map(|f| f.message.as_str()))?;
+    if let Some(failure) = stopped {
+        return Err(failure);
     }
     let last = rec.reports().last().expect("at least one step");
     println!(
@@ -333,7 +383,7 @@ fn run(args: RunArgs) -> Outcome {
 fn optimize(args: OptimizeArgs) -> Outcome {
     let mut scene = load_scene(args.scene.as_deref())?;
     match (args.epochs, scene.optimize.as_mut()) {
-        (Some(0), _) => return Err(Failure("--epochs must be at least 1".into())),
+        (Some(0), _) => return Err(Failure::new("--epochs must be at least 1".into())),
         (Some(n), Some(o)) => o.epochs = n,
         _ => {}
     }
@@ -342,6 +392,17 @@ fn optimize(args: OptimizeArgs) -> Outcome {
     let ck_path = out.join("checkpoint.json");
     let resume = if args.resume { Some(Checkpoint::load(&ck_path)?) } else { None };
     let problem = Optimization::new(scene)?;
+    if let Some(done) = resume.as_ref().map(|c| c.next_epoch).filter(|&n| n >= problem.epochs) {
+        let asked = match args.epochs {
+            Some(n) => format!("--epochs {n} counts every epoch, those before it too"),
+            None => format!("optimize.epochs is {}", problem.epochs),
+        };
+        return Err(Failure::new(format!(
+            "the checkpoint has run {done} epochs already and {asked}: give --epochs more than \
+             {done} to go on"
+        )));
+    }
+    let _lock = RunFolder::lock(&out)?;
     let start = Instant::now();
     let bar =
         bar(problem.epochs, args.quiet, "{msg} [{bar:30}] epoch {pos}/{len} ({elapsed} < {eta})");
@@ -356,7 +417,7 @@ fn optimize(args: OptimizeArgs) -> Outcome {
     bar.finish_and_clear();
     write_optimization(&problem, &outcome, &out, start.elapsed().as_secs_f64(), args.vtk)?;
     if let Some(reason) = &outcome.stopped {
-        return Err(Failure(format!("optimisation stopped at {reason}")));
+        return Err(Failure::new(format!("optimisation stopped at {reason}")));
     }
     if let Some(reason) = &outcome.converged {
         println!("L-BFGS converged at {reason}");
@@ -387,7 +448,7 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
     let surface = if scene.solver.freeze_surface { "surface held fixed" } else { "surface moving" };
     for (name, x) in [("--eps", args.eps), ("--rtol", args.rtol), ("--atol", args.atol)] {
         if !(x.is_finite() && x >= 0.0) || (name == "--eps" && x == 0.0) {
-            return Err(Failure(format!("{name} must be a positive number, got {x}")));
+            return Err(Failure::new(format!("{name} must be a positive number, got {x}")));
         }
     }
     let loss = scene.loss().ok_or_else(|| diffluid::Error::InvalidScene {
@@ -435,7 +496,7 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
         } else {
             String::new()
         };
-        return Err(Failure(format!(
+        return Err(Failure::new(format!(
             "gradient check failed: worst relative error {:.2e} (criterion |adjoint − fd| ≤ {:e} + {:e}·|fd|){at_kinks}",
             report.worst_rel_error(),
             args.atol,
@@ -480,9 +541,9 @@ fn main() -> ExitCode {
         // The main job: the embedded block drop forward, then its optimisation.
         None => run(RunArgs::default()).and_then(|()| optimize(OptimizeArgs::default())),
     };
-    if let Err(Failure(message)) = result {
+    if let Err(Failure { message, status }) = result {
         eprintln!("error: {message}");
-        return ExitCode::FAILURE;
+        return ExitCode::from(status);
     }
     ExitCode::SUCCESS
 }

@@ -133,6 +133,17 @@ fn missing_required_key_time_dt() {
     assert_refused(&output, &dir.out(), &["missing field `dt`", &line]);
 }
 
+/// A table the file lacks altogether has no line: it was reported at `line 1: name`, or at
+/// whatever line 1 held (a comment, here).
+#[test]
+fn missing_fluid_table() {
+    let dir = TempDir::new("missing_fluid");
+    let text = broken("[fluid]\ndensity = 1000.0\ngravity = [0.0, -9.81, 0.0]\n", "");
+    let output = run(&dir.scene(&text), &dir.out(), &[]);
+    let line = assert_refused(&output, &dir.out(), &["the [fluid] table is missing"]);
+    assert!(!line.contains("line 1"), "{line}");
+}
+
 #[test]
 fn unknown_key_in_domain() {
     let dir = TempDir::new("unknown_key");

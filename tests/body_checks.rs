@@ -237,3 +237,43 @@ fn bodies_too_thin_for_the_grid_are_reported() {
     assert!(built.is_empty() && step.is_empty(), "{built:?} {step:?}");
     assert!(err < 1e-9, "volume error {err}");
 }
+
+/// A body too thin for its face fractions is warned about once, not every step its missing
+/// volume changes (a resting box warned "too small or thin" 24 times in 300 steps).
+#[test]
+fn a_thin_body_is_warned_about_once() {
+    let body = "[[body]]\nname = \"plate\"\nshape = { kind = \"cuboid\", half_extents = [0.2, 0.0005, 0.2] }\ndensity = 500.0\nposition = [0.41, 0.31, 0.38]\nangular_velocity = [0.0, 0.0, 0.5]";
+    let mut sim = Scene::from_toml(&tank(body, 20, false), "<test>").unwrap().build().unwrap();
+    let mut warned = Vec::new();
+    let mut errors = Vec::new();
+    for _ in 0..20 {
+        let r = sim.step().unwrap();
+        warned.extend(r.warnings.into_iter().filter(|w| w.contains("miss")));
+        errors.push(r.bodies[0].volume_error);
+    }
+    errors.dedup();
+    assert!(errors.len() > 5, "the missing volume should change as the plate turns: {errors:?}");
+    assert_eq!(warned.len(), 1, "{warned:#?}");
+    assert_eq!(sim.warnings().iter().filter(|w| w.contains("miss")).count(), 1);
+}
+
+/// A body touching the lid is refused as one touching the floor is: the tank's top is
+/// n·dx, which for 6 cells of 0.1 m is 0.6000000000000001, so a cube whose top is at 0.6 was
+/// inside by round-off while one whose bottom is at 0 touched the floor.
+#[test]
+fn touching_the_lid_is_touching_a_wall_as_the_floor_is() {
+    use diffluid::geometry::body::RigidBody;
+    use diffluid::math::{Pose, SharedShape};
+    let cube = |y: f64| {
+        let pose = Pose::from_translation(Vec3::new(0.3, y, 0.3));
+        RigidBody::new("cube".into(), SharedShape::cuboid(0.1, 0.1, 0.1), pose, 500.0)
+    };
+    for (y, wall) in [(0.1, "floor"), (0.5, "lid"), (0.1 + 1e-12, "floor"), (0.5 - 1e-12, "lid")] {
+        let built = diffluid::Simulation::builder([0.6, 0.6, 0.6], 0.1).body(cube(y)).build();
+        let err = built.err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(err.contains("without touching a wall"), "the {wall} (y = {y}): {err:?}");
+    }
+    for y in [0.1 + 1e-6, 0.5 - 1e-6] {
+        assert!(diffluid::Simulation::builder([0.6, 0.6, 0.6], 0.1).body(cube(y)).build().is_ok());
+    }
+}

@@ -7,6 +7,13 @@
 //! long. CI runs `PROPTEST_CASES` cases (default 300); 10⁵ took a minute with 0 panics (75%
 //! refused when read, 2% failed in a step, 23% ran:
 //! `PROPTEST_CASES=100000 cargo test --release --test fuzz_scenes -- --nocapture`).
+//!
+//! Names in bulk: generated scene and body names (path separators, `..`, absolute paths
+//! into the test's folder, XML markup, NUL and other control characters, any Unicode, empty
+//! and overlong ones) are refused in one line or recorded (frame 0, a step, the summary,
+//! particles, bodies and ParaView frames) into `out/<scene name>` as `diffluid run` would:
+//! never a panic, and never a file outside that folder. `PROPTEST_CASES` sets the count here
+//! too (default 100).
 
 use diffluid::Scene;
 use proptest::prelude::*;
@@ -237,4 +244,147 @@ fn generated_scenes_run_or_give_one_error_line() {
     // Enough cases get past the reading, or the generator tests nothing but the parser.
     assert!(n[1] + n[2] + n[3] >= cases as usize / 10, "{n:?}");
     assert!(n[3] > 0, "no generated scene ran: {n:?}");
+}
+
+/// A name as a TOML basic string.
+fn toml_str(s: &str) -> String {
+    let mut out = String::from("\"");
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if c.is_control() => out.push_str(&format!("\\U{:08X}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
+
+/// A hostile name: mostly file-like, often with what would leave a folder or break XML.
+fn name(sandbox: &str) -> impl Strategy<Value = String> {
+    let escapes = vec![
+        "..".to_string(),
+        "../x".into(),
+        "../../../x".into(),
+        "a/b".into(),
+        "a\\b".into(),
+        "./a".into(),
+        ".hidden".into(),
+        "a&b<c>\"d'".into(),
+        "nul\u{0}x".into(),
+        "line\nbreak".into(),
+        "C:x".into(),
+        String::new(),
+        format!("{sandbox}/abs/x"),
+        format!("{sandbox}/abs"),
+    ];
+    prop_oneof![
+        6 => "[A-Za-z0-9_][A-Za-z0-9_.-]{0,12}",
+        3 => prop::sample::select(escapes),
+        2 => "[A-Za-z0-9_./\\\\&<>\"' \\x00-\\x1f-]{0,12}",
+        2 => any::<String>().prop_map(|s| s.chars().take(20).collect()),
+        1 => "[a-zé]{60,70}",
+        1 => ("[a-z]{1,4}", "[a-z]{1,4}").prop_map(|(a, b)| format!("{a}/../../{b}")),
+    ]
+}
+
+/// Every file under `dir`.
+fn files_under(dir: &std::path::Path, out: &mut Vec<std::path::PathBuf>) {
+    for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            files_under(&p, out);
+        } else {
+            out.push(p);
+        }
+    }
+}
+
+/// How the name cases ended: refused when read, refused by the recorder, recorded.
+static NAMED: [std::sync::atomic::AtomicUsize; 3] =
+    [const { std::sync::atomic::AtomicUsize::new(0) }; 3];
+
+/// Reads a scene with these names and records a step of it into `work/out/<scene name>`
+/// under `case`; a panic, a message of more than one line or a file outside `work/out` fails.
+fn record_named(case: &std::path::Path, scene_name: &str, bodies: &[String]) -> Result<(), String> {
+    use diffluid::io::recorder::{Frames, RunFolder, RunRecorder};
+    use std::sync::atomic::Ordering::Relaxed;
+    let mut text = format!(
+        "name = {}\n[domain]\nsize = [0.4, 0.4, 0.4]\ndx = 0.1\n[time]\ndt = 0.01\nsteps = 1\n\
+         [fluid]\ndensity = 1000.0\ngravity = [0.0, -9.81, 0.0]\n[[liquid]]\n\
+         shape = {{ kind = \"box\", min = [0.0, 0.0, 0.0], max = [0.4, 0.2, 0.4] }}\n",
+        toml_str(scene_name)
+    );
+    for (i, b) in bodies.iter().enumerate() {
+        text.push_str(&format!(
+            "[[body]]\nname = {}\nshape = {{ kind = \"ball\", radius = 0.04 }}\ndensity = 500.0\n\
+             position = [{}, 0.3, 0.2]\n",
+            toml_str(b),
+            0.1 + 0.2 * i as f64
+        ));
+    }
+    std::fs::remove_dir_all(case).ok();
+    let work = case.join("work");
+    std::fs::create_dir_all(&work).unwrap();
+    let run = std::panic::catch_unwind(|| -> diffluid::Result<()> {
+        let scene = Scene::from_toml(&text, "<fuzz>").inspect_err(|_| {
+            NAMED[0].fetch_add(1, Relaxed);
+        })?;
+        let mut sim = scene.build()?;
+        // Where `diffluid run` writes without --out.
+        let out = work.join("out").join(&scene.name);
+        let frames = Frames { every: 1, particles: true, vtk: true, surface: None };
+        let mut rec = RunRecorder::new(RunFolder::claim(&out, false)?, &scene.name, frames, &sim)
+            .inspect_err(|_| {
+            NAMED[1].fetch_add(1, Relaxed);
+        })?;
+        let report = sim.step()?;
+        rec.record(&sim, report)?;
+        rec.finish(None)?;
+        NAMED[2].fetch_add(1, Relaxed);
+        Ok(())
+    });
+    let root = case.parent().unwrap();
+    let mut written = Vec::new();
+    files_under(root, &mut written);
+    if let Some(outside) = written.iter().find(|p| !p.starts_with(work.join("out"))) {
+        return Err(format!("{} written outside the output folder by:\n{text}", outside.display()));
+    }
+    match run {
+        Err(_) => Err(format!("panicked on:\n{text}")),
+        Ok(Err(e)) if e.to_string().contains('\n') => {
+            Err(format!("a multi-line error ({e}) on:\n{text}"))
+        }
+        Ok(_) => Ok(()),
+    }
+}
+
+#[test]
+fn generated_names_never_write_outside_the_output_folder() {
+    let cases = std::env::var("PROPTEST_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(100);
+    let sandbox = std::env::temp_dir().join(format!("diffluid-fuzz-names-{}", std::process::id()));
+    std::fs::create_dir_all(&sandbox).unwrap();
+    let root = sandbox.to_str().unwrap().to_string();
+    let case = sandbox.join("case");
+    std::panic::set_hook(Box::new(|_| {}));
+    let mut runner =
+        TestRunner::new(Config { cases, failure_persistence: None, ..Config::default() });
+    let names = (name(&root), prop::collection::vec(name(&root), 0..3));
+    let result = runner.run(&names, |(scene_name, bodies)| {
+        record_named(&case, &scene_name, &bodies).map_err(TestCaseError::fail)?;
+        Ok(())
+    });
+    let _ = std::panic::take_hook();
+    std::fs::remove_dir_all(&sandbox).ok();
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+    use std::sync::atomic::Ordering::Relaxed;
+    let n = NAMED.each_ref().map(|a| a.load(Relaxed));
+    eprintln!(
+        "{cases} name cases: {} refused when read, {} by the recorder, {} recorded",
+        n[0], n[1], n[2]
+    );
+    assert!(n[2] > 0 && n[0] > 0, "{n:?}");
 }

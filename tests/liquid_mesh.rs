@@ -5,7 +5,7 @@
 
 use diffluid::io::liquid_mesh::{liquid_surface, TriangleMesh};
 use diffluid::io::output::{read_mesh, MeshFormat};
-use diffluid::io::recorder::{Frames, RunRecorder, SurfaceFrames};
+use diffluid::io::recorder::{Frames, RunFolder, RunRecorder, SurfaceFrames};
 use diffluid::{Scene, Simulation};
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -147,7 +147,8 @@ fn a_run_writes_closed_surface_frames_as_ply_and_vtk() {
         vtk: true,
         surface: Some(SurfaceFrames { samples: 2, format: MeshFormat::Ply }),
     };
-    let mut rec = RunRecorder::new(&dir, "dam_break_ball", frames, &sim).unwrap();
+    let folder = RunFolder::claim(&dir, false).unwrap();
+    let mut rec = RunRecorder::new(folder, "dam_break_ball", frames, &sim).unwrap();
     for _ in 0..10 {
         let report = sim.step().unwrap();
         rec.record(&sim, report).unwrap();

@@ -350,3 +350,33 @@ fn an_interrupted_run_keeps_its_history() {
         assert_eq!(cut.final_loss, cut.history[2].loss);
     }
 }
+
+/// `--epochs` counts every epoch, those before the checkpoint too: with `--resume` it must
+/// go past them, or the run would do nothing and say it ran (`--resume --epochs 10` after 50
+/// epochs silently ran none).
+#[test]
+fn resume_with_no_epochs_left_is_refused() {
+    let dir = std::env::temp_dir().join(format!("diffluid-resume-epochs-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    let optimize = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_diffluid"))
+            .args(["optimize", "recover_box", "--quiet", "--out"])
+            .arg(&dir)
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    assert!(optimize(&["--epochs", "2"]).status.success());
+    for (epochs, needle) in [("1", "--epochs 1"), ("2", "--epochs 2")] {
+        let refused = optimize(&["--epochs", epochs, "--resume"]);
+        let stderr = String::from_utf8_lossy(&refused.stderr);
+        assert_eq!(refused.status.code(), Some(1), "{stderr}");
+        assert!(stderr.starts_with("error: ") && stderr.lines().count() == 1, "{stderr}");
+        assert!(stderr.contains(needle) && stderr.contains("2 epochs"), "{stderr}");
+    }
+    assert!(optimize(&["--epochs", "3", "--resume"]).status.success());
+    let result: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("result.json")).unwrap()).unwrap();
+    assert_eq!(result["epochs"], 3);
+    std::fs::remove_dir_all(&dir).ok();
+}

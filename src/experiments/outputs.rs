@@ -191,6 +191,12 @@ fn pictures(
     plot::animation_gif(&out.join("optimized.gif"), domain, &gif, View::Side, (640, 320), 80)
 }
 
+/// The narrowest and the widest picture [`render_run`] draws, pixels a side (a frame is held
+/// in memory at 3 bytes a pixel: 4096 x 4096 is 50 MB).
+pub const MIN_PICTURE_SIDE: u32 = 64;
+/// See [`MIN_PICTURE_SIDE`].
+pub const MAX_PICTURE_SIDE: u32 = 4096;
+
 /// What [`render_run`] draws.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct RenderRequest {
@@ -210,6 +216,32 @@ pub struct RenderRequest {
 /// file written and the number of frames drawn.
 pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::PathBuf, usize)> {
     let fail = |path: &Path, message: String| Error::Read { path: path.to_path_buf(), message };
+    let bad = |key: &str, message: String| Error::InvalidSettings { key: key.into(), message };
+    if !(MIN_PICTURE_SIDE..=MAX_PICTURE_SIDE).contains(&request.width) {
+        return Err(bad(
+            "width",
+            format!(
+                "must be {MIN_PICTURE_SIDE} to {MAX_PICTURE_SIDE} pixels, got {}",
+                request.width
+            ),
+        ));
+    }
+    let out = match (&request.out, request.frame) {
+        (Some(p), _) => p.clone(),
+        (None, Some(n)) => dir.join(format!("render_{n:04}.png")),
+        (None, None) => dir.join("render.gif"),
+    };
+    let (what, ext) = match request.frame {
+        Some(_) => ("one frame is drawn as a PNG", "png"),
+        None => ("the frames are drawn as a GIF", "gif"),
+    };
+    let given = out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    if given.as_deref() != Some(ext) {
+        return Err(bad(
+            "out",
+            format!("{what}: give a path ending in .{ext}, got {}", out.display()),
+        ));
+    }
     let summary_path = dir.join("summary.json");
     let RunSummary { name, domain, dt } = RunSummary::read(&summary_path)?;
     // The surface frames by step.
@@ -255,15 +287,21 @@ pub fn render_run(dir: &Path, request: &RenderRequest) -> Result<(std::path::Pat
             label: format!("{name}, step {n}, t = {:.2} s", *n as f64 * dt),
         });
     }
-    let width = request.width.max(64);
+    let width = request.width;
     // The plot's margins and caption take about 60 pixels around the tank's side.
     let up = request.view.extent(domain).1;
-    let height = ((width as f64 - 45.0) * up / domain.x + 60.0).round() as u32;
-    let out = match (&request.out, request.frame) {
-        (Some(p), _) => p.clone(),
-        (None, Some(n)) => dir.join(format!("render_{n:04}.png")),
-        (None, None) => dir.join("render.gif"),
-    };
+    let height = ((width as f64 - 45.0) * up / domain.x + 60.0).round();
+    if !(height >= MIN_PICTURE_SIDE as f64 && height <= MAX_PICTURE_SIDE as f64) {
+        return Err(bad(
+            "width",
+            format!(
+                "the picture would be {width} x {height} pixels (the tank is {:.3} x {up:.3} m \
+                 in this view): each side must be {MIN_PICTURE_SIDE} to {MAX_PICTURE_SIDE}",
+                domain.x
+            ),
+        ));
+    }
+    let height = height as u32;
     match request.frame {
         Some(_) => plot::frame_png(&out, domain, &drawn[0], request.view, (width, height))?,
         None => {

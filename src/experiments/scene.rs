@@ -89,7 +89,8 @@ pub struct Scene {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BodySpec {
-    /// Name used in outputs (default `body<i>`).
+    /// Name used in outputs and by `[loss]` and `[control]` (default `body<i>`): a name
+    /// files can take, as the scene's, and no other body's.
     #[serde(default)]
     pub name: String,
     /// The shape.
@@ -502,7 +503,11 @@ fn locate(src: &str, path: &str) -> Option<usize> {
 /// header (`key` alone at the top level).
 fn dotted_key(src: &str, l: usize) -> Option<String> {
     let lines: Vec<&str> = src.lines().collect();
-    let key = lines.get(l - 1)?.split_once('=')?.0.trim();
+    let line = lines.get(l - 1)?;
+    if line.trim_start().starts_with('#') {
+        return None;
+    }
+    let key = line.split_once('=')?.0.trim();
     if key.is_empty() || key.contains(['[', '{', '"']) {
         return None;
     }
@@ -549,8 +554,22 @@ impl Scene {
 
     fn parse(text: &str, origin: &str) -> Result<Scene> {
         toml::from_str(text).map_err(|e| {
-            let line = e.span().map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             let msg = e.message().trim().replace('\n', " ");
+            // A field the whole file lacks (span 0..0): no line to point at (it said
+            // `line 1: name: missing field `fluid``, naming whatever came first).
+            if e.span() == Some(0..0) {
+                if let Some(field) =
+                    msg.strip_prefix("missing field `").and_then(|m| m.strip_suffix('`'))
+                {
+                    let what = if ["domain", "time", "fluid"].contains(&field) {
+                        format!("the [{field}] table is missing")
+                    } else {
+                        format!("the key `{field}` is missing (at the top, before any table)")
+                    };
+                    return Error::ParseScene { origin: origin.to_string(), message: what };
+                }
+            }
+            let line = e.span().map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             Error::ParseScene {
                 origin: origin.to_string(),
                 message: match line {
@@ -792,7 +811,35 @@ impl Scene {
         Some(Schedule::new(sim, &handles, c.steps_per_action, actions))
     }
 
+    /// The scene's and the bodies' names: each may name files (see
+    /// [`crate::io::output::check_name`]), and no two bodies share one (a body's name is its
+    /// key: its frames, its rows in `bodies.csv`, the body `[loss]` and `[control]` mean).
+    fn check_names(&self) -> std::result::Result<(), Problem> {
+        use crate::io::output::check_name;
+        check_name(&self.name).map_err(|m| problem("name", m))?;
+        let mut names: Vec<String> = Vec::with_capacity(self.body.len());
+        for (i, b) in self.body.iter().enumerate() {
+            let name = b.name_or_default(i);
+            let key = format!("body[{i}].name");
+            check_name(&name).map_err(|m| problem(&key, m))?;
+            if let Some(j) = names.iter().position(|n| *n == name) {
+                let default =
+                    if b.name.is_empty() { ", the name an unnamed body gets" } else { "" };
+                return Err(problem(
+                    key,
+                    format!(
+                        "{name:?}{default} is body[{j}]'s name too: each body needs its own \
+                         (it names the body's files and rows, and the body a loss means)"
+                    ),
+                ));
+            }
+            names.push(name);
+        }
+        Ok(())
+    }
+
     fn validate(&self) -> std::result::Result<(), Problem> {
+        self.check_names()?;
         if self.time.steps == 0 {
             return Err(problem("time.steps", "must be at least 1"));
         }

@@ -6,10 +6,72 @@ use crate::io::render::TriangleMesh;
 use crate::math::Vec3;
 use serde::Serialize;
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
     move |source| Error::Write { path: path.to_path_buf(), source }
+}
+
+/// The longest name [`check_name`] takes, in characters.
+pub const MAX_NAME_CHARS: usize = 64;
+
+/// Whether `name` may name the files diffluid writes (a scene's default output folder
+/// `out/<name>`, a body's frames `bodies/<name>_NNNN.ply`, its ParaView series
+/// `vtk/body_<name>.pvd`): 1 to [`MAX_NAME_CHARS`] characters, each a letter, a digit, `_`,
+/// `-` or `.`, the first not a `.`. So no name holds a path separator, `..`, a drive, a NUL
+/// or XML markup, and none can write outside the output folder. The error says what is
+/// wrong, for a message that names the key.
+pub fn check_name(name: &str) -> std::result::Result<(), String> {
+    const RULE: &str = "a name is 1 to 64 letters, digits, '_', '-' or '.' (not first), \
+                        because it names files";
+    let count = name.chars().count();
+    if count == 0 || count > MAX_NAME_CHARS {
+        return Err(format!("{count} characters: {RULE}"));
+    }
+    if let Some(c) = name.chars().find(|c| !(c.is_alphanumeric() || matches!(c, '_' | '-' | '.'))) {
+        return Err(format!("{:?} holds {c:?}: {RULE}", name));
+    }
+    if name.starts_with('.') {
+        return Err(format!("{name:?} starts with '.': {RULE}"));
+    }
+    Ok(())
+}
+
+/// Every body name may name files ([`check_name`]) and none is given twice: what a run's
+/// outputs need, since a body's frames, its rows and its ParaView series go by its name.
+pub fn check_body_names<'a>(names: impl IntoIterator<Item = &'a str>) -> Result<()> {
+    let mut seen = std::collections::HashSet::new();
+    for name in names {
+        let bad = |message: String| Error::InvalidSettings { key: "body name".into(), message };
+        check_name(name).map_err(bad)?;
+        if !seen.insert(name) {
+            return Err(bad(format!(
+                "two bodies are named {name:?}: their files and rows would mix (give each its own \
+                 name)"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// `text` with the five characters XML gives a meaning (`& < > " '`) escaped, for an
+/// attribute value or element text.
+pub fn xml_escape(text: &str) -> std::borrow::Cow<'_, str> {
+    if !text.contains(['&', '<', '>', '"', '\'']) {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    let mut out = String::with_capacity(text.len() + 16);
+    for c in text.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&apos;"),
+            c => out.push(c),
+        }
+    }
+    std::borrow::Cow::Owned(out)
 }
 
 /// Writes points as a binary little-endian PLY with `float x y z` per vertex, which
@@ -295,19 +357,13 @@ pub fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 fn write_via_rename(path: &Path, bytes: &[u8], sync: bool) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&dir).map_err(write_err(&dir))?;
-    let tmp = path.with_extension("tmp");
-    let mut f = std::fs::File::create(&tmp).map_err(write_err(&tmp))?;
-    f.write_all(bytes).map_err(write_err(&tmp))?;
+    let (dir, tmp) = temporary_beside(path, "tmp")?;
+    let mut f = tmp.as_file();
+    f.write_all(bytes).map_err(write_err(tmp.path()))?;
     if sync {
-        f.sync_all().map_err(write_err(&tmp))?;
+        f.sync_all().map_err(write_err(tmp.path()))?;
     }
-    drop(f);
-    std::fs::rename(&tmp, path).map_err(write_err(path))?;
+    tmp.persist(path).map_err(|e| Error::Write { path: path.to_path_buf(), source: e.error })?;
     if sync {
         // The rename lives in the folder's entries: flush them too (where the platform lets
         // a folder be opened).
@@ -316,6 +372,41 @@ fn write_via_rename(path: &Path, bytes: &[u8], sync: bool) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Writes `path` through `write`, which is handed a temporary path in the same folder with
+/// the same extension (for writers that take a path and pick the format by its extension,
+/// as plotters does for PNG and GIF), then renames the temporary over `path`. When `write`
+/// fails, `path` is left as it was and the temporary is removed.
+pub fn write_through(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("tmp");
+    let (_, tmp) = temporary_beside(path, ext)?;
+    write(tmp.path())?;
+    tmp.persist(path).map_err(|e| Error::Write { path: path.to_path_buf(), source: e.error })?;
+    Ok(())
+}
+
+/// The prefix of every temporary diffluid writes (`.tmp-<file name>-<random>.<ext>`), so
+/// that what a killed writer left behind can be told apart and cleared.
+pub const TEMPORARY_PREFIX: &str = ".tmp-";
+
+/// A new, uniquely named empty file in `path`'s folder (made if missing), removed when
+/// dropped unless persisted; and the folder.
+fn temporary_beside(path: &Path, ext: &str) -> Result<(PathBuf, tempfile::NamedTempFile)> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir).map_err(write_err(&dir))?;
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let (prefix, suffix) = (format!("{TEMPORARY_PREFIX}{name}-"), format!(".{ext}"));
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(&prefix).suffix(&suffix);
+    // The file's mode as `File::create` gives it (tempfile's default is owner-only).
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let tmp = builder.tempfile_in(&dir).map_err(write_err(&dir))?;
+    Ok((dir, tmp))
 }
 
 #[cfg(test)]
@@ -401,5 +492,62 @@ mod tests {
         assert!(read_mesh(&dir.join("text.ply")).unwrap_err().to_string().contains("not a PLY"));
         assert!(read_mesh(&dir.join("m.stl")).is_err());
         std::fs::remove_dir_all(dir).ok();
+    }
+
+    /// Two writers of one file (two runs into one folder, a checkpoint and its reader) each
+    /// write through a temporary of their own: every write succeeds, a reader sees one whole
+    /// version or the other, and no temporary is left. With one temporary name per file
+    /// (`x.tmp`), one writer's rename took the other's half-written file or found it gone.
+    /// Files with the same stem (`a.json`, `a.csv`) shared that name too.
+    #[test]
+    fn concurrent_writers_of_one_file_never_mix() {
+        let dir = std::env::temp_dir().join(format!("diffluid-concurrent-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("a.json");
+        let versions: Vec<Vec<u8>> = (0..2u8).map(|k| vec![b'a' + k; 200_000]).collect();
+        std::thread::scope(|s| {
+            for v in &versions {
+                let path = &path;
+                s.spawn(move || {
+                    for _ in 0..200 {
+                        write_atomic(path, v).unwrap();
+                    }
+                });
+            }
+            s.spawn(|| {
+                for _ in 0..200 {
+                    write_atomic(&dir.join("a.csv"), b"x,y\n").unwrap();
+                    if let Ok(b) = std::fs::read(&path) {
+                        assert!(versions.contains(&b), "a torn file of {} bytes", b.len());
+                    }
+                }
+            });
+        });
+        let mut left: Vec<_> =
+            std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+        left.sort();
+        assert_eq!(left, ["a.csv", "a.json"], "temporaries left behind");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A writer that fails leaves the file as it was and removes its temporary.
+    #[test]
+    fn a_failed_write_through_keeps_the_file() {
+        let dir = std::env::temp_dir().join(format!("diffluid-through-{}", std::process::id()));
+        let path = dir.join("p.png");
+        write_atomic(&path, b"old").unwrap();
+        let failed = write_through(&path, |tmp| {
+            assert_eq!(tmp.parent(), Some(dir.as_path()));
+            assert_eq!(tmp.extension().and_then(|e| e.to_str()), Some("png"));
+            std::fs::write(tmp, b"half").unwrap();
+            Err(Error::Write { path: tmp.to_path_buf(), source: std::io::Error::other("no") })
+        });
+        assert!(failed.is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), b"old");
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1, "the temporary was left");
+        write_through(&path, |tmp| write_atomic(tmp, b"new")).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"new");
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

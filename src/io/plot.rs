@@ -25,6 +25,10 @@ fn err(path: &Path, e: impl std::fmt::Display) -> Error {
 
 /// The loss (and the gradient norm) per epoch on a log axis, as a PNG.
 pub fn loss_plot(path: &Path, loss: &[f64], grad_norm: &[f64]) -> Result<()> {
+    crate::io::output::write_through(path, |at| loss_plot_at(at, path, loss, grad_norm))
+}
+
+fn loss_plot_at(at: &Path, path: &Path, loss: &[f64], grad_norm: &[f64]) -> Result<()> {
     font();
     if loss.is_empty() {
         return Err(err(path, "no epochs to plot"));
@@ -33,7 +37,7 @@ pub fn loss_plot(path: &Path, loss: &[f64], grad_norm: &[f64]) -> Result<()> {
         loss.iter().chain(grad_norm).copied().filter(|x| *x > 0.0 && x.is_finite()).collect();
     let (lo, hi) = pos.iter().fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
     let (lo, hi) = if lo <= hi { (lo * 0.5, hi * 2.0) } else { (1e-12, 1.0) };
-    let root = BitMapBackend::new(path, (900, 500)).into_drawing_area();
+    let root = BitMapBackend::new(at, (900, 500)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     let n = loss.len().max(2) - 1;
     let mut chart = ChartBuilder::on(&root)
@@ -116,8 +120,21 @@ pub fn trajectory_plot(
     target: Option<Vec3>,
     liquid: Option<(&str, &Picture)>,
 ) -> Result<()> {
+    crate::io::output::write_through(path, |at| {
+        trajectory_plot_at(at, path, domain, tracks, target, liquid)
+    })
+}
+
+fn trajectory_plot_at(
+    at: &Path,
+    path: &Path,
+    domain: Vec3,
+    tracks: &[Track],
+    target: Option<Vec3>,
+    liquid: Option<(&str, &Picture)>,
+) -> Result<()> {
     font();
-    let root = BitMapBackend::new(path, (1200, 600)).into_drawing_area();
+    let root = BitMapBackend::new(at, (1200, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     let panels = root.split_evenly((1, 2));
     let colours = [BLUE, RED, GREEN, MAGENTA, BLACK];
@@ -200,8 +217,19 @@ pub fn frame_png(
     view: View,
     size: (u32, u32),
 ) -> Result<()> {
+    crate::io::output::write_through(path, |at| frame_png_at(at, path, domain, frame, view, size))
+}
+
+fn frame_png_at(
+    at: &Path,
+    path: &Path,
+    domain: Vec3,
+    frame: &Frame,
+    view: View,
+    size: (u32, u32),
+) -> Result<()> {
     font();
-    let root = BitMapBackend::new(path, size).into_drawing_area();
+    let root = BitMapBackend::new(at, size).into_drawing_area();
     draw_frame(&root, domain, frame, view, path)?;
     root.present().map_err(|e| err(path, e))
 }
@@ -238,12 +266,26 @@ pub fn animation_gif(
     size: (u32, u32),
     delay_ms: u32,
 ) -> Result<()> {
+    crate::io::output::write_through(path, |at| {
+        animation_gif_at(at, path, domain, frames, view, size, delay_ms)
+    })
+}
+
+fn animation_gif_at(
+    at: &Path,
+    path: &Path,
+    domain: Vec3,
+    frames: &[Frame],
+    view: View,
+    size: (u32, u32),
+    delay_ms: u32,
+) -> Result<()> {
     font();
     if frames.is_empty() {
         return Err(err(path, "no frames"));
     }
     let root =
-        BitMapBackend::gif(path, size, delay_ms).map_err(|e| err(path, e))?.into_drawing_area();
+        BitMapBackend::gif(at, size, delay_ms).map_err(|e| err(path, e))?.into_drawing_area();
     for f in frames {
         draw_frame(&root, domain, f, view, path)?;
         root.present().map_err(|e| err(path, e))?;
@@ -295,10 +337,23 @@ pub fn line_chart(
     (log_x, log_y): (bool, bool),
     series: &[Series],
 ) -> Result<()> {
+    crate::io::output::write_through(path, |at| {
+        line_chart_at(at, path, title, (x_desc, y_desc), (log_x, log_y), series)
+    })
+}
+
+fn line_chart_at(
+    at: &Path,
+    path: &Path,
+    title: &str,
+    (x_desc, y_desc): (&str, &str),
+    (log_x, log_y): (bool, bool),
+    series: &[Series],
+) -> Result<()> {
     font();
     let (x0, x1) = span(series.iter().flat_map(|s| s.1.iter().map(|p| p.0)), log_x);
     let (y0, y1) = span(series.iter().flat_map(|s| s.1.iter().map(|p| p.1)), log_y);
-    let root = BitMapBackend::new(path, (900, 560)).into_drawing_area();
+    let root = BitMapBackend::new(at, (900, 560)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     macro_rules! builder {
         () => {
@@ -368,9 +423,12 @@ pub type StabilityPanel = (String, Vec<(f64, f64, bool)>);
 /// The stability map: one panel per coupling, density ratio (log) across, CFL number (log)
 /// up, a filled green dot where the run was stable and a red cross where it was not.
 pub fn stability_chart(path: &Path, panels: &[StabilityPanel]) -> Result<()> {
+    crate::io::output::write_through(path, |at| stability_chart_at(at, path, panels))
+}
+
+fn stability_chart_at(at: &Path, path: &Path, panels: &[StabilityPanel]) -> Result<()> {
     font();
-    let root =
-        BitMapBackend::new(path, (500 * panels.len().max(1) as u32, 480)).into_drawing_area();
+    let root = BitMapBackend::new(at, (500 * panels.len().max(1) as u32, 480)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     let areas = root.split_evenly((1, panels.len().max(1)));
     let (r0, r1) = span(panels.iter().flat_map(|p| p.1.iter().map(|c| c.0)), true);
@@ -423,8 +481,12 @@ pub struct EnergyCurves {
 /// (linear, with a zero line); below, the liquid's (solid) and the bodies' (dashed) kinetic
 /// energy on a log scale (zeros left out), each scene in one colour in both panels.
 pub fn energy_chart(path: &Path, scenes: &[EnergyCurves]) -> Result<()> {
+    crate::io::output::write_through(path, |at| energy_chart_at(at, path, scenes))
+}
+
+fn energy_chart_at(at: &Path, path: &Path, scenes: &[EnergyCurves]) -> Result<()> {
     font();
-    let root = BitMapBackend::new(path, (900, 1000)).into_drawing_area();
+    let root = BitMapBackend::new(at, (900, 1000)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(path, e))?;
     let (top, bottom) = root.split_vertically(520);
     let times = || scenes.iter().flat_map(|s| s.change.iter().map(|p| p.0));
@@ -572,5 +634,25 @@ mod tests {
         let p = tmp("frame.png");
         frame_png(&p, d, &frames[0], View::Top, (400, 300)).unwrap();
         assert!(starts_with(&p, b"\x89PNG"));
+    }
+
+    /// A picture that fails once its file was opened (a PNG frame asked for at a `.gif` path:
+    /// the image encoder refuses it) leaves the picture that was there, and no temporary: a
+    /// failed `render` replaced a 40 KB GIF with 38 bytes.
+    #[test]
+    fn a_failed_picture_leaves_the_old_one() {
+        let dir = tmp("failed");
+        std::fs::create_dir_all(&dir).unwrap();
+        let d = Vec3::new(1.0, 0.8, 1.0);
+        let frame =
+            Frame { liquid: TriangleMesh::default(), bodies: Vec::new(), label: "x".into() };
+        let p = dir.join("old.gif");
+        std::fs::write(&p, b"the old picture").unwrap();
+        assert!(frame_png(&p, d, &frame, View::Side, (120, 90)).is_err());
+        assert_eq!(std::fs::read(&p).unwrap(), b"the old picture", "the old picture was replaced");
+        let left: Vec<_> =
+            std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(left, ["old.gif"], "temporaries left behind");
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -146,6 +146,7 @@ impl VtkSeries {
     /// Writes frame `n` of `sim` (particles, bodies, grid) and rewrites the `.pvd` files, so
     /// a run that fails part-way still leaves a playable series.
     pub fn write_frame(&mut self, sim: &Simulation, n: usize) -> Result<()> {
+        crate::io::output::check_body_names(sim.bodies().iter().map(|b| b.name.as_str()))?;
         let time = sim.time();
         let title = format!("diffluid {} frame {n} t = {time} s", self.name);
         let mut files = vec![
@@ -187,6 +188,9 @@ impl VtkSeries {
                  byte_order=\"LittleEndian\">\n  <Collection>\n",
             );
             for (t, file) in frames {
+                // A body's name is checked to be safe in a file name and in XML; escaped all
+                // the same, so no name can make the collection invalid XML.
+                let file = crate::io::output::xml_escape(file);
                 xml.push_str(&format!(
                     "    <DataSet timestep=\"{t}\" group=\"\" part=\"0\" file=\"{file}\"/>\n"
                 ));

@@ -98,6 +98,12 @@ where
         x.iter_mut().for_each(|v| *v = 0.0);
         return CgStats { iterations: 0, relative_residual: 0.0, converged: true };
     }
+    if !bnorm.is_finite() {
+        // An infinite or NaN right-hand side (‖b‖² overflows past 1e154 a component): no
+        // residual can be measured against it, and nothing is solved. It used to pass the
+        // test below (‖r‖ ≤ tol·∞) as converged, with a NaN residual.
+        return CgStats { iterations: 0, relative_residual: f64::NAN, converged: false };
+    }
     if s.project_constant {
         remove_mean(x);
     }

@@ -263,6 +263,7 @@ impl SimulationBuilder {
             step: 0,
             time: 0.0,
             warnings,
+            warned: Vec::new(),
             spare: Arc::default(),
             rollback: true,
         };
@@ -302,7 +303,8 @@ pub(crate) fn round6(a: [f64; 3]) -> [f64; 3] {
 }
 
 /// A body a simulation can take: a positive finite mass, a finite state, and bounds inside
-/// the tank: strictly inside for a body added (`reach` 0), within `reach` of the walls for one
+/// the tank: strictly inside for a body added (`reach` 0: more than 1e-9 of the tank's size
+/// from every wall), within `reach` of the walls for one
 /// whose caller's engine moved it (resting on the floor, a little into it).
 pub(super) fn check_body(b: &RigidBody, size: Vec3, reach: f64) -> std::result::Result<(), String> {
     if !(b.mass.is_finite() && b.mass > 0.0) {
@@ -318,7 +320,10 @@ pub(super) fn check_body(b: &RigidBody, size: Vec3, reach: f64) -> std::result::
     finite("position", b.x)?;
     let (lo, hi) = b.bounds();
     let inside = if reach == 0.0 {
-        lo.min_element() > 0.0 && (hi - size).max_element() < 0.0
+        // Within round-off of a wall is touching it, at the floor (0) and at the lid (n·dx,
+        // which is 0.6000000000000001 for 6 cells of 0.1) alike.
+        let tol = 1e-9 * size.max_element();
+        lo.min_element() > tol && (hi - size).max_element() < -tol
     } else {
         lo.min_element() >= -reach && (hi - size).max_element() <= reach
     };

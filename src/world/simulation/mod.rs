@@ -64,6 +64,8 @@ pub struct Simulation {
     time: f64,
     /// Every warning so far (each once).
     warnings: Vec<String>,
+    /// The warnings given once a body: of which kind, about which body.
+    warned: Vec<(&'static str, BodyHandle)>,
     /// The last step's whole-grid arrays, for the next step (or step adjoint) to build into;
     /// shared between clones.
     spare: Arc<Spare>,
@@ -99,6 +101,16 @@ impl Simulation {
         if !self.warnings.contains(&w) {
             self.warnings.push(w.clone());
             new.push(w);
+        }
+    }
+
+    /// [`Simulation::warn`] once for each body and `kind`: the first such warning about the
+    /// body stands for the ones after it (a thin body's missing volume changes as it moves:
+    /// a resting box warned 24 times in 300 steps).
+    fn warn_about(&mut self, new: &mut Vec<String>, kind: &'static str, h: BodyHandle, w: String) {
+        if !self.warned.contains(&(kind, h)) {
+            self.warned.push((kind, h));
+            self.warn(new, w);
         }
     }
 

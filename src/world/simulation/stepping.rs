@@ -22,7 +22,7 @@
 //!
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
-use super::{Simulation, VOLUME_TOLERANCE};
+use super::{BodyHandle, Simulation, VOLUME_TOLERANCE};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::grid::Mac;
@@ -49,6 +49,53 @@ use std::time::Instant;
 /// taken as none.
 fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
     1e-3 * v3(gravity).length().max(1.0) * dt
+}
+
+/// The largest speed (m/s, rad/s) or coordinate (m) a step takes: beyond it the state is
+/// taken as blown up. Far above anything physical, and far enough below f64's range that the
+/// solve's sums of squares over a grid of 512³ cells cannot overflow (1e100² · 1.3e8 < 1e308).
+const LARGEST: f64 = 1e100;
+
+/// The largest |u| over every face, NaN if one is NaN: one parallel pass for both checks.
+fn largest_magnitude(u: &Mac) -> f64 {
+    let most = |a: f64, b: f64| if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) };
+    u.c.iter()
+        .map(|c| {
+            c.par_iter()
+                .with_min_len(crate::math::par::MIN_LEN)
+                .map(|x| x.abs())
+                .reduce(|| 0.0, most)
+        })
+        .fold(0.0, most)
+}
+
+/// What every failed step puts back (see [`Simulation::step_inner`]), rollback or not: the
+/// bodies, their fluid forces, the step count and the time. The marker particles and the
+/// narrow band are [`Undo`]'s, kept only when [`Simulation::rollback`] is on (their copy costs
+/// 24 bytes a particle and 21 a cell every step).
+struct BodyUndo {
+    bodies: Vec<RigidBody>,
+    fluid_forces: Vec<[f64; 6]>,
+    step: usize,
+    time: f64,
+}
+
+impl BodyUndo {
+    fn of(sim: &Simulation) -> BodyUndo {
+        BodyUndo {
+            bodies: sim.bodies.clone(),
+            fluid_forces: sim.fluid_forces.clone(),
+            step: sim.step,
+            time: sim.time,
+        }
+    }
+
+    fn restore(self, sim: &mut Simulation) {
+        sim.bodies = self.bodies;
+        sim.fluid_forces = self.fluid_forces;
+        sim.step = self.step;
+        sim.time = self.time;
+    }
 }
 
 /// Where a step's pressure solves (and density projection potentials) come from.
@@ -137,7 +184,9 @@ impl Simulation {
                 b.v.length() + b.w.length() * 0.5 * (hi - lo).length()
             })
             .fold(0.0, f64::max);
-        let g = v3(self.settings.fluid.gravity).length();
+        // Sizes as the largest component (a length would overflow first).
+        let size = |v: Vec3| v.abs().max_element();
+        let g = size(v3(self.settings.fluid.gravity));
         let speed = self.max_liquid_face_speed().max(body_speed) + (dx * g).sqrt();
         let limit = self.settings.solver.cfl * dx / speed;
         if limit.is_finite() {
@@ -270,22 +319,85 @@ impl Simulation {
     }
 
     /// One step of `dt`, taped on `tape` when given, its pressures as `pressures` says, run
-    /// on the pool (its other workers spinning when [`Simulation::spins`]). A step that fails
-    /// leaves φ_L that of the particles where they are.
+    /// on the pool (its other workers spinning when [`Simulation::spins`]).
+    ///
+    /// A step whose state or predicted velocities are not finite (or beyond [`LARGEST`])
+    /// fails before it changes anything ([`Simulation::check_state`]). A step that fails
+    /// later (a solve that does not converge, a body leaving the tank) puts back the bodies,
+    /// their fluid forces, the time, the step count and the tape; the velocity and pressure
+    /// are only ever replaced by a step that succeeds. The marker particles (and a narrow
+    /// band) stay where the step's stage 0 moved them, and φ_L follows them, unless the
+    /// caller's [`Simulation::rollback`] puts them back too: see [`BodyUndo`] and [`Undo`].
+    /// The warnings the step found are kept.
     fn step_inner(
         &mut self,
         dt: f64,
-        tape: Option<&mut Tape>,
+        mut tape: Option<&mut Tape>,
         pressures: Pressures,
     ) -> Result<StepReport> {
         on_pool_spinning(self.spins(), || {
-            let report = self.step_stages(dt, tape, pressures);
-            if report.is_err() && self.phi.len() != self.grid.num_cells() {
-                // The step failed while its system held φ_L's memory.
+            self.check_state(dt)?;
+            let undo = BodyUndo::of(self);
+            let taped = tape.as_ref().map(|t| t.steps.len());
+            let report = self.step_stages(dt, tape.as_deref_mut(), pressures);
+            if report.is_err() {
+                undo.restore(self);
+                // φ_L of the particles where they are (the step's system may have held its
+                // memory), and no record of the step on the tape.
                 self.phi = self.particle_phi();
+                if let (Some(t), Some(n)) = (tape, taped) {
+                    t.steps.truncate(n);
+                }
             }
             report
         })
+    }
+
+    /// The checks before a step changes anything: the state is finite, and the velocities
+    /// the step starts its solve from (with gravity and the bodies' loads for `dt`) are below
+    /// [`LARGEST`], so the solve's sums of squares cannot overflow (`gravity = [0, -1e160,
+    /// 0]` gave an infinite right-hand side, a NaN residual that counted as converged, and
+    /// `max speed inf`).
+    fn check_state(&self, dt: f64) -> Result<()> {
+        let step = self.step + 1;
+        let blew = |what: String| Err(Error::NonFinite { step, what });
+        // Sizes as the largest component (a length would overflow first).
+        let size = |v: Vec3| v.abs().max_element();
+        let g = size(v3(self.settings.fluid.gravity));
+        let fluid = largest_magnitude(&self.u) + dt * g;
+        if fluid.is_nan() {
+            return blew("the fluid velocity is not finite".into());
+        }
+        if fluid >= LARGEST {
+            return blew(format!(
+                "the fluid velocity would reach {fluid:.3e} m/s with gravity, beyond {LARGEST:e} \
+                 (is gravity too large?)"
+            ));
+        }
+        for b in &self.bodies {
+            let pose = b.x.is_finite() && b.q.is_finite() && b.x.abs().max_element() < LARGEST;
+            if !pose {
+                return blew(format!("body {}'s position or orientation is not finite", b.name));
+            }
+            let (v, w) = (size(b.v), size(b.w));
+            let (f, t) = (size(b.force), size(b.torque));
+            // What gravity and the loads add in a step (at most: ‖I⁻¹‖ bounded by the sum of
+            // its entries' magnitudes).
+            let inverse = b.local_inertia.inverse().to_cols_array();
+            let inverse = inverse.iter().map(|x| x.abs()).sum::<f64>();
+            let pushed = if b.moves() { dt * (g + f / b.mass) } else { 0.0 };
+            let spun = if b.moves() { dt * t * inverse } else { 0.0 };
+            if !(v + pushed < LARGEST && w + spun < LARGEST) {
+                return blew(format!(
+                    "body {}'s velocity would reach {:.3e} m/s and {:.3e} rad/s (largest \
+                     components), beyond {LARGEST:e}",
+                    b.name,
+                    v + pushed,
+                    w + spun
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// [`Simulation::step_inner`]'s stages.
@@ -316,23 +428,26 @@ impl Simulation {
             .map(|(b, f)| f.volume_error(&grid, b.volume()))
             .collect();
         let mut warnings = Vec::new();
-        let found: Vec<String> = self
+        let found: Vec<(BodyHandle, String)> = self
             .bodies
             .iter()
+            .zip(&self.handles)
             .zip(&volume_errors)
             .filter(|(_, e)| **e > VOLUME_TOLERANCE)
-            .map(|(b, e)| {
-                format!(
+            .map(|((b, h), e)| {
+                let w = format!(
                     "body {}: its face fractions miss {:.1}% of its volume, so its buoyancy \
-                     is off by as much (it is too small or thin for cells of {} m)",
+                     is off by as much (it is too small or thin for cells of {} m; each step's \
+                     report has its volume_error)",
                     b.name,
                     100.0 * e,
                     grid.dx
-                )
+                );
+                (*h, w)
             })
             .collect();
-        for w in found {
-            self.warn(&mut warnings, w);
+        for (h, w) in found {
+            self.warn_about(&mut warnings, "volume", h, w);
         }
         lap(&mut times.geometry);
 
@@ -465,16 +580,29 @@ impl Simulation {
         self.move_bodies(dt, contact_moves)?;
         lap(&mut times.rigid);
 
-        self.step += 1;
-        self.time += dt;
-        if !u.is_finite() {
-            return Err(Error::NonFinite { step: self.step, what: "the fluid velocity".into() });
+        // The state the step leaves: finite, and below LARGEST (a larger one only overflows
+        // a step later).
+        let step = self.step + 1;
+        let fluid = largest_magnitude(&u);
+        if fluid.is_nan() || fluid >= LARGEST {
+            let what = format!("the fluid velocity is not finite (up to {fluid:.3e} m/s)");
+            return Err(Error::NonFinite { step, what });
         }
         for b in &self.bodies {
-            if !(b.x.is_finite() && b.v.is_finite() && b.w.is_finite() && b.q.is_finite()) {
-                return Err(Error::NonFinite { step: self.step, what: format!("body {}", b.name) });
+            let state = [b.x, b.v, b.w].map(|v| v.abs().max_element());
+            if !(state.iter().all(|x| *x < LARGEST) && b.q.is_finite()) {
+                return Err(Error::NonFinite {
+                    step,
+                    what: format!(
+                        "body {}'s state is not finite (x up to {:.3e} m, v {:.3e} m/s, ω {:.3e} \
+                         rad/s)",
+                        b.name, state[0], state[1], state[2]
+                    ),
+                });
             }
         }
+        self.step = step;
+        self.time += dt;
         self.spare.keep_velocity(std::mem::replace(&mut self.u, u));
         sys.pressure.scatter_into(&proj.p, &mut self.pressure);
         self.phi = sys.phi;
@@ -660,6 +788,12 @@ impl Simulation {
             };
             if let Pressures::Record(solves) = pressures {
                 solves.push(p.clone(), stats);
+            }
+            if !stats.relative_residual.is_finite() {
+                return Err(Error::NonFinite {
+                    step: self.step + 1,
+                    what: "the pressure solve's residual is not finite".into(),
+                });
             }
             if !stats.converged {
                 return Err(Error::NotConverged {
