@@ -261,8 +261,8 @@ impl Simulation {
     /// default. It keeps a copy of the particles, the narrow band and φ_L through every step
     /// (on `large_tank`, a fifth more peak memory: docs/performance.md): a caller that stops
     /// at the first error (the CLI's `run`) turns it off, and a step that fails then leaves
-    /// the particles and the bodies where it had moved them, the time and step count as
-    /// before. The gradients' taped steps never roll back (a failure ends their run).
+    /// the particles (and the narrow band) where it had moved them; the bodies, their forces,
+    /// the time and the step count are put back either way. The gradients' taped steps never roll back (a failure ends their run).
     pub fn set_rollback(&mut self, on: bool) {
         self.rollback = on;
     }
