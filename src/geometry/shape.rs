@@ -77,12 +77,13 @@ pub fn depth(shape: &SharedShape) -> f64 {
     }
     let coarse = (ext.x * ext.y * ext.z / 1e5).cbrt();
     let h = (0.25 * thickness(shape)).max(coarse).max(1e-12);
-    let n = (ext / h).ceil().as_uvec3();
+    let c = (ext / h).ceil();
+    let n = [c.x as u32, c.y as u32, c.z as u32];
     let identity = Pose::IDENTITY;
     let mut deepest: f64 = 0.0;
-    for k in 0..=n.z {
-        for j in 0..=n.y {
-            for i in 0..=n.x {
+    for k in 0..=n[2] {
+        for j in 0..=n[1] {
+            for i in 0..=n[0] {
                 let p = aabb.mins + Vec3::new(i as f64, j as f64, k as f64) * h;
                 deepest = deepest.max(-shape.distance_to_point(&identity, p, false));
             }
