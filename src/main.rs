@@ -276,25 +276,49 @@ fn bar(len: usize, quiet: bool, template: &str) -> ProgressBar {
     bar
 }
 
-/// A flag Ctrl-C (SIGINT) or SIGTERM sets, so a run stops after the step in progress and
-/// writes what it has; a second one ends the process at once (status 130). The first call
-/// installs the handler.
-fn on_interrupt() -> Arc<AtomicBool> {
-    static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
-    FLAG.get_or_init(|| {
-        let flag = Arc::new(AtomicBool::new(false));
-        let set = flag.clone();
-        let installed = ctrlc::set_handler(move || {
-            if set.swap(true, Ordering::SeqCst) {
-                std::process::exit(130);
-            }
-        });
-        if let Err(e) = installed {
-            eprintln!("warning: Ctrl-C will end the run without its summary: {e}");
-        }
-        flag
-    })
-    .clone()
+/// What Ctrl-C (SIGINT) or SIGTERM does while a [`Listening`] guard lives: it sets the flag,
+/// so a run stops after the step in progress and writes what it has; a second one ends the
+/// process at once. Without one (the other commands, or `optimize` after `run` in the default
+/// job) it ends the process at once, as if no handler were installed. Exit status 130.
+struct Listening(Arc<AtomicBool>);
+
+/// Whether a [`Listening`] guard lives.
+static LISTENING: AtomicBool = AtomicBool::new(false);
+
+impl Listening {
+    /// Installs the handler (once) and starts listening.
+    fn start() -> Listening {
+        static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
+        let flag = FLAG
+            .get_or_init(|| {
+                let flag = Arc::new(AtomicBool::new(false));
+                let set = flag.clone();
+                let installed = ctrlc::set_handler(move || {
+                    if !LISTENING.load(Ordering::SeqCst) || set.swap(true, Ordering::SeqCst) {
+                        std::process::exit(130);
+                    }
+                });
+                if let Err(e) = installed {
+                    eprintln!("warning: Ctrl-C will end the run without its summary: {e}");
+                }
+                flag
+            })
+            .clone();
+        flag.store(false, Ordering::SeqCst);
+        LISTENING.store(true, Ordering::SeqCst);
+        Listening(flag)
+    }
+
+    /// Whether Ctrl-C came.
+    fn heard(&self) -> bool {
+        self.0.load(Ordering::SeqCst)
+    }
+}
+
+impl Drop for Listening {
+    fn drop(&mut self) {
+        LISTENING.store(false, Ordering::SeqCst);
+    }
 }
 
 fn run(args: RunArgs) -> Outcome {
@@ -322,7 +346,7 @@ fn run(args: RunArgs) -> Outcome {
         }),
     };
     let folder = RunFolder::claim(&out, args.force)?;
-    let interrupted = on_interrupt();
+    let interrupt = Listening::start();
     let mut rec = RunRecorder::new(folder, &scene.name, frames, &sim)?;
     let bar = bar(
         scene.time.steps,
@@ -332,7 +356,7 @@ fn run(args: RunArgs) -> Outcome {
     bar.set_message(scene.name.clone());
     let mut stopped = None;
     for _ in 0..scene.time.steps {
-        if interrupted.load(Ordering::SeqCst) {
+        if interrupt.heard() {
             let done = sim.steps_taken();
             stopped = Some(Failure {
                 message: format!(

@@ -260,14 +260,14 @@ impl RunRecorder {
     /// before its last step (a failed step, an interrupt), None that it is complete. Returns
     /// the wall time of the stepping loop so far, s.
     pub fn finish(&mut self, stopped: Option<&str>) -> Result<f64> {
-        let total = self.started.elapsed().as_secs_f64();
-        self.write_summary(Some(stopped))?;
-        Ok(total)
+        self.write_summary(Some(stopped))
     }
 
-    /// `summary.json`: `end` None while the run goes, `Some(stopped)` at its end.
-    fn write_summary(&mut self, end: Option<Option<&str>>) -> Result<()> {
+    /// `summary.json`: `end` None while the run goes, `Some(stopped)` at its end. Returns the
+    /// `total_seconds` it holds.
+    fn write_summary(&mut self, end: Option<Option<&str>>) -> Result<f64> {
         let clock = Instant::now();
+        let total_seconds = self.started.elapsed().as_secs_f64();
         let (status, stopped) = match end {
             None => ("running", None),
             Some(None) => ("complete", None),
@@ -282,13 +282,13 @@ impl RunRecorder {
                 dt: self.dt,
                 particles: self.particles,
                 initial_liquid_volume: self.initial_volume,
-                total_seconds: self.started.elapsed().as_secs_f64(),
+                total_seconds,
                 status,
                 stopped,
                 steps: &self.reports,
             },
         )?;
         self.summary_written = (Instant::now(), clock.elapsed());
-        Ok(())
+        Ok(total_seconds)
     }
 }
