@@ -23,7 +23,6 @@ use super::loss::{AdjointState, BodyAdjoint, Gradient};
 use super::run::{GradientSettings, Rollout};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, Motion};
-use crate::geometry::grid::Mac;
 use crate::math::Vec3;
 use crate::world::{BodyHandle, Simulation};
 
@@ -261,12 +260,8 @@ impl ControlledRun {
         {
             return Err(e);
         }
-        let mut adj = seed.liquid.clone().unwrap_or_else(|| AdjointState {
-            u: Mac::zeros(self.initial.grid()),
-            bodies: Vec::new(),
-            particles: Vec::new(),
-            mass: Vec::new(),
-        });
+        let mut adj =
+            seed.liquid.clone().unwrap_or_else(|| AdjointState::zero(self.initial.grid()));
         adj.bodies = seed.states[steps].clone();
         let mut actions = seed.actions.clone();
         let dt = self.initial.dt();
@@ -500,12 +495,7 @@ impl Stepper {
             message: "backward asked for more actions than were taken".into(),
         })?;
         self.taking_back = true;
-        let mut adj = self.carried.take().unwrap_or_else(|| AdjointState {
-            u: Mac::zeros(self.start.grid()),
-            bodies: Vec::new(),
-            particles: Vec::new(),
-            mass: Vec::new(),
-        });
+        let mut adj = self.carried.take().unwrap_or_else(|| AdjointState::zero(self.start.grid()));
         adj.bodies = after.to_vec();
         let mut grads = vec![[0.0; 6]; self.controlled.len()];
         let dt = self.start.dt();

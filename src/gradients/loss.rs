@@ -46,6 +46,18 @@ pub struct AdjointState {
     pub mass: Vec<f64>,
 }
 
+impl AdjointState {
+    /// Zero on `grid`: no body, particle or mass adjoint (empty means zero).
+    pub fn zero(grid: &crate::geometry::grid::Grid) -> AdjointState {
+        AdjointState {
+            u: Mac::zeros(grid),
+            bodies: Vec::new(),
+            particles: Vec::new(),
+            mass: Vec::new(),
+        }
+    }
+}
+
 /// A loss on the final state.
 pub trait Loss: Sync {
     /// L(final state).
@@ -98,7 +110,7 @@ impl Loss for BodyTargetLoss {
         if let Some((t, w)) = self.velocity {
             g.v = 2.0 * w * (b.v - t);
         }
-        AdjointState { u: Mac::zeros(sim.grid()), bodies, particles: Vec::new(), mass: Vec::new() }
+        AdjointState { bodies, ..AdjointState::zero(sim.grid()) }
     }
 }
 
