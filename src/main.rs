@@ -333,6 +333,9 @@ fn run(args: RunArgs) -> Outcome {
     // The run ends at the first error: no step is tried again, and a fifth of the peak
     // stays free.
     sim.set_rollback(false);
+    if !args.quiet {
+        eprintln!("model: {}", sim.model());
+    }
     for w in sim.warnings() {
         eprintln!("warning: {w}");
     }

@@ -19,7 +19,7 @@ fn counted(sim: &Simulation) -> f64 {
 
 fn with_band(name: &str, width: usize) -> Scene {
     let mut scene = Scene::builtin(name).unwrap();
-    scene.solver.narrow_band = width;
+    scene.solver.narrow_band = width.into();
     scene
 }
 
@@ -28,7 +28,7 @@ fn with_band(name: &str, width: usize) -> Scene {
 #[test]
 fn still_water_with_a_band_is_the_full_volume_still_water() {
     let mut band = with_band("still_water", 3).build().unwrap();
-    let mut full = Scene::builtin("still_water").unwrap().build().unwrap();
+    let mut full = with_band("still_water", 0).build().unwrap();
     let deep = band.band().unwrap().deep_cells();
     assert_eq!(deep, 20 * 20 * 6, "rows 0..6 are more than 4 cells under the surface");
     assert_eq!(band.particles.len() * 10, full.particles.len() * 4);
@@ -87,7 +87,7 @@ fn dam_break_with_a_band_keeps_its_volume() {
 #[test]
 fn floating_box_with_a_band_floats_as_without() {
     let mut band = with_band("floating_box", 2).build().unwrap();
-    let mut full = Scene::builtin("floating_box").unwrap().build().unwrap();
+    let mut full = with_band("floating_box", 0).build().unwrap();
     assert!(band.band().unwrap().deep_cells() > 0);
     for _ in 0..40 {
         band.step().unwrap();

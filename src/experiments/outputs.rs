@@ -448,6 +448,9 @@ pub enum Study {
     /// Time per step and peak memory against grid size up to 8.4M cells: run only when
     /// asked for (`--only scale`; it takes about a minute and 4 GB).
     Scale,
+    /// A game loop's frame time (`advance(1/60)`) against grid size, on one thread and two:
+    /// run only when asked for (`--only realtime`; about two minutes).
+    Realtime,
 }
 
 /// The studies of `diffluid bench` (all six but the scale study, or `only` one), run and written into `out` as
@@ -479,6 +482,9 @@ pub fn write_bench(
     }
     if only == Some(Study::Scale) {
         lines.extend(write_scale(out, quick, &mut progress)?);
+    }
+    if only == Some(Study::Realtime) {
+        lines.extend(write_realtime(out, quick, &mut progress)?);
     }
     if only == Some(Study::Smoothed) {
         progress("the smoothed gradient on the surge");
@@ -647,6 +653,43 @@ fn write_scale(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Resu
                 r.forward_peak_mb,
                 r.gradient_seconds_per_step,
                 r.gradient_peak_mb
+            )
+        })
+        .collect())
+}
+
+/// The real-time study: its table, a chart of the frame time against cells beside the
+/// frame budgets of 30 and 60 frames a second, and a line per size and thread count.
+fn write_realtime(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Result<Vec<String>> {
+    let at = |name: &str| out.join(name);
+    progress("a game loop's frame time against grid size");
+    let rows = bench::realtime(quick)?;
+    write_csv(&at("realtime.csv"), &rows)?;
+    let threads = |t: usize| {
+        let points = rows.iter().filter(|r| r.threads == t);
+        let label = if t == 1 { "1 thread".to_string() } else { format!("{t} threads") };
+        (label, points.map(|r| (r.cells as f64, 1e3 * r.frame_seconds)).collect::<Vec<_>>())
+    };
+    let (lo, hi) = (rows[0].cells as f64, rows[rows.len() - 1].cells as f64);
+    let budget = |fps: f64| (format!("{fps:.0} frames/s"), vec![(lo, 1e3 / fps), (hi, 1e3 / fps)]);
+    plot::line_chart(
+        &at("realtime.png"),
+        "a pool with three floating bodies, advance(1/60) a frame",
+        ("grid cells", "ms a frame (median)"),
+        (true, true),
+        &[threads(1), threads(2), budget(30.0), budget(60.0)],
+    )?;
+    Ok(rows
+        .iter()
+        .map(|r| {
+            format!(
+                "{} ({} thread{}): {:.1} ms a frame, {:.1} frames/s, {:.2} steps a frame",
+                r.n,
+                r.threads,
+                if r.threads == 1 { "" } else { "s" },
+                1e3 * r.frame_seconds,
+                r.frames_per_second,
+                r.steps_per_frame
             )
         })
         .collect())

@@ -7,7 +7,7 @@ mod simulation;
 pub mod step;
 pub mod tape;
 
-pub use settings::{ContactSettings, Fluid, SolverSettings, WorldSettings};
+pub use settings::{ContactSettings, Fluid, NarrowBand, SolverSettings, WorldSettings};
 pub use simulation::{BodyHandle, Simulation, SimulationBuilder};
 pub use step::{BodyForce, Energy, StageSeconds, StepReport, StepSystem};
 pub use tape::{StepRecord, Tape};

@@ -122,10 +122,11 @@ pub struct SolverSettings {
     pub particle_substeps: usize,
     /// Marker particles only in a band this many cells wide (L∞) around the air and the
     /// solids; the liquid beyond is carried by the grid as full cells (see `stages/band.rs`).
-    /// 0, the default, fills the whole liquid; 2 to 32 is a band. The band is cheaper
-    /// wherever the liquid is deeper than a few cells, and it adds to its width the cells a
-    /// step's fastest velocity crosses.
-    pub narrow_band: usize,
+    /// 0 fills the whole liquid; 2 to 32 is a band. The band is cheaper wherever the liquid
+    /// is deeper than a few cells, and it adds to its width the cells a step's fastest
+    /// velocity crosses. Default `"auto"`: a band of [`NarrowBand::AUTO_WIDTH`] where the
+    /// scene starts with deep cells, none where it does not (see [`NarrowBand::Auto`]).
+    pub narrow_band: NarrowBand,
     /// The most memory a simulation may take, GB. Default: none given, so the memory the
     /// machine has available (its free memory, or the cgroup limit) is the limit. Before
     /// anything is allocated, a scene's needs are estimated (see
@@ -170,7 +171,7 @@ impl Default for SolverSettings {
             density_tolerance: 1e-6,
             sparse_cells: true,
             particle_substeps: 0,
-            narrow_band: 0,
+            narrow_band: NarrowBand::Auto,
             memory_limit_gb: None,
             freeze_surface: false,
             spin_workers: None,
@@ -244,17 +245,98 @@ impl SolverSettings {
                 format!("must be 0 (adaptive) to 64, got {}", self.particle_substeps),
             ));
         }
-        if self.narrow_band == 1 || self.narrow_band > 32 {
+        if let NarrowBand::Cells(w @ (1 | 33..)) = self.narrow_band {
             return Err(SettingError::new(
                 "solver.narrow_band",
                 format!(
-                    "must be 0 (particles fill the liquid) or a band of 2 to 32 cells (φ_L \
-                     reads particles up to 2 cells away), got {}",
-                    self.narrow_band
+                    "must be \"auto\", 0 (particles fill the liquid) or a band of 2 to 32 cells \
+                     (φ_L reads particles up to 2 cells away), got {w}"
                 ),
             ));
         }
         Ok(())
+    }
+}
+
+/// The narrow band of marker particles a world runs with (`solver.narrow_band`): `"auto"`,
+/// or a width in cells (0: particles fill the liquid).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum NarrowBand {
+    /// A band of [`NarrowBand::AUTO_WIDTH`] cells when at least
+    /// [`NarrowBand::AUTO_DEEP_SHARE`] of the liquid's cells would be deep at the start (more
+    /// than the band and two cells from the air, the walls' solids and the bodies), no band
+    /// otherwise: a shallow scene has nothing for a band to save and keeps every particle.
+    /// [`crate::world::Simulation::model`] says which was chosen and why.
+    #[default]
+    Auto,
+    /// A band this many cells wide; 0 fills the whole liquid with particles.
+    Cells(usize),
+}
+
+impl NarrowBand {
+    /// The width `auto` picks: the narrowest band the surface's distance reads (2 cells) and
+    /// one more, as `large_tank` ran before `auto` (its accuracy figures in
+    /// docs/performance.md, "The narrow band").
+    pub const AUTO_WIDTH: usize = 3;
+
+    /// The share of the liquid's cells that must be deep for `auto` to take a band. A band
+    /// costs its update every step and saves the deep cells' particles; measured on the
+    /// shipped scenes (CPU time of 30 steps, docs/performance.md, "Defaults chosen from the
+    /// scene"), it saves nothing measurable up to a third of the cells deep and a quarter to a
+    /// third of the step from half of them on.
+    pub const AUTO_DEEP_SHARE: f64 = 0.5;
+
+    /// The width in cells, with `auto` read as the band it would be
+    /// ([`NarrowBand::AUTO_WIDTH`]); 0 for none.
+    pub fn width(self) -> usize {
+        match self {
+            NarrowBand::Auto => Self::AUTO_WIDTH,
+            NarrowBand::Cells(w) => w,
+        }
+    }
+}
+
+impl From<usize> for NarrowBand {
+    fn from(w: usize) -> NarrowBand {
+        NarrowBand::Cells(w)
+    }
+}
+
+impl Serialize for NarrowBand {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            NarrowBand::Auto => s.serialize_str("auto"),
+            NarrowBand::Cells(w) => s.serialize_u64(*w as u64),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for NarrowBand {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<NarrowBand, D::Error> {
+        struct Visitor;
+        impl serde::de::Visitor<'_> for Visitor {
+            type Value = NarrowBand;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("\"auto\" or a width in cells (0, or 2 to 32)")
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<NarrowBand, E> {
+                match v {
+                    "auto" => Ok(NarrowBand::Auto),
+                    _ => Err(E::invalid_value(serde::de::Unexpected::Str(v), &self)),
+                }
+            }
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<NarrowBand, E> {
+                usize::try_from(v)
+                    .map(NarrowBand::Cells)
+                    .map_err(|_| E::invalid_value(serde::de::Unexpected::Unsigned(v), &self))
+            }
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<NarrowBand, E> {
+                u64::try_from(v)
+                    .map_err(|_| E::invalid_value(serde::de::Unexpected::Signed(v), &self))
+                    .and_then(|v| self.visit_u64(v))
+            }
+        }
+        d.deserialize_any(Visitor)
     }
 }
 

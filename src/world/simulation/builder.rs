@@ -13,7 +13,7 @@ use crate::math::Vec3;
 use crate::stages::band::{self, Band};
 use crate::stages::surface::{self, Bins, SurfaceModel};
 use crate::world::settings::{
-    check_finite, check_positive, SettingError, SolverSettings, WorldSettings,
+    check_finite, check_positive, NarrowBand, SettingError, SolverSettings, WorldSettings,
 };
 use crate::world::step::{StaticGeometry, NEAR_SOLID};
 use rayon::prelude::*;
@@ -179,10 +179,19 @@ impl SimulationBuilder {
     /// the liquid regions (their signed distance at the cell centres) are more than the band
     /// and two cells from their surface, the static solids and the bodies, so a large tank
     /// never holds its full-volume particles. The first step's update starts from them.
-    fn initial_band(&self, grid: &Grid, centre_in_solid: &[bool], radius: f64) -> Option<Band> {
-        let width = self.settings.solver.narrow_band;
+    /// `auto` takes the band when enough of the liquid is deep
+    /// ([`NarrowBand::AUTO_DEEP_SHARE`]). Returns the band, the width chosen (0 for none)
+    /// and what was chosen, in words.
+    fn initial_band(
+        &self,
+        grid: &Grid,
+        centre_in_solid: &[bool],
+        radius: f64,
+    ) -> (Option<Band>, usize, String) {
+        let setting = self.settings.solver.narrow_band;
+        let width = setting.width();
         if width == 0 {
-            return None;
+            return (None, 0, "particles fill the liquid (narrow_band = 0)".into());
         }
         let cells = grid.cells();
         let liquid = surface::Regions::new(&self.liquid);
@@ -204,8 +213,21 @@ impl SimulationBuilder {
             })
             .collect();
         let deep = band::deep_cells(grid, &outside, width, None);
+        let wet = outside.iter().filter(|&&o| !o).count();
+        let share = deep.iter().filter(|&&d| d).count() as f64 / wet.max(1) as f64;
+        let percent = (100.0 * share).round();
+        if setting == NarrowBand::Auto && share < NarrowBand::AUTO_DEEP_SHARE {
+            let why = format!(
+                "particles fill the liquid (auto: {percent}% of its cells deep at a band of \
+                 {width}, under {:.0}%)",
+                100.0 * NarrowBand::AUTO_DEEP_SHARE
+            );
+            return (None, 0, why);
+        }
+        let how = if setting == NarrowBand::Auto { "auto" } else { "narrow_band" };
+        let why = format!("narrow band {width} ({how}: {percent}% of the liquid's cells deep)");
         let m = surface::per_axis(self.settings.solver.particles_per_cell);
-        Some(Band::with_deep(grid, deep, radius, m))
+        (Some(Band::with_deep(grid, deep, radius, m)), width, why)
     }
 
     /// Checks everything and sets up the simulation: static geometry, particles seeded in
@@ -220,18 +242,20 @@ impl SimulationBuilder {
         let centre_in_solid = fractions::cell_centre_in_solid(&grid, &node_sdf);
         let ppc = self.settings.solver.particles_per_cell;
         let radius = surface::particle_radius(grid.dx, surface::per_axis(ppc));
-        let band = self.initial_band(&grid, &centre_in_solid, radius);
+        let (band, width, model) = self.initial_band(&grid, &centre_in_solid, radius);
+        let mut settings = self.settings;
+        settings.solver.narrow_band = NarrowBand::Cells(width);
         let deep = band.as_ref().map(|b| b.deep.as_slice());
         let mut particles = surface::seed(&grid, &self.liquid, ppc, &node_sdf, deep);
         let margin = 1e-3 * grid.dx;
         particles.retain(|x| self.bodies.iter().all(|b| b.sdf(*x) > margin));
-        let (frozen_phi, frozen_volume) = if self.settings.solver.freeze_surface {
+        let (frozen_phi, frozen_volume) = if settings.solver.freeze_surface {
             let bins = Bins::new(&particles, &grid);
             let base = band.as_ref().map(|b| b.density.as_slice());
             let vol = surface::liquid_volume(&particles, &grid, ppc, base);
-            let model = SurfaceModel { radius, sparse_cells: self.settings.solver.sparse_cells };
+            let surface = SurfaceModel { radius, sparse_cells: settings.solver.sparse_cells };
             let deep = band.as_ref().map(Band::deep);
-            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &model, deep))), vol)
+            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &surface, deep))), vol)
         } else {
             (None, 0.0)
         };
@@ -259,7 +283,8 @@ impl SimulationBuilder {
             }),
             radius,
             grid,
-            settings: self.settings,
+            settings,
+            model,
             step: 0,
             time: 0.0,
             warnings,

@@ -62,6 +62,8 @@ pub struct Simulation {
     frozen_volume: f64,
     step: usize,
     time: f64,
+    /// What the builder chose from the scene where a setting was left to it, in words.
+    model: String,
     /// Every warning so far (each once).
     warnings: Vec<String>,
     /// The warnings given once a body: of which kind, about which body.
@@ -88,6 +90,13 @@ impl Simulation {
             bodies: Vec::new(),
             notes: Vec::new(),
         }
+    }
+
+    /// What was chosen from the scene where a setting was left to `auto`, in words, for a
+    /// run to print once at its start (`narrow band 3 (auto: 62% of the liquid's cells
+    /// deep)`); the settings themselves, resolved, are [`Simulation::settings`].
+    pub fn model(&self) -> &str {
+        &self.model
     }
 
     /// Every warning so far, each once: what a user should know that is not an error (a body
@@ -196,7 +205,7 @@ impl Simulation {
         let grid = self.grid;
         // A trilinear sample is at most √3 times the largest face velocity.
         let reach = (3f64.sqrt() * self.u.max_abs() * dt / grid.dx).ceil() as usize;
-        let width = self.settings.solver.narrow_band + reach;
+        let width = self.settings.solver.narrow_band.width() + reach;
         let m = surface::per_axis(self.settings.solver.particles_per_cell);
         let node_sdf = &self.statics.node_sdf;
         let bodies = &self.bodies;
