@@ -27,6 +27,26 @@ fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
             assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{p:?}");
         }
     }
+    // The moving thin bodies: the disk's chart beside the stored figures from before the
+    // seal, and in the table a quarter-cell disk falls within 30% of potential flow (issue
+    // 36's target; measured 0.785) where it fell 4.5 times too fast before.
+    for f in ["moving_thin.csv", "moving_thin.png", "moving_thin_disk.png"] {
+        let p = out.join(f);
+        assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{p:?}");
+    }
+    let table = std::fs::read_to_string(out.join("moving_thin.csv")).unwrap();
+    let header: Vec<&str> = table.lines().next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let quarter: Vec<&str> = table
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect::<Vec<_>>())
+        .find(|r| r[0] == "0.25")
+        .unwrap();
+    let now: f64 = quarter[col("fall_over_potential")].parse().unwrap();
+    let before: f64 = quarter[col("fall_over_potential_before")].parse().unwrap();
+    assert!((now - 1.0).abs() < 0.3, "a quarter-cell disk falls at {now} of potential flow");
+    assert!(before > 4.0, "the stored figure from before the seal: {before}");
     let table = std::fs::read_to_string(out.join("stability.csv")).unwrap();
     let rows: Vec<Vec<&str>> = table.lines().skip(1).map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 12, "2 couplings × 3 ratios × 2 CFL numbers");

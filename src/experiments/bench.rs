@@ -944,6 +944,8 @@ pub struct MovingThinRow {
     pub thickness_cells: f64,
     /// The falling disk's acceleration over the potential-flow value ([`disk_fall`]).
     pub fall_over_potential: f64,
+    /// The same before moving thin bodies were sealed ([`disk_fall_before`]), where stored.
+    pub fall_over_potential_before: Option<f64>,
     /// Liquid through a paddle moved at constant speed, over the liquid its outline swept
     /// ([`paddle_through`]).
     pub leakage: f64,
@@ -978,6 +980,22 @@ position = [0.7013, 0.6527, 0.6991]"#,
     let mass = density * volume;
     let added = 8.0 / 3.0 * rho * radius.powi(3);
     Ok((measured, (mass - rho * volume) * g / (mass + added)))
+}
+
+/// The falling disk's acceleration over potential flow before moving thin bodies were sealed
+/// (issue 36), by thickness in cells: (thickness, ratio) from `assets/bench/disk_fall_before.csv`,
+/// measured with the code of that time on the scene of [`disk_fall`] (the file's README says
+/// how).
+pub fn disk_fall_before() -> Vec<(f64, f64)> {
+    const TABLE: &str = include_str!("../../assets/bench/disk_fall_before.csv");
+    TABLE
+        .lines()
+        .skip(1)
+        .filter_map(|l| {
+            let mut cols = l.split(',').map(|c| c.trim().parse::<f64>());
+            Some((cols.next()?.ok()?, cols.next()?.ok()?))
+        })
+        .collect()
 }
 
 /// How far (m) a neutrally buoyant plate `cells` thick (0.4 × 0.3 m, of cells of
@@ -1057,11 +1075,12 @@ narrow_band = 0"#,
 }
 
 /// Moving thin bodies, 0.125 to 2 cells thick: the falling disk against potential flow
-/// ([`disk_fall`]), and a paddle pushed through the water ([`paddle_through`]): the liquid
+/// ([`disk_fall`]; beside it the stored figure from before the seal, [`disk_fall_before`]), and a paddle pushed through the water ([`paddle_through`]): the liquid
 /// through it, and the momentum it gives the liquid over a two-cell paddle's.
 pub fn moving_thin(quick: bool) -> Result<Vec<MovingThinRow>> {
     let thicknesses: &[f64] = if quick { &[0.25, 2.0] } else { &[0.125, 0.25, 0.5, 1.0, 2.0] };
     let (_, thick) = paddle_through(2.0)?;
+    let before = disk_fall_before();
     let mut rows = Vec::new();
     for &t in thicknesses {
         let (a, pf) = disk_fall(t)?;
@@ -1069,6 +1088,10 @@ pub fn moving_thin(quick: bool) -> Result<Vec<MovingThinRow>> {
         rows.push(MovingThinRow {
             thickness_cells: t,
             fall_over_potential: a / pf,
+            fall_over_potential_before: before
+                .iter()
+                .find(|(c, _)| (c - t).abs() < 1e-9)
+                .map(|&(_, r)| r),
             leakage,
             momentum_over_thick: momentum / thick,
         });
