@@ -26,7 +26,7 @@ use crate::geometry::body::{
 };
 use crate::geometry::grid::Mac;
 use crate::math::dual::Dual;
-use crate::math::pool::on_pool_spinning;
+use crate::math::pool::run_spread;
 use crate::math::so3;
 use crate::math::{Rotation, Vec3};
 use crate::stages::advect::{advect_adjoint_into, needed_faces};
@@ -214,7 +214,7 @@ pub fn backward_adjoint_hooked(
     at_boundary: &mut (dyn FnMut(usize, &mut AdjointState) + Send),
 ) -> Result<(AdjointState, AdjointSeconds)> {
     check_differentiable(initial, tape, options)?;
-    on_pool_spinning(initial.spins(), || {
+    run_spread(initial.spread(), || {
         let mut times = AdjointSeconds::default();
         let mut adj = final_adjoint;
         for (t, rec) in tape.steps.iter().enumerate().rev() {

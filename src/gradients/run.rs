@@ -10,7 +10,7 @@ use super::control::Schedule;
 use super::loss::{AdjointState, Gradient, Loss};
 use crate::error::Result;
 use crate::geometry::body::{BodyState, RigidBody};
-use crate::math::pool::on_pool;
+use crate::math::pool::run_spread;
 use crate::world::tape::Solves;
 use crate::world::{Simulation, Tape};
 
@@ -90,7 +90,7 @@ impl Rollout {
         schedule: Option<&Schedule>,
     ) -> Result<Rollout> {
         let steps = schedule.map_or(steps, Schedule::steps);
-        on_pool(|| {
+        run_spread(initial.spread(), || {
             let every = settings.checkpoint_every.unwrap_or(steps).max(1);
             // Segments end at the last step: the first is the short one, and the last is
             // taped, so the backward pass re-runs every segment but that one.
@@ -117,8 +117,8 @@ impl Rollout {
                     for t in done..done + len {
                         before(&mut sim, t);
                         match solves.as_mut() {
-                            Some(solves) => sim.step_recording(solves)?,
-                            None => sim.step()?,
+                            Some(solves) => sim.step_recording(solves).map(drop)?,
+                            None => sim.step_unreported()?,
                         };
                     }
                     (len, Kept::Rerun(solves))
@@ -126,7 +126,7 @@ impl Rollout {
                     let mut tape = Tape::default();
                     for t in done..steps {
                         before(&mut sim, t);
-                        sim.step_taped(&mut tape)?;
+                        sim.step_taped_unreported(&mut tape)?;
                     }
                     (steps - done, Kept::Tape(tape))
                 };
@@ -237,7 +237,7 @@ impl Segment {
                     }
                     match replay.as_mut() {
                         Some(replay) => sim.step_replayed(&mut tape, replay)?,
-                        None => sim.step_taped(&mut tape).map(drop)?,
+                        None => sim.step_taped_unreported(&mut tape)?,
                     }
                 }
                 rerun = tape;

@@ -3,6 +3,52 @@
 //! step when that pays.
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::OnceLock;
+
+/// How a step's work is spread over the threads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Spread {
+    /// On one thread of a pool of its own: a grid too small for its parallel loops to pay
+    /// for handing work to another thread.
+    Serial,
+    /// On rayon's pool, the other workers sleeping between the step's loops.
+    Parallel,
+    /// On rayon's pool, the other workers spinning through the step
+    /// ([`on_pool_spinning`]).
+    Spinning,
+}
+
+/// Grids of fewer cells than this run a step (and a backward step) on one thread: there
+/// the second thread cost more than it saved, measured in docs/performance.md ("Defaults
+/// chosen from the scene").
+pub const SERIAL_BELOW: usize = 32_768;
+
+/// Runs `f` spread as asked. The results are the same bits either way: every parallel
+/// loop of a step is deterministic for any thread count.
+pub fn run_spread<R: Send>(spread: Spread, f: impl FnOnce() -> R + Send) -> R {
+    match spread {
+        Spread::Serial if rayon::current_num_threads() > 1 => match serial_pool() {
+            Some(pool) => pool.install(f),
+            None => on_pool(f),
+        },
+        Spread::Serial | Spread::Parallel => on_pool(f),
+        Spread::Spinning => on_pool_spinning(true, f),
+    }
+}
+
+/// The one-thread pool of [`Spread::Serial`], made on first use (None if the thread could
+/// not be started: then the work runs on rayon's pool).
+fn serial_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
+    POOL.get_or_init(|| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .thread_name(|_| "diffluid-serial".into())
+            .build()
+            .ok()
+    })
+    .as_ref()
+}
 
 /// Runs `f` on a thread of rayon's pool. A step makes dozens of short parallel loops; called
 /// from a thread outside the pool, each one would hand its work over and put the caller to

@@ -1,0 +1,77 @@
+//! A pool for a game prototype: a 3.2 × 1.6 × 3.2 m tank, 0.7 m of water, a crate, a ball
+//! and a log floating in it, advanced one display frame (1/60 s) at a time, as a game loop
+//! would, printing the frames per second it sustains.
+//!
+//! ```text
+//! cargo run --release --example realtime_pool -- [CELLS] [SECONDS]
+//! ```
+//!
+//! `CELLS` is the cells across the tank (default 64: a 64 × 32 × 64 grid, 131k cells);
+//! `SECONDS` the simulated time (default 4). Every setting is the default one: the narrow band
+//! of marker particles is chosen from the scene (the line `model:` says so). A second thread
+//! runs the step's loops where they are large enough to pay for it (`RAYON_NUM_THREADS=1`
+//! runs everything on one). What it measured on this project's machine is in
+//! docs/performance.md ("A pool at 30 frames a second"); `diffluid bench --only realtime`
+//! charts the frame time against the grid's size.
+
+use diffluid::geometry::body::RigidBody;
+use diffluid::geometry::shape::Solid;
+use diffluid::math::{Pose, Rotation, SharedShape, Vec3};
+use diffluid::world::Simulation;
+use std::time::Instant;
+
+fn main() -> diffluid::Result<()> {
+    let mut args = std::env::args().skip(1);
+    let cells: usize = args.next().map_or(64, |a| a.parse().expect("CELLS: a whole number"));
+    let seconds: f64 = args.next().map_or(4.0, |a| a.parse().expect("SECONDS: a number"));
+    let dx = 3.2 / cells as f64;
+    let at = |x: f64, y: f64, z: f64| Pose::from_translation(Vec3::new(x, y, z));
+    let log =
+        Pose::from_parts(Vec3::new(2.3, 0.7, 1.1), Rotation::from_rotation_z(90f64.to_radians()));
+    let mut sim = Simulation::builder([3.2, 1.6, 3.2], dx)
+        .dt(1.0 / 60.0)
+        .liquid(Solid::aabb(Vec3::ZERO, Vec3::new(3.2, 0.7, 3.2)))
+        .body(RigidBody::new(
+            "crate".into(),
+            SharedShape::cuboid(0.2, 0.15, 0.2),
+            at(0.8, 0.72, 0.9),
+            400.0,
+        ))
+        .body(RigidBody::new("ball".into(), SharedShape::ball(0.2), at(1.7, 0.72, 2.1), 600.0))
+        .body(RigidBody::new("log".into(), SharedShape::capsule_y(0.3, 0.1), log, 700.0))
+        .build()?;
+    let grid = *sim.grid();
+    println!(
+        "{}×{}×{} cells, {} threads; model: {}",
+        grid.n[0],
+        grid.n[1],
+        grid.n[2],
+        rayon::current_num_threads(),
+        sim.model()
+    );
+    let frames = (seconds * 60.0).round() as usize;
+    let mut times = Vec::with_capacity(frames);
+    let mut steps = 0;
+    let (mut window, mut shown) = (Instant::now(), 0);
+    for frame in 1..=frames {
+        let t = Instant::now();
+        steps += sim.advance(1.0 / 60.0)?.len();
+        times.push(t.elapsed().as_secs_f64());
+        if window.elapsed().as_secs_f64() >= 1.0 || frame == frames {
+            let fps = (frame - shown) as f64 / window.elapsed().as_secs_f64();
+            let heights: Vec<String> =
+                sim.bodies().iter().map(|b| format!("{} {:.3} m", b.name, b.x.y)).collect();
+            println!("t = {:.2} s: {fps:.1} frames/s ({})", sim.time(), heights.join(", "));
+            (window, shown) = (Instant::now(), frame);
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    let median = times[times.len() / 2];
+    println!(
+        "{frames} frames in {steps} steps: median frame {:.1} ms ({:.1} frames/s), slowest {:.1} ms",
+        1e3 * median,
+        1.0 / median,
+        1e3 * times[times.len() - 1]
+    );
+    Ok(())
+}
