@@ -7,7 +7,7 @@ use std::process::Command;
 
 #[test]
 fn gradcheck_box_json_has_every_rel_error_below_1e_6() {
-    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/scenes/gradcheck_box.toml");
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/gradcheck_box.toml");
     let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
         .args(["gradcheck", scene, "--json"])
         .output()

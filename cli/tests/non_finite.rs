@@ -14,7 +14,7 @@ use diffluid::{Error, Scene, Simulation};
 /// The dam break with a ball (contact off, so a body leaving the tank fails the step too),
 /// `edit` applied to its text.
 fn dam_break_ball(edit: impl Fn(String) -> String) -> Simulation {
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/dam_break_ball.toml"))
         .replace("[contact]\nenabled = true", "[contact]\nenabled = false");
     Scene::from_toml(&edit(text), "<test>").unwrap().build().unwrap()
 }
@@ -116,7 +116,7 @@ fn the_cli_reports_a_blown_up_run() {
     let dir = std::env::temp_dir().join(format!("diffluid-non-finite-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let scene = dir.join("scene.toml");
-    let text = include_str!("../assets/scenes/dam_break.toml")
+    let text = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/dam_break.toml"))
         .replace("[0.0, -9.81, 0.0]", "[0.0, -1e160, 0.0]");
     std::fs::write(&scene, text).unwrap();
     let out = dir.join("out");

@@ -1,7 +1,6 @@
 //! The liquid's surface mesh: closed (every edge in two triangles, every vertex in one fan),
 //! enclosing the liquid's volume where the liquid is a box of cells, outside every body, and
 //! written per frame by a run as PLY, OBJ and ParaView PolyData that read back closed.
-#![cfg(feature = "surface")]
 
 use diffluid::io::liquid_mesh::{liquid_surface, TriangleMesh};
 use diffluid::io::output::{read_mesh, MeshFormat};
@@ -176,11 +175,11 @@ fn a_run_writes_closed_surface_frames_as_ply_and_vtk() {
 
 #[test]
 fn surface_settings_are_checked() {
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/dam_break_ball.toml"))
         .replace("every = 1", "every = 1\nsurface = true\nsurface_samples = 0");
     let err = Scene::from_toml(&text, "test").unwrap_err().to_string();
     assert!(err.contains("output.surface_samples") && err.contains("1 to 8"), "{err}");
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/dam_break_ball.toml"))
         .replace("every = 1", "every = 1\nsurface = true\nsurface_format = \"stl\"");
     let err = Scene::from_toml(&text, "test").unwrap_err().to_string();
     assert!(err.contains("surface_format"), "{err}");
@@ -191,7 +190,7 @@ fn the_cli_writes_surface_frames_and_renders_them() {
     let dir = temp_dir("cli");
     std::fs::create_dir_all(&dir).unwrap();
     let scene = dir.join("scene.toml");
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/dam_break_ball.toml"))
         .replace("every = 1", "every = 2\nsurface = true\nsurface_format = \"obj\"");
     std::fs::write(&scene, text).unwrap();
     let exe = env!("CARGO_BIN_EXE_diffluid");

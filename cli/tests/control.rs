@@ -251,7 +251,7 @@ fn one_action_at_a_time_matches_the_whole_schedule() {
 /// an error naming its key, nothing run.
 #[test]
 fn bad_control_sections_are_refused() {
-    let base = include_str!("../assets/scenes/paddle_push.toml");
+    let base = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/paddle_push.toml"));
     let cases = [
         (r#"bodies = ["paddle"]"#, r#"bodies = ["oar"]"#, "control.bodies"),
         ("steps_per_action = 10", "steps_per_action = 0", "control.steps_per_action"),
@@ -296,7 +296,7 @@ fn bad_control_sections_are_refused() {
 /// runs for the same calls.
 #[test]
 fn the_control_command_writes_its_files() {
-    let base = include_str!("../assets/scenes/paddle_push.toml");
+    let base = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/paddle_push.toml"));
     let text = base.replacen("steps = 150", "steps = 20", 1).replacen(
         "[output]",
         "[solver]\nfreeze_surface = true\n\n[output]",

@@ -12,7 +12,7 @@ use std::process::{Command, Output};
 
 /// The valid scene every broken file is made from.
 fn dam_break_text() -> String {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes/dam_break.toml");
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/scenes/dam_break.toml");
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
 }
 

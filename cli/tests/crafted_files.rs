@@ -105,7 +105,7 @@ fn mkfifo(path: &Path) {
 
 /// The recovery scene with `optimizer` and 4 steps (an epoch takes a few milliseconds).
 fn recover_scene(optimizer: &str) -> String {
-    let base = include_str!("../assets/scenes/recover_box.toml");
+    let base = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/recover_box.toml"));
     let text = base
         .replacen("optimizer = { kind = \"gd\", learning_rate = 5.0 }", optimizer, 1)
         .replacen("steps = 20", "steps = 4", 1);
@@ -383,7 +383,7 @@ fn devices_and_fifos_are_refused() {
         let ended = diffluid(&["run", special, "--quiet", "--out", out]);
         assert_refused(&ended, &[special, "not a regular file"]);
 
-        let scene = include_str!("../assets/scenes/block_drop.toml");
+        let scene = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/block_drop.toml"));
         let from = "shape = { kind = \"cuboid\", half_extents = [0.1, 0.1, 0.1] }";
         assert!(scene.contains(from), "block_drop.toml changed");
         let text = scene.replacen(

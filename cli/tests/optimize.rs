@@ -34,7 +34,7 @@ fn recovers_the_initial_velocity_within_one_percent() {
 
 /// The recovery scene with another optimiser.
 fn recover_box_with(optimizer: &str) -> String {
-    let base = include_str!("../assets/scenes/recover_box.toml");
+    let base = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/recover_box.toml"));
     let from = "optimizer = { kind = \"gd\", learning_rate = 5.0 }";
     assert!(base.contains(from));
     base.replacen(from, &format!("optimizer = {optimizer}"), 1)
@@ -149,7 +149,7 @@ fn an_lbfgs_run_killed_and_resumed_ends_where_an_uninterrupted_one_does() {
 /// Bad optimisation settings are rejected with a message naming the key.
 #[test]
 fn bad_optimisation_input_is_rejected() {
-    let base = include_str!("../assets/scenes/recover_box.toml");
+    let base = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/recover_box.toml"));
     let cases = [
         ("params = [\"v\"]", "params = [\"speed\"]", "unknown parameter \"speed\""),
         ("learning_rate = 5.0", "learning_rate = -1.0", "optimize.optimizer.learning_rate"),
