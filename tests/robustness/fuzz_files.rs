@@ -17,7 +17,9 @@
 //!   apart; loaded as a body's mesh at a hostile scale, as its convex hull, and as a frame.
 //!
 //! CI runs `PROPTEST_CASES` cases of each (default 200); a 10⁵-case run:
-//! `PROPTEST_CASES=100000 cargo test --release --test fuzz_files -- --nocapture`.
+//! `PROPTEST_CASES=100000 cargo test --release --test robustness fuzz_files -- --nocapture`.
+
+#![cfg(all(feature = "csv", feature = "plots"))] // render_run and the checkpoints' writers
 
 use crate::common::builtin_text;
 use diffluid::experiments::optimize::{Checkpoint, Optimization};
