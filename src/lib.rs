@@ -5,7 +5,7 @@
 //! adjoint backward pass gives the gradient of a loss on the final state with respect to the
 //! initial state (Patel et al., "Differentiable Two-Way Eulerian Fluid-Solid Coupling").
 //!
-//! The layers, each a folder, lowest first (ARCHITECTURE.md draws them; `tests/layers.rs`
+//! The layers, each a folder, lowest first (ARCHITECTURE.md draws them; `tests/api/layers.rs`
 //! holds every module to them): [`math`] and [`error`]; [`geometry`] (grid, shapes, meshes,
 //! bodies, face fractions); [`solvers`] (CG, MIC(0), multigrid); [`stages`] (each stage of a
 //! step with its adjoint); [`world`] (the [`Simulation`], its settings, the step assembly the

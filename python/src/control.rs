@@ -9,9 +9,9 @@
 //! (4), v (3), ω (3); an action as one row of 6 per body of the simulation, the rows of
 //! bodies that are not steered being ignored.
 
-use crate::gradients::options;
-use crate::simulation::{mass_gradient, quat_norm, set_masses, state_from, wxyz, Simulation};
-use crate::{borrow_mut, read_only, read_rows, run, to_py, value_error};
+use crate::convert::{motion_name, options, quat_norm, read_only, read_rows, state_from, wxyz};
+use crate::errors::{borrow_mut, run, to_py, value_error};
+use crate::sim::{mass_gradient, set_masses, Simulation};
 use diffluid::geometry::body::{BodyState, Motion};
 use diffluid::gradients::backward::check_settings;
 use diffluid::gradients::{
@@ -147,11 +147,8 @@ fn controlled(sim: &Simulation, bodies: Option<Vec<Bound<'_, PyAny>>>) -> PyResu
 
 /// The bodies and their motions, for messages.
 fn describe(sim: &RSim) -> String {
-    let parts: Vec<String> = sim
-        .bodies()
-        .iter()
-        .map(|b| format!("{} ({})", b.name, crate::simulation::motion_name(b.motion)))
-        .collect();
+    let parts: Vec<String> =
+        sim.bodies().iter().map(|b| format!("{} ({})", b.name, motion_name(b.motion))).collect();
     if parts.is_empty() {
         "none".into()
     } else {
@@ -231,7 +228,7 @@ pub fn controlled_run(
     masses: Option<PyReadonlyArrayDyn<'_, f64>>,
 ) -> PyResult<ControlledRun> {
     // A copy: no borrow of `sim` is held while the run releases the GIL.
-    let sim = crate::simulation::sim(sim)?.clone();
+    let sim = crate::sim::sim(sim)?.clone();
     let options = options(surface, mode, through_contact)?;
     let spa = at_least_one("steps_per_action", steps_per_action)?;
     let checkpoint_every =
@@ -459,7 +456,7 @@ impl Stepper {
         bodies: Option<Vec<Bound<'_, PyAny>>>,
         masses: Option<PyReadonlyArrayDyn<'_, f64>>,
     ) -> PyResult<Stepper> {
-        let sim = crate::simulation::sim(sim)?;
+        let sim = crate::sim::sim(sim)?;
         let options = options(surface, mode, through_contact)?;
         let spa = at_least_one("steps_per_action", steps_per_action)?;
         let controlled = controlled(&sim, bodies)?;

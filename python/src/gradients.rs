@@ -2,16 +2,20 @@
 //! (`optimize`), and a taped rollout whose backward pass is a vector–Jacobian product
 //! (`rollout` and `Rollout`, what `diffluid.torch` builds its `autograd.Function` on).
 
+use crate::convert::{
+    lattice, options, quat_norm, read_flat, read_only, read_rows, row, rows, state_from,
+    to_py_object, wxyz,
+};
+use crate::errors::{run, to_py, value_error};
+use crate::loss::BodyTargetLoss;
 use crate::scene::Scene;
-use crate::simulation::{mass_gradient, set_masses, sim, state_from, wxyz, Simulation};
-use crate::{lattice, read_only, read_rows, row, rows, run, to_py_object, value_error};
+use crate::sim::{mass_gradient, set_masses, sim, Simulation};
 use diffluid::experiments::optimize::{Optimization, Outcome};
-use diffluid::geometry::body::{BodyState, Motion};
+use diffluid::geometry::body::{BodyState, Motion, Param};
 use diffluid::geometry::grid::Mac;
-use diffluid::gradients::backward::SurfaceGradient;
 use diffluid::gradients::{
-    value_and_gradient, AdjointState, BodyAdjoint, BodyTargetLoss as RLoss, GradientMode,
-    GradientOptions, GradientSettings, Loss, Rollout as RRollout,
+    value_and_gradient, AdjointState, BodyAdjoint, BodyTargetLoss as RLoss, GradientOptions,
+    GradientSettings, Rollout as RRollout,
 };
 use diffluid::math::{so3, Rotation, Vec3};
 use diffluid::Simulation as RSim;
@@ -20,207 +24,6 @@ use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyTuple};
 use std::ops::ControlFlow;
-
-/// The backward pass's options from their Python names.
-pub(crate) fn options(
-    surface: &str,
-    mode: &str,
-    through_contact: bool,
-) -> PyResult<GradientOptions> {
-    let surface = match surface {
-        "live" => SurfaceGradient::Live,
-        "frozen" => SurfaceGradient::Frozen,
-        s => return Err(value_error(format!("surface: \"live\" or \"frozen\", not {s:?}"))),
-    };
-    let mode = match mode {
-        "full" => GradientMode::Full,
-        "paper" => GradientMode::Paper,
-        m => return Err(value_error(format!("mode: \"full\" or \"paper\", not {m:?}"))),
-    };
-    Ok(GradientOptions { mode, surface, through_contact })
-}
-
-/// A body named by index or by name, resolved against a simulation when the loss is used.
-#[derive(Clone, Debug)]
-enum BodyRef {
-    Index(usize),
-    Name(String),
-}
-
-/// A weighted target and its weight.
-type Target<const N: usize> = Option<([f64; N], f64)>;
-
-/// Weighted squared distances of one body's final position, orientation and velocity to
-/// targets: ``wx·|x − x*|² + wq·(1 − (q·q*)²) + wv·|v − v*|²``.
-///
-/// ``body`` is an index or a name; each target is ``(target, weight)`` or a bare target
-/// (weight 1). The orientation target is a quaternion ``[w, x, y, z]`` (normalised).
-#[pyclass(module = "diffluid._diffluid", name = "BodyTargetLoss", frozen)]
-#[derive(Clone, Debug)]
-pub struct BodyTargetLoss {
-    body: BodyRef,
-    position: Target<3>,
-    orientation: Target<4>,
-    velocity: Target<3>,
-}
-
-/// `(target, weight)` or a bare target from a Python object.
-fn target<const N: usize>(name: &str, t: Option<&Bound<'_, PyAny>>) -> PyResult<Target<N>> {
-    let Some(t) = t else { return Ok(None) };
-    if t.is_none() {
-        return Ok(None);
-    }
-    let (target, weight) = if let Ok(pair) = t.extract::<([f64; N], f64)>() {
-        pair
-    } else if let Ok(bare) = t.extract::<[f64; N]>() {
-        (bare, 1.0)
-    } else {
-        return Err(PyTypeError::new_err(format!(
-            "{name}: a target of {N} numbers, or (target, weight)"
-        )));
-    };
-    crate::check_finite(name, target.iter().chain([weight].iter()))?;
-    if weight < 0.0 {
-        return Err(value_error(format!("{name}: the weight must be ≥ 0, got {weight}")));
-    }
-    Ok(Some((target, weight)))
-}
-
-impl BodyTargetLoss {
-    /// The Python form of a scene's loss (its body by index; the orientation target
-    /// `[w, x, y, z]`).
-    pub(crate) fn from_rust(l: &RLoss) -> BodyTargetLoss {
-        BodyTargetLoss {
-            body: BodyRef::Index(l.body),
-            position: l.position.map(|(t, w)| (t.to_array(), w)),
-            orientation: l.orientation.map(|(q, w)| (wxyz(q), w)),
-            velocity: l.velocity.map(|(t, w)| (t.to_array(), w)),
-        }
-    }
-
-    /// The Rust loss for `sim`'s bodies.
-    fn resolve(&self, sim: &RSim) -> PyResult<RLoss> {
-        let n = sim.bodies().len();
-        let body = match &self.body {
-            BodyRef::Index(i) if *i < n => *i,
-            BodyRef::Index(i) => {
-                return Err(value_error(format!("loss body {i} out of range ({n} bodies)")))
-            }
-            BodyRef::Name(s) => {
-                sim.bodies().iter().position(|b| &b.name == s).ok_or_else(|| {
-                    value_error(format!("loss: no body named {s:?} in the simulation"))
-                })?
-            }
-        };
-        let v3 = |t: &Target<3>| t.map(|(a, w)| (Vec3::new(a[0], a[1], a[2]), w));
-        let orientation = match self.orientation {
-            None => None,
-            Some((q, w)) => {
-                let n = crate::simulation::quat_norm(&q);
-                if n < 1e-12 {
-                    return Err(value_error("orientation: the zero quaternion is no target"));
-                }
-                Some((Rotation::from_xyzw(q[1] / n, q[2] / n, q[3] / n, q[0] / n), w))
-            }
-        };
-        Ok(RLoss { body, position: v3(&self.position), orientation, velocity: v3(&self.velocity) })
-    }
-}
-
-#[pymethods]
-impl BodyTargetLoss {
-    #[new]
-    #[pyo3(signature = (body, position = None, orientation = None, velocity = None))]
-    fn new(
-        body: &Bound<'_, PyAny>,
-        position: Option<&Bound<'_, PyAny>>,
-        orientation: Option<&Bound<'_, PyAny>>,
-        velocity: Option<&Bound<'_, PyAny>>,
-    ) -> PyResult<BodyTargetLoss> {
-        let body = if let Ok(i) = body.extract::<usize>() {
-            BodyRef::Index(i)
-        } else if let Ok(s) = body.extract::<String>() {
-            BodyRef::Name(s)
-        } else {
-            return Err(PyTypeError::new_err("body: an index (≥ 0) or a name"));
-        };
-        let loss = BodyTargetLoss {
-            body,
-            position: target("position", position)?,
-            orientation: target("orientation", orientation)?,
-            velocity: target("velocity", velocity)?,
-        };
-        // As a scene's [loss] section: a loss with no term is a mistake, not a zero.
-        if loss.position.is_none() && loss.orientation.is_none() && loss.velocity.is_none() {
-            return Err(value_error("loss: give at least one of position, orientation, velocity"));
-        }
-        Ok(loss)
-    }
-
-    /// The body: an index or a name, as given.
-    #[getter]
-    fn body<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        Ok(match &self.body {
-            BodyRef::Index(i) => i.into_pyobject(py)?.into_any(),
-            BodyRef::Name(s) => s.into_pyobject(py)?.into_any(),
-        })
-    }
-
-    /// The body's index in `sim`.
-    fn body_index(&self, sim: &Bound<'_, Simulation>) -> PyResult<usize> {
-        Ok(self.resolve(&crate::simulation::sim(sim)?.inner)?.body)
-    }
-
-    /// ``(target, weight)`` of the position term, or None.
-    #[getter]
-    fn position(&self) -> Target<3> {
-        self.position
-    }
-
-    /// ``(target [w, x, y, z], weight)`` of the orientation term, or None.
-    #[getter]
-    fn orientation(&self) -> Target<4> {
-        self.orientation
-    }
-
-    /// ``(target, weight)`` of the velocity term, or None.
-    #[getter]
-    fn velocity(&self) -> Target<3> {
-        self.velocity
-    }
-
-    /// The loss at `sim`'s current state.
-    fn value(&self, sim: &Bound<'_, Simulation>) -> PyResult<f64> {
-        let s = crate::simulation::sim(sim)?;
-        Ok(self.resolve(&s.inner)?.value(&s.inner))
-    }
-
-    fn __reduce__<'py>(
-        slf: &Bound<'py, Self>,
-    ) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyTuple>)> {
-        let py = slf.py();
-        let this = slf.get();
-        let args = (
-            this.body(py)?,
-            this.position.map(|(t, w)| (t.to_vec(), w)),
-            this.orientation.map(|(t, w)| (t.to_vec(), w)),
-            this.velocity.map(|(t, w)| (t.to_vec(), w)),
-        )
-            .into_pyobject(py)?;
-        Ok((slf.get_type().into_any(), args))
-    }
-
-    fn __repr__(&self) -> String {
-        let body = match &self.body {
-            BodyRef::Index(i) => i.to_string(),
-            BodyRef::Name(s) => format!("{s:?}"),
-        };
-        format!(
-            "BodyTargetLoss({body}, position={:?}, orientation={:?}, velocity={:?})",
-            self.position, self.orientation, self.velocity
-        )
-    }
-}
 
 /// The initial simulation, the loss and the horizon a gradient call starts from.
 fn start(
@@ -262,21 +65,37 @@ fn apply_state(sim: &mut RSim, i: usize, state: &Bound<'_, PyDict>) -> PyResult<
     ];
     for (k, v) in state.iter() {
         let key: String = k.extract()?;
-        let slot = match key.as_str() {
-            "v" => 0,
-            "w" => 1,
-            "x" => 2,
-            "q" => 3,
-            other => {
-                return Err(value_error(format!("state: unknown part {other:?} (v, w, x, q)")))
-            }
-        };
+        let part: Param = key
+            .parse()
+            .map_err(|_| value_error(format!("state: unknown part {key:?} (v, w, x, q)")))?;
+        let slot = Param::ALL.iter().position(|p| *p == part).expect("one of the four");
         let a: PyReadonlyArrayDyn<'_, f64> = v.extract()?;
         parts[slot] = read_rows(&key, &a, 1, if slot == 3 { 4 } else { 3 })?.remove(0);
     }
     let st = state_from(&parts[0], &parts[1], &parts[2], &parts[3])?;
     let h = sim.handles()[i];
-    sim.set_body_state(h, &st).map_err(crate::to_py)
+    sim.set_body_state(h, &st).map_err(to_py)
+}
+
+/// What `value_and_grad` differentiates with respect to: a part of the body's initial state,
+/// its mass, or the initial fluid velocity.
+#[derive(Clone, Copy)]
+enum Wrt {
+    Body(Param),
+    Mass,
+    U,
+}
+
+/// A `params` entry by name: "v", "w", "x", "q" (read through [`Param`]), "mass" or "u".
+fn wrt(name: &str) -> PyResult<Wrt> {
+    match name {
+        "mass" => Ok(Wrt::Mass),
+        "u" => Ok(Wrt::U),
+        _ => name
+            .parse()
+            .map(Wrt::Body)
+            .map_err(|_| value_error(format!("params: unknown {name:?} (v, w, x, q, mass, u)"))),
+    }
 }
 
 /// The value of a loss on the final state and its gradient with respect to the initial state.
@@ -313,12 +132,10 @@ pub fn value_and_grad<'py>(
 ) -> PyResult<(f64, Bound<'py, PyDict>)> {
     let opts = options(surface, mode, through_contact)?;
     let (mut sim, loss, steps) = start(py, scene, loss, steps)?;
-    let params = params.unwrap_or_else(|| ["v", "w", "x", "q"].map(String::from).to_vec());
-    for p in &params {
-        if !["v", "w", "x", "q", "mass", "u"].contains(&p.as_str()) {
-            return Err(value_error(format!("params: unknown {p:?} (v, w, x, q, mass, u)")));
-        }
-    }
+    let params: Vec<Wrt> = match params {
+        None => Param::ALL.map(Wrt::Body).to_vec(),
+        Some(names) => names.iter().map(|p| wrt(p)).collect::<PyResult<_>>()?,
+    };
     let which = match body {
         None => loss.body,
         Some(b) => {
@@ -348,16 +165,13 @@ pub fn value_and_grad<'py>(
     let grads = PyDict::new(py);
     for p in &params {
         let b = g.bodies[which];
-        match p.as_str() {
-            "v" => grads.set_item("v", row(py, b.v.to_array())?)?,
-            "w" => grads.set_item("w", row(py, b.w.to_array())?)?,
-            "x" => grads.set_item("x", row(py, b.x.to_array())?)?,
-            "q" => grads.set_item("q", row(py, b.q.to_array())?)?,
-            "mass" => {
+        match *p {
+            Wrt::Body(part) => grads.set_item(part.name(), row(py, b.get(part).to_array())?)?,
+            Wrt::Mass => {
                 let dynamic = sim.bodies()[which].motion == Motion::Dynamic;
                 grads.set_item("mass", if dynamic { b.mass } else { 0.0 })?
             }
-            _ => {
+            Wrt::U => {
                 let parts: Vec<Bound<'py, PyAny>> = (0..3)
                     .map(|a| lattice(py, sim.grid().faces(a).n, g.u.c[a].clone()))
                     .collect::<PyResult<_>>()?;
@@ -494,7 +308,7 @@ pub fn rollout(
     masses: Option<PyReadonlyArrayDyn<'_, f64>>,
 ) -> PyResult<Rollout> {
     // A copy: no borrow of `sim` is held while the run releases the GIL.
-    let sim = crate::simulation::sim(sim)?.clone();
+    let sim = crate::sim::sim(sim)?.clone();
     let options = options(surface, mode, through_contact)?;
     if checkpoint_every == Some(0) {
         return Err(value_error("checkpoint_every: must be at least 1"));
@@ -514,10 +328,10 @@ pub fn rollout(
     for i in 0..n {
         let st = state_from(&v[i], &w[i], &x[i], &q[i])?;
         let h = initial.handles()[i];
-        initial.set_body_state(h, &st).map_err(crate::to_py)?;
+        initial.set_body_state(h, &st).map_err(to_py)?;
     }
     if let Some(u) = u {
-        let flat = crate::read_flat("u", &u, sim.faces_len())?;
+        let flat = read_flat("u", &u, sim.faces_len())?;
         initial.u = sim.mac_from_flat(&flat);
     }
     if let Some(m) = masses {
@@ -529,7 +343,7 @@ pub fn rollout(
         rollout.check(&options)?;
         Ok(rollout)
     })?;
-    let q_norms = q.iter().map(|r| crate::simulation::quat_norm(r)).collect();
+    let q_norms = q.iter().map(|r| quat_norm(r)).collect();
     Ok(Rollout { inner, options, q_norms })
 }
 
@@ -612,7 +426,7 @@ impl Rollout {
             .collect();
         let gu = if fluid {
             let flat: Vec<f64> = adj.u.c.iter().flatten().copied().collect();
-            crate::read_only(numpy::PyArray1::from_vec(py, flat))?
+            read_only(numpy::PyArray1::from_vec(py, flat))?
         } else {
             py.None().into_bound(py)
         };

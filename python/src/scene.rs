@@ -1,7 +1,8 @@
 //! `diffluid.Scene`: a validated scene (a scene file, TOML text, or a built-in name).
 
-use crate::gradients::BodyTargetLoss;
-use crate::{run, simulation::Simulation, to_py_object, value_error};
+use crate::convert::to_py_object;
+use crate::errors::{run, value_error};
+use crate::loss::BodyTargetLoss;
 use diffluid::experiments::scene::BUILTIN_SCENES;
 use diffluid::Scene as RScene;
 use pyo3::prelude::*;
@@ -158,12 +159,6 @@ impl Scene {
     #[getter]
     fn optimize_spec<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
         self.inner.optimize.as_ref().map(|o| to_py_object(py, o)).transpose()
-    }
-
-    /// The simulation in the scene's initial state (the same as ``Simulation(scene)``).
-    fn build(slf: &Bound<'_, Self>, py: Python<'_>) -> PyResult<Simulation> {
-        let scene = slf.borrow().inner.clone();
-        Simulation::from_scene(py, scene)
     }
 
     /// The scene as JSON (every number exact): what pickling sends.

@@ -1,136 +1,19 @@
 //! `diffluid.Simulation`: a running simulation, its bodies and fields as NumPy arrays.
 
-use crate::scene::Scene;
-use crate::{
-    borrow, borrow_mut, lattice, read_flat, read_rows, row, rows, run, to_py_object, value_error,
+use crate::convert::{
+    lattice, motion_name, read_flat, read_only, read_rows, row, rows, state_from, to_py_object,
+    wxyz,
 };
-use diffluid::geometry::body::{BodyState, Motion};
-use diffluid::geometry::grid::Mac;
-use diffluid::gradients::{BodyTargetLoss, Loss};
-use diffluid::math::{Rotation, Vec3};
-use diffluid::{Scene as RScene, Simulation as RSim};
+use crate::errors::{run, to_py, value_error};
+use crate::scene::Scene;
+use crate::sim::{check_mass, sim, sim_mut, Simulation};
+use diffluid::geometry::body::Motion;
+use diffluid::gradients::Loss;
+use diffluid::math::Vec3;
 use numpy::PyReadonlyArrayDyn;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use std::ops::ControlFlow;
-
-/// A running simulation: the liquid on a MAC grid, its marker particles and the rigid bodies
-/// coupled to it. ``Simulation(scene)`` is the scene's initial state.
-///
-/// Every array it hands out is a float64 copy, marked read-only; change the state with the
-/// setters. Quaternions are ``[w, x, y, z]``, as in scene files. Grid fields are indexed
-/// ``[i, j, k]`` (x, y up, z). ``step`` and ``advance`` release the GIL.
-#[pyclass(module = "diffluid._diffluid", name = "Simulation")]
-#[derive(Clone)]
-pub struct Simulation {
-    pub(crate) inner: RSim,
-    /// The scene's `time.steps`: the default horizon of runs and gradients.
-    pub(crate) scene_steps: usize,
-    /// The scene's `[loss]`, if any: the default loss of gradients.
-    pub(crate) loss: Option<BodyTargetLoss>,
-}
-
-impl Simulation {
-    /// The scene's simulation in its initial state (the GIL released while it builds; the
-    /// scene is a copy, so no borrow of a Python Scene is held meanwhile).
-    pub(crate) fn from_scene(py: Python<'_>, s: RScene) -> PyResult<Simulation> {
-        let inner = run(py, || s.build())?;
-        Ok(Simulation { inner, scene_steps: s.time.steps, loss: s.loss() })
-    }
-
-    /// The index of body `body` (an index or a name).
-    pub(crate) fn body_index(&self, body: &Bound<'_, PyAny>) -> PyResult<usize> {
-        let n = self.inner.bodies().len();
-        if let Ok(i) = body.extract::<i64>() {
-            if i < 0 || i as usize >= n {
-                return Err(value_error(format!("body index {i} out of range ({n} bodies)")));
-            }
-            return Ok(i as usize);
-        }
-        if let Ok(name) = body.extract::<String>() {
-            return self.inner.bodies().iter().position(|b| b.name == name).ok_or_else(|| {
-                value_error(format!("no body named {name:?} (bodies: {:?})", self.names()))
-            });
-        }
-        Err(pyo3::exceptions::PyTypeError::new_err(format!(
-            "a body is an index or a name, not {}",
-            body.get_type().name()?
-        )))
-    }
-
-    fn names(&self) -> Vec<String> {
-        self.inner.bodies().iter().map(|b| b.name.clone()).collect()
-    }
-
-    /// The lattice sizes of the three face arrays.
-    pub(crate) fn face_shapes(&self) -> [[usize; 3]; 3] {
-        [0, 1, 2].map(|a| self.inner.grid().faces(a).n)
-    }
-
-    /// Number of face samples in all.
-    pub(crate) fn faces_len(&self) -> usize {
-        self.face_shapes().iter().map(|n| n[0] * n[1] * n[2]).sum()
-    }
-
-    /// A flat (u, v, w) vector as a MAC field.
-    pub(crate) fn mac_from_flat(&self, flat: &[f64]) -> Mac {
-        let mut m = Mac::zeros(self.inner.grid());
-        let mut at = 0;
-        for a in 0..3 {
-            let n = m.c[a].len();
-            m.c[a].copy_from_slice(&flat[at..at + n]);
-            at += n;
-        }
-        m
-    }
-}
-
-/// A body state from rows of numbers (v, ω, x as 3, q as `[w, x, y, z]`). `q` is
-/// normalised unless it is already a unit quaternion to round-off, which is kept bit for bit
-/// (so that handing a simulation its own state back changes nothing).
-pub(crate) fn state_from(v: &[f64], w: &[f64], x: &[f64], q: &[f64]) -> PyResult<BodyState> {
-    let norm = quat_norm(q);
-    if norm < 1e-12 {
-        return Err(value_error("q: the zero quaternion is no orientation"));
-    }
-    let s = if (norm - 1.0).abs() <= 4.0 * f64::EPSILON { 1.0 } else { 1.0 / norm };
-    Ok(BodyState {
-        v: Vec3::new(v[0], v[1], v[2]),
-        w: Vec3::new(w[0], w[1], w[2]),
-        x: Vec3::new(x[0], x[1], x[2]),
-        q: Rotation::from_xyzw(q[1] * s, q[2] * s, q[3] * s, q[0] * s),
-    })
-}
-
-/// |q| of a quaternion's four numbers.
-pub(crate) fn quat_norm(q: &[f64]) -> f64 {
-    q.iter().map(|c| c * c).sum::<f64>().sqrt()
-}
-
-/// A motion's Python name.
-pub(crate) fn motion_name(m: Motion) -> &'static str {
-    match m {
-        Motion::Dynamic => "dynamic",
-        Motion::Fixed => "fixed",
-        Motion::External => "external",
-        Motion::Kinematic => "kinematic",
-    }
-}
-
-/// `[w, x, y, z]`.
-pub(crate) fn wxyz(q: Rotation) -> [f64; 4] {
-    [q.w, q.x, q.y, q.z]
-}
-
-/// Simulation `slf` to read (a clear error when another thread is stepping it).
-pub(crate) fn sim<'py>(slf: &Bound<'py, Simulation>) -> PyResult<PyRef<'py, Simulation>> {
-    borrow(slf, "Simulation")
-}
-
-/// Simulation `slf` to change (a clear error when another thread is using it).
-pub(crate) fn sim_mut<'py>(slf: &Bound<'py, Simulation>) -> PyResult<PyRefMut<'py, Simulation>> {
-    borrow_mut(slf, "Simulation")
-}
 
 #[pymethods]
 impl Simulation {
@@ -329,7 +212,7 @@ impl Simulation {
     #[getter]
     fn masses<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         let m: Vec<f64> = sim(slf)?.inner.bodies().iter().map(|b| b.mass).collect();
-        crate::read_only(numpy::PyArray1::from_vec(py, m))
+        read_only(numpy::PyArray1::from_vec(py, m))
     }
 
     /// Sets body `body`'s (an index or a name) mass to `kg`, its inertia scaling with it (its
@@ -403,7 +286,7 @@ impl Simulation {
         let q = part("q", &q, wxyz(s.q).to_vec())?;
         let state = state_from(&v, &w, &x, &q)?;
         let h = this.inner.handles()[i];
-        this.inner.set_body_state(h, &state).map_err(crate::to_py)
+        this.inner.set_body_state(h, &state).map_err(to_py)
     }
 
     /// Sets the external force (N, on the centre of mass) and torque (N·m) on body `body`,
@@ -425,7 +308,7 @@ impl Simulation {
         let h = this.inner.handles()[i];
         this.inner
             .set_external_force(h, Vec3::new(f[0], f[1], f[2]), Vec3::new(t[0], t[1], t[2]))
-            .map_err(crate::to_py)
+            .map_err(to_py)
     }
 
     /// How each body moves, in order: "dynamic" (moved by the liquid, gravity and external
@@ -497,7 +380,7 @@ impl Simulation {
     /// :func:`diffluid.torch.rollout` takes and returns it in).
     fn velocity_flat<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
         let flat: Vec<f64> = sim(slf)?.inner.u.c.iter().flatten().copied().collect();
-        crate::read_only(numpy::PyArray1::from_vec(py, flat))
+        read_only(numpy::PyArray1::from_vec(py, flat))
     }
 
     /// Sets the fluid velocity from a flat array in :meth:`velocity_flat`'s order.
@@ -528,39 +411,6 @@ impl Simulation {
             this.names()
         )
     }
-}
-
-/// Sets the masses of `sim`'s dynamic bodies from `masses`, one per body (each a finite
-/// number > 0: ValueError naming the entry otherwise); the entries of the other bodies are
-/// checked but not used.
-pub(crate) fn set_masses(sim: &mut RSim, masses: &PyReadonlyArrayDyn<'_, f64>) -> PyResult<()> {
-    let n = sim.bodies().len();
-    let m = read_flat("masses", masses, n)?;
-    for (i, &kg) in m.iter().enumerate() {
-        check_mass(&format!("masses[{i}]"), kg)?;
-    }
-    for (b, kg) in sim.bodies_mut().iter_mut().zip(m) {
-        if b.motion == Motion::Dynamic {
-            b.set_mass(kg);
-        }
-    }
-    Ok(())
-}
-
-/// ∂L/∂m per body of `sim` from a backward pass's mass adjoint (empty means zero): zero for
-/// the bodies that are not dynamic.
-pub(crate) fn mass_gradient(sim: &RSim, mass: &[f64]) -> Vec<f64> {
-    let at = |i: usize| mass.get(i).copied().unwrap_or(0.0);
-    let dynamic = |i: usize| sim.bodies()[i].motion == Motion::Dynamic;
-    (0..sim.bodies().len()).map(|i| if dynamic(i) { at(i) } else { 0.0 }).collect()
-}
-
-/// Checks that `kg` is a mass: a finite number > 0 (`name` names it in the error).
-pub(crate) fn check_mass(name: &str, kg: f64) -> PyResult<()> {
-    if !(kg.is_finite() && kg > 0.0) {
-        return Err(value_error(format!("{name}: a mass must be a finite number > 0, got {kg}")));
-    }
-    Ok(())
 }
 
 /// Panics inside the boundary guard: the test that a Rust panic reaches Python as

@@ -426,7 +426,7 @@ fn series(pairs: impl IntoIterator<Item = (String, (f64, f64))>) -> Vec<Series> 
 /// [`bench::smoothness`], [`bench::smoothed_gradient`] and [`bench::scale`]. (The variants' own docs are the CLI's help,
 /// so they name no item.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum Study {
     /// Error against wall time.
     Accuracy,

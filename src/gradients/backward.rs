@@ -69,6 +69,52 @@ pub enum SurfaceGradient {
     Frozen,
 }
 
+impl GradientMode {
+    /// Both, in order.
+    pub const ALL: [GradientMode; 2] = [GradientMode::Full, GradientMode::Paper];
+
+    /// `"full"` or `"paper"`: the name the Python package and error messages use.
+    pub fn name(self) -> &'static str {
+        match self {
+            GradientMode::Full => "full",
+            GradientMode::Paper => "paper",
+        }
+    }
+}
+
+impl std::str::FromStr for GradientMode {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<GradientMode, String> {
+        GradientMode::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| format!("mode: \"full\" or \"paper\", not {s:?}"))
+    }
+}
+
+impl SurfaceGradient {
+    /// Both, in order.
+    pub const ALL: [SurfaceGradient; 2] = [SurfaceGradient::Live, SurfaceGradient::Frozen];
+
+    /// `"live"` or `"frozen"`: the name the Python package and scene files use.
+    pub fn name(self) -> &'static str {
+        match self {
+            SurfaceGradient::Live => "live",
+            SurfaceGradient::Frozen => "frozen",
+        }
+    }
+}
+
+impl std::str::FromStr for SurfaceGradient {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<SurfaceGradient, String> {
+        SurfaceGradient::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| format!("surface: \"live\" or \"frozen\", not {s:?}"))
+    }
+}
+
 /// How the backward pass treats what it cannot differentiate.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct GradientOptions {
@@ -697,5 +743,25 @@ impl ParticleAdjoint<'_> {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{GradientMode, SurfaceGradient};
+
+    /// Each option reads back from its name, and a wrong name is an error naming the choices.
+    #[test]
+    fn options_parse_from_their_names() {
+        for m in GradientMode::ALL {
+            assert_eq!(m.name().parse::<GradientMode>(), Ok(m));
+        }
+        for s in SurfaceGradient::ALL {
+            assert_eq!(s.name().parse::<SurfaceGradient>(), Ok(s));
+        }
+        let e = "Full".parse::<GradientMode>().unwrap_err();
+        assert!(e.contains("\"full\" or \"paper\"") && e.contains("\"Full\""), "{e}");
+        let e = "fixed".parse::<SurfaceGradient>().unwrap_err();
+        assert!(e.contains("\"live\" or \"frozen\"") && e.contains("\"fixed\""), "{e}");
     }
 }

@@ -9,7 +9,7 @@ pub use crate::geometry::mesh::TriangleMesh;
 
 /// Which way the camera looks at the tank.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum View {
     /// From the front (+z) towards −z: x to the right, y up.
     Side,

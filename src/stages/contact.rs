@@ -15,7 +15,7 @@
 //! `normalise((1, h·ω/2)⊗q)` per solver substep (`h = Δt/4` with the default four substeps)
 //! instead of our single `normalise(q + Δt/2·[0, ω]⊗q)`; both are first-order accurate
 //! in `Δt` and differ by about `(|ω|Δt)³/12·(1 − 1/16)` radians per step (≈ 1e-8 rad at
-//! `|ω| = 1`, `Δt = 0.005`; see `tests/contact.rs`).
+//! `|ω| = 1`, `Δt = 0.005`; see `tests/physics/contact.rs`).
 //!
 //! Soft CCD (rapier's speculative contacts out to each pair's motion over the step) is on:
 //! it only acts on a pair that would otherwise overlap at the end of the step, so a fast body

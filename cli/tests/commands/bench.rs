@@ -10,16 +10,14 @@
 //! forcing, the total mechanical energy (kinetic plus potential, liquid and ball) may fall
 //! through dissipation but never rise above where it started.
 
+use crate::common::EXE;
 use std::process::Command;
 
 #[test]
 fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
     let out = std::env::temp_dir().join(format!("diffluid-bench-{}", std::process::id()));
-    let status = Command::new(env!("CARGO_BIN_EXE_diffluid"))
-        .args(["bench", "--quick", "--out"])
-        .arg(&out)
-        .status()
-        .expect("runs");
+    let status =
+        Command::new(EXE).args(["bench", "--quick", "--out"]).arg(&out).status().expect("runs");
     assert!(status.success());
     for f in ["accuracy", "stability", "thin", "cost", "energy"] {
         for ext in ["csv", "png"] {
@@ -83,7 +81,7 @@ fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
 #[test]
 fn quick_scale_study_writes_its_table_and_charts() {
     let out = std::env::temp_dir().join(format!("diffluid-scale-{}", std::process::id()));
-    let status = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    let status = Command::new(EXE)
         .args(["bench", "--only", "scale", "--quick", "--out"])
         .arg(&out)
         .status()
@@ -119,7 +117,7 @@ fn quick_scale_study_writes_its_table_and_charts() {
 #[test]
 fn quick_smoothed_gradient_study_agrees_where_the_map_is_smooth() {
     let out = std::env::temp_dir().join(format!("diffluid-smoothed-{}", std::process::id()));
-    let status = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    let status = Command::new(EXE)
         .args(["bench", "--only", "smoothed", "--quick", "--out"])
         .arg(&out)
         .status()

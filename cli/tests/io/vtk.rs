@@ -2,6 +2,7 @@
 //! had: one vertex cell per liquid particle, the body's surface triangles, one grid cell per
 //! simulation cell with its pressure, and `.pvd` collections listing every frame with its time.
 
+use crate::common::EXE;
 use diffluid::io::vtk::VtkSeries;
 use diffluid::Scene;
 use std::path::Path;
@@ -87,7 +88,7 @@ fn frames_parse_back_with_the_simulations_counts() {
 #[test]
 fn run_and_optimize_write_frames_on_request() {
     let dir = std::env::temp_dir().join(format!("diffluid-vtk-cli-{}", std::process::id()));
-    let bin = env!("CARGO_BIN_EXE_diffluid");
+    let bin = EXE;
     let run = Command::new(bin)
         .args(["run", "dam_break_ball", "--steps", "2", "--vtk", "--quiet", "--out"])
         .arg(dir.join("run"))

@@ -7,12 +7,13 @@
 //! from the valid one, so a test cannot silently run the valid scene; a positive control runs
 //! the unmodified scene for two steps and checks that it succeeds and writes its outputs.
 
-use std::path::{Path, PathBuf};
+use crate::common::{asset, TempDir, EXE};
+use std::path::Path;
 use std::process::{Command, Output};
 
 /// The valid scene every broken file is made from.
 fn dam_break_text() -> String {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("assets/scenes/dam_break.toml");
+    let path = asset("scenes/dam_break.toml");
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("cannot read {}: {e}", path.display()))
 }
 
@@ -41,42 +42,9 @@ fn line_of(text: &str, start: &str) -> usize {
     hits[0]
 }
 
-/// A fresh, empty folder under the system temp directory, removed when dropped.
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(test: &str) -> TempDir {
-        let dir =
-            std::env::temp_dir().join(format!("diffluid-bad-input-{}-{test}", std::process::id()));
-        if dir.exists() {
-            std::fs::remove_dir_all(&dir).unwrap();
-        }
-        std::fs::create_dir_all(&dir).unwrap();
-        TempDir(dir)
-    }
-
-    /// Writes `text` as `scene.toml` in the folder and returns its path.
-    fn scene(&self, text: &str) -> PathBuf {
-        let path = self.0.join("scene.toml");
-        std::fs::write(&path, text).unwrap();
-        path
-    }
-
-    /// Where runs are told to write their output.
-    fn out(&self) -> PathBuf {
-        self.0.join("out")
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 /// Runs `diffluid run <scene> --out <out> --quiet <extra...>`.
 fn run(scene: &Path, out: &Path, extra: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    Command::new(EXE)
         .arg("run")
         .arg(scene)
         .arg("--out")
@@ -221,7 +189,7 @@ fn nan_in_liquid_box_corner() {
 #[test]
 fn scene_file_does_not_exist() {
     let dir = TempDir::new("no_such_file");
-    let path = dir.0.join("no_such_scene.toml");
+    let path = dir.join("no_such_scene.toml");
     assert!(!path.exists());
     let output = run(&path, &dir.out(), &[]);
     let shown = path.display().to_string();
@@ -231,7 +199,7 @@ fn scene_file_does_not_exist() {
 #[test]
 fn scene_path_is_a_directory() {
     let dir = TempDir::new("directory");
-    let path = dir.0.join("scenes.toml");
+    let path = dir.join("scenes.toml");
     std::fs::create_dir(&path).unwrap();
     let output = run(&path, &dir.out(), &[]);
     let shown = path.display().to_string();

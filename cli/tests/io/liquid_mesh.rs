@@ -1,14 +1,13 @@
 //! The liquid's surface mesh: closed (every edge in two triangles, every vertex in one fan),
 //! enclosing the liquid's volume where the liquid is a box of cells, outside every body, and
 //! written per frame by a run as PLY, OBJ and ParaView PolyData that read back closed.
-#![cfg(feature = "surface")]
 
+use crate::common::{builtin_text, TempDir, EXE};
 use diffluid::io::liquid_mesh::{liquid_surface, TriangleMesh};
 use diffluid::io::output::{read_mesh, MeshFormat};
 use diffluid::io::recorder::{Frames, RunFolder, RunRecorder, SurfaceFrames};
 use diffluid::{Scene, Simulation};
 use std::collections::HashMap;
-use std::path::PathBuf;
 
 fn built(name: &str) -> Simulation {
     Scene::builtin(name).unwrap().build().unwrap()
@@ -52,12 +51,6 @@ fn assert_closed(vertices: usize, triangles: &[[u32; 3]], what: &str) {
         })
         .count();
     assert_eq!(split, 0, "{what}: vertices joining two or more fans");
-}
-
-fn temp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("diffluid-surface-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
 }
 
 #[test]
@@ -128,8 +121,7 @@ fn the_surface_loads_back_as_a_valid_obj_body() {
     for _ in 0..20 {
         sim.step().unwrap();
     }
-    let dir = temp_dir("obj");
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = TempDir::new("surface-obj");
     let path = dir.join("surface.obj");
     let mesh = liquid_surface(&sim, 2);
     MeshFormat::Obj.write(&path, &mesh.vertices, &mesh.triangles).unwrap();
@@ -139,7 +131,8 @@ fn the_surface_loads_back_as_a_valid_obj_body() {
 
 #[test]
 fn a_run_writes_closed_surface_frames_as_ply_and_vtk() {
-    let dir = temp_dir("run");
+    let tmp = TempDir::new("surface-run");
+    let dir = tmp.out();
     let mut sim = built("dam_break_ball");
     let frames = Frames {
         every: 5,
@@ -176,11 +169,11 @@ fn a_run_writes_closed_surface_frames_as_ply_and_vtk() {
 
 #[test]
 fn surface_settings_are_checked() {
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = builtin_text("dam_break_ball")
         .replace("every = 1", "every = 1\nsurface = true\nsurface_samples = 0");
     let err = Scene::from_toml(&text, "test").unwrap_err().to_string();
     assert!(err.contains("output.surface_samples") && err.contains("1 to 8"), "{err}");
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = builtin_text("dam_break_ball")
         .replace("every = 1", "every = 1\nsurface = true\nsurface_format = \"stl\"");
     let err = Scene::from_toml(&text, "test").unwrap_err().to_string();
     assert!(err.contains("surface_format"), "{err}");
@@ -188,15 +181,13 @@ fn surface_settings_are_checked() {
 
 #[test]
 fn the_cli_writes_surface_frames_and_renders_them() {
-    let dir = temp_dir("cli");
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = TempDir::new("surface-cli");
     let scene = dir.join("scene.toml");
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = builtin_text("dam_break_ball")
         .replace("every = 1", "every = 2\nsurface = true\nsurface_format = \"obj\"");
     std::fs::write(&scene, text).unwrap();
-    let exe = env!("CARGO_BIN_EXE_diffluid");
     let out = dir.join("run");
-    let run = std::process::Command::new(exe)
+    let run = std::process::Command::new(EXE)
         .args(["run", scene.to_str().unwrap(), "--steps", "4", "--quiet", "--out"])
         .arg(&out)
         .output()
@@ -207,7 +198,7 @@ fn the_cli_writes_surface_frames_and_renders_them() {
         assert_closed(mesh.vertices.len(), &mesh.triangles, &format!("frame {n}"));
     }
     let render = |args: &[&str]| {
-        std::process::Command::new(exe).arg("render").arg(&out).args(args).output().unwrap()
+        std::process::Command::new(EXE).arg("render").arg(&out).args(args).output().unwrap()
     };
     let one = render(&["--frame", "2"]);
     assert!(one.status.success(), "{}", String::from_utf8_lossy(&one.stderr));
@@ -224,5 +215,4 @@ fn the_cli_writes_surface_frames_and_renders_them() {
     let none = render(&[]);
     assert_eq!(none.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&none.stderr).contains("output.surface = true"));
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -10,6 +10,7 @@
 //! whose derivative is the effort's 4e-6 alone; 8.7e-5 with it moving), and so must the
 //! ball's mass gradient (measured 2.9e-9 frozen, 1.2e-8 moving).
 
+use crate::common::{builtin_text, EXE};
 use diffluid::geometry::body::Motion;
 use diffluid::gradients::{
     value_and_gradient_controlled, FinalTarget, GradientOptions, GradientSettings, Schedule,
@@ -251,7 +252,7 @@ fn one_action_at_a_time_matches_the_whole_schedule() {
 /// an error naming its key, nothing run.
 #[test]
 fn bad_control_sections_are_refused() {
-    let base = include_str!("../assets/scenes/paddle_push.toml");
+    let base = builtin_text("paddle_push");
     let cases = [
         (r#"bodies = ["paddle"]"#, r#"bodies = ["oar"]"#, "control.bodies"),
         ("steps_per_action = 10", "steps_per_action = 0", "control.steps_per_action"),
@@ -296,7 +297,7 @@ fn bad_control_sections_are_refused() {
 /// runs for the same calls.
 #[test]
 fn the_control_command_writes_its_files() {
-    let base = include_str!("../assets/scenes/paddle_push.toml");
+    let base = builtin_text("paddle_push");
     let text = base.replacen("steps = 150", "steps = 20", 1).replacen(
         "[output]",
         "[solver]\nfreeze_surface = true\n\n[output]",
@@ -307,7 +308,7 @@ fn the_control_command_writes_its_files() {
     let scene = dir.join("small.toml");
     std::fs::write(&scene, text).unwrap();
     let out = dir.join("out");
-    let status = std::process::Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    let status = std::process::Command::new(EXE)
         .args(["control", scene.to_str().unwrap(), "--epochs", "2", "--swarm", "--quiet", "--out"])
         .arg(&out)
         .status()

@@ -82,7 +82,7 @@ fn dam_break_with_a_band_keeps_its_volume() {
 }
 
 /// A floating box settles at the same height with a band as without (Archimedes: the
-/// full-volume box floats at its draft, `tests/coupling.rs`); measured: the same to the
+/// full-volume box floats at its draft, `tests/physics/coupling.rs`); measured: the same to the
 /// last bit after 40 steps (the band's φ_L and densities are the full volume's there).
 #[test]
 fn floating_box_with_a_band_floats_as_without() {

@@ -17,8 +17,11 @@
 //!   apart; loaded as a body's mesh at a hostile scale, as its convex hull, and as a frame.
 //!
 //! CI runs `PROPTEST_CASES` cases of each (default 200); a 10⁵-case run:
-//! `PROPTEST_CASES=100000 cargo test --release --test fuzz_files -- --nocapture`.
+//! `PROPTEST_CASES=100000 cargo test --release --test robustness fuzz_files -- --nocapture`.
 
+#![cfg(all(feature = "csv", feature = "plots"))] // render_run and the checkpoints' writers
+
+use crate::common::builtin_text;
 use diffluid::experiments::optimize::{Checkpoint, Optimization};
 use diffluid::experiments::outputs::{render_run, RenderRequest};
 use diffluid::geometry::mesh::{load_obj, load_obj_hull};
@@ -92,7 +95,7 @@ fn one_line(e: &diffluid::Error) -> Result<(), String> {
 
 /// The recovery scene, small (8 × 6 × 8 cells, 3 steps), with `optimizer`.
 fn small_recovery(optimizer: &str) -> Scene {
-    let text = include_str!("../assets/scenes/recover_box.toml")
+    let text = builtin_text("recover_box")
         .replacen("optimizer = { kind = \"gd\", learning_rate = 5.0 }", optimizer, 1)
         .replacen("steps = 20", "steps = 3", 1)
         .replacen("dx = 0.05", "dx = 0.1", 1);

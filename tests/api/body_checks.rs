@@ -12,6 +12,7 @@
 //!   2 cm/s (measured 0.96 cm/s).
 //! - Bad input: every malformed body is rejected with a message naming it.
 
+use crate::common::asset;
 use diffluid::math::Vec3;
 use diffluid::Scene;
 
@@ -150,9 +151,7 @@ fn bad_bodies_are_rejected_with_a_clear_message() {
         &["body[0]", "cannot read mesh", "no/such/file.obj"],
     );
     // An open mesh: the cube without its last triangle.
-    let cube =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/assets/meshes/cube.obj"))
-            .unwrap();
+    let cube = std::fs::read_to_string(asset("meshes/cube.obj")).unwrap();
     let mut lines: Vec<&str> = cube.lines().collect();
     let last_face = lines.iter().rposition(|l| l.starts_with("f ")).unwrap();
     lines.remove(last_face);

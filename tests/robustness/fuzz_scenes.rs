@@ -6,7 +6,7 @@
 //! The cases run in process (parse, build, three steps), each on a small tank so none takes
 //! long. CI runs `PROPTEST_CASES` cases (default 300); 10⁵ took a minute with 0 panics (75%
 //! refused when read, 2% failed in a step, 23% ran:
-//! `PROPTEST_CASES=100000 cargo test --release --test fuzz_scenes -- --nocapture`).
+//! `PROPTEST_CASES=100000 cargo test --release --test robustness fuzz_scenes -- --nocapture`).
 //!
 //! Names in bulk: generated scene and body names (path separators, `..`, absolute paths
 //! into the test's folder, XML markup, NUL and other control characters, any Unicode, empty
@@ -247,6 +247,7 @@ fn generated_scenes_run_or_give_one_error_line() {
 }
 
 /// A name as a TOML basic string.
+#[cfg(feature = "csv")] // the run recorder
 fn toml_str(s: &str) -> String {
     let mut out = String::from("\"");
     for c in s.chars() {
@@ -262,6 +263,7 @@ fn toml_str(s: &str) -> String {
 }
 
 /// A hostile name: mostly file-like, often with what would leave a folder or break XML.
+#[cfg(feature = "csv")] // the run recorder
 fn name(sandbox: &str) -> impl Strategy<Value = String> {
     let escapes = vec![
         "..".to_string(),
@@ -290,6 +292,7 @@ fn name(sandbox: &str) -> impl Strategy<Value = String> {
 }
 
 /// Every file under `dir`.
+#[cfg(feature = "csv")] // the run recorder
 fn files_under(dir: &std::path::Path, out: &mut Vec<std::path::PathBuf>) {
     for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
         let p = e.path();
@@ -302,11 +305,13 @@ fn files_under(dir: &std::path::Path, out: &mut Vec<std::path::PathBuf>) {
 }
 
 /// How the name cases ended: refused when read, refused by the recorder, recorded.
+#[cfg(feature = "csv")] // the run recorder
 static NAMED: [std::sync::atomic::AtomicUsize; 3] =
     [const { std::sync::atomic::AtomicUsize::new(0) }; 3];
 
 /// Reads a scene with these names and records a step of it into `work/out/<scene name>`
 /// under `case`; a panic, a message of more than one line or a file outside `work/out` fails.
+#[cfg(feature = "csv")] // the run recorder
 fn record_named(case: &std::path::Path, scene_name: &str, bodies: &[String]) -> Result<(), String> {
     use diffluid::io::recorder::{Frames, RunFolder, RunRecorder};
     use std::sync::atomic::Ordering::Relaxed;
@@ -360,6 +365,7 @@ fn record_named(case: &std::path::Path, scene_name: &str, bodies: &[String]) -> 
     }
 }
 
+#[cfg(feature = "csv")] // the run recorder
 #[test]
 fn generated_names_never_write_outside_the_output_folder() {
     let cases = std::env::var("PROPTEST_CASES").ok().and_then(|s| s.parse().ok()).unwrap_or(100);

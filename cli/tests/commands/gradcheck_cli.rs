@@ -3,15 +3,13 @@
 //! (surface held fixed), and reports the paper's approximation beside it. Every full
 //! rel_error must be at most 1e-6 (measured 7.7e-8; the command itself fails above 1e-3).
 
+use crate::common::EXE;
 use std::process::Command;
 
 #[test]
 fn gradcheck_box_json_has_every_rel_error_below_1e_6() {
-    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/scenes/gradcheck_box.toml");
-    let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
-        .args(["gradcheck", scene, "--json"])
-        .output()
-        .unwrap();
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/gradcheck_box.toml");
+    let out = Command::new(EXE).args(["gradcheck", scene, "--json"]).output().unwrap();
     assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let params = v["params"].as_array().unwrap();
@@ -41,10 +39,7 @@ fn gradcheck_box_json_has_every_rel_error_below_1e_6() {
 /// surface's motion is most of what the box feels in 20 steps.
 #[test]
 fn gradcheck_live_follows_the_moving_surface() {
-    let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
-        .args(["gradcheck", "gradcheck_live", "--json"])
-        .output()
-        .unwrap();
+    let out = Command::new(EXE).args(["gradcheck", "gradcheck_live", "--json"]).output().unwrap();
     assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let params = v["params"].as_array().unwrap();
@@ -69,7 +64,7 @@ fn gradcheck_live_follows_the_moving_surface() {
 /// 1e-5) is within 1e-6 of central differences (measured worst 5.9e-8).
 #[test]
 fn gradcheck_control_checks_actions_and_the_initial_state() {
-    let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    let out = Command::new(EXE)
         .args(["gradcheck", "gradcheck_control", "--frozen", "--json", "--actions", "24"])
         .output()
         .unwrap();

@@ -14,6 +14,7 @@
 //!
 //! Each test runs the binary in a folder of its own, on a small tank (a few ms a step).
 
+use crate::common::EXE;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -88,7 +89,7 @@ impl Drop for Sandbox {
 
 /// `diffluid <args>` run in the sandbox's `work/` folder.
 fn diffluid(sandbox: &Sandbox, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    Command::new(EXE)
         .current_dir(sandbox.0.join("work"))
         .args(args)
         .output()
@@ -224,7 +225,7 @@ fn the_recorder_refuses_names_a_scene_file_could_not_give() {
 fn ctrl_c_keeps_the_summary_and_the_rows_of_every_finished_step() {
     let sandbox = Sandbox::new("sigint");
     let path = sandbox.scene(&scene("\"long\"", "\"ball\"", ""));
-    let mut child = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    let mut child = Command::new(EXE)
         .current_dir(sandbox.0.join("work"))
         .args(["run", path.to_str().unwrap(), "--quiet", "--steps", "100000", "--out", "o"])
         .stderr(std::process::Stdio::piped())

@@ -11,38 +11,11 @@
 //! unbounded read fails instead of taking the machine's memory. Neither is a timing
 //! assertion: the valid cases finish in about a second.
 
+use crate::common::{builtin_text, TempDir, EXE};
 use std::io::Read;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// A fresh folder under the system temp directory, removed when dropped.
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(test: &str) -> TempDir {
-        let dir =
-            std::env::temp_dir().join(format!("diffluid-crafted-{}-{test}", std::process::id()));
-        if dir.exists() {
-            std::fs::remove_dir_all(&dir).unwrap();
-        }
-        std::fs::create_dir_all(&dir).unwrap();
-        TempDir(dir)
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-impl std::ops::Deref for TempDir {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        &self.0
-    }
-}
 
 /// How a command ended: its exit code (None: killed by a signal) and its stderr.
 struct Ended {
@@ -56,7 +29,7 @@ fn diffluid(args: &[&str]) -> Ended {
         .arg("-c")
         .arg("ulimit -v 4000000; exec \"$@\"")
         .arg("sh")
-        .arg(env!("CARGO_BIN_EXE_diffluid"))
+        .arg(EXE)
         .args(args)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
@@ -105,7 +78,7 @@ fn mkfifo(path: &Path) {
 
 /// The recovery scene with `optimizer` and 4 steps (an epoch takes a few milliseconds).
 fn recover_scene(optimizer: &str) -> String {
-    let base = include_str!("../assets/scenes/recover_box.toml");
+    let base = builtin_text("recover_box");
     let text = base
         .replacen("optimizer = { kind = \"gd\", learning_rate = 5.0 }", optimizer, 1)
         .replacen("steps = 20", "steps = 4", 1);
@@ -383,7 +356,7 @@ fn devices_and_fifos_are_refused() {
         let ended = diffluid(&["run", special, "--quiet", "--out", out]);
         assert_refused(&ended, &[special, "not a regular file"]);
 
-        let scene = include_str!("../assets/scenes/block_drop.toml");
+        let scene = builtin_text("block_drop");
         let from = "shape = { kind = \"cuboid\", half_extents = [0.1, 0.1, 0.1] }";
         assert!(scene.contains(from), "block_drop.toml changed");
         let text = scene.replacen(

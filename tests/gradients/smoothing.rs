@@ -9,6 +9,7 @@
 //!    cancel the odd terms).
 //! 3. Bad settings are refused with the key named.
 
+use crate::common::builtin_text;
 use diffluid::gradients::{
     value_and_gradient, value_and_smoothed_gradient, BodyTargetLoss, Coordinate, GradientSettings,
     Smoothing, SmoothingScale,
@@ -166,7 +167,7 @@ fn bad_smoothing_is_refused() {
 #[test]
 fn optimize_on_the_smoothed_loss_recovers_the_initial_velocity() {
     use diffluid::experiments::optimize::Optimization;
-    let base = include_str!("../assets/scenes/recover_box.toml");
+    let base = builtin_text("recover_box");
     let text = base.replacen(
         "[optimize]",
         "[optimize]\nsmoothing = { samples = 2, sigma = { v = 0.01 }, seed = 3 }",

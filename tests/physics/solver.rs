@@ -286,7 +286,7 @@ fn failure_to_converge_is_an_error() {
         other => panic!("expected NotConverged, got {other:?}"),
     }
     // The pressure solve failed while the step's system held φ_L's memory: the step is
-    // rolled back (tests/failed_step.rs), φ_L the one before it.
+    // rolled back (tests/robustness/failed_step.rs), φ_L the one before it.
     assert_eq!(sim.liquid_phi().len(), sim.grid().num_cells());
     assert_eq!(sim.liquid_phi(), before.liquid_phi());
 }

@@ -8,13 +8,14 @@
 //! beyond 1e100 (m, m/s, rad/s) before it changes anything, so the caller can fix what failed
 //! and step again; a step that fails later puts back what it can at no cost.
 
+use crate::common::{builtin_text, EXE};
 use diffluid::math::Vec3;
 use diffluid::{Error, Scene, Simulation};
 
 /// The dam break with a ball (contact off, so a body leaving the tank fails the step too),
 /// `edit` applied to its text.
 fn dam_break_ball(edit: impl Fn(String) -> String) -> Simulation {
-    let text = include_str!("../assets/scenes/dam_break_ball.toml")
+    let text = builtin_text("dam_break_ball")
         .replace("[contact]\nenabled = true", "[contact]\nenabled = false");
     Scene::from_toml(&edit(text), "<test>").unwrap().build().unwrap()
 }
@@ -116,11 +117,10 @@ fn the_cli_reports_a_blown_up_run() {
     let dir = std::env::temp_dir().join(format!("diffluid-non-finite-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let scene = dir.join("scene.toml");
-    let text = include_str!("../assets/scenes/dam_break.toml")
-        .replace("[0.0, -9.81, 0.0]", "[0.0, -1e160, 0.0]");
+    let text = builtin_text("dam_break").replace("[0.0, -9.81, 0.0]", "[0.0, -1e160, 0.0]");
     std::fs::write(&scene, text).unwrap();
     let out = dir.join("out");
-    let run = std::process::Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    let run = std::process::Command::new(EXE)
         .args(["run", scene.to_str().unwrap(), "--quiet", "--steps", "3", "--out"])
         .arg(&out)
         .output()

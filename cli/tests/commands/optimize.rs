@@ -8,6 +8,7 @@
 //! every epoch, atomically; a run killed with SIGKILL mid-way and resumed must end with the
 //! same parameters, bit for bit, as one never interrupted, for gradient descent and L-BFGS.
 
+use crate::common::{builtin_text, EXE};
 use diffluid::experiments::optimize::Optimization;
 use diffluid::geometry::body::BodyState;
 use diffluid::Scene;
@@ -34,7 +35,7 @@ fn recovers_the_initial_velocity_within_one_percent() {
 
 /// The recovery scene with another optimiser.
 fn recover_box_with(optimizer: &str) -> String {
-    let base = include_str!("../assets/scenes/recover_box.toml");
+    let base = builtin_text("recover_box");
     let from = "optimizer = { kind = \"gd\", learning_rate = 5.0 }";
     assert!(base.contains(from));
     base.replacen(from, &format!("optimizer = {optimizer}"), 1)
@@ -83,7 +84,7 @@ fn lbfgs_recovers_the_initial_velocity_in_fewer_evaluations_than_adam() {
 }
 
 fn run_cli(scene: &str, dir: &std::path::Path, extra: &[&str]) -> std::process::Child {
-    Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    Command::new(EXE)
         .args(["optimize", scene, "--epochs", "8", "--quiet", "--out"])
         .arg(dir)
         .args(extra)
@@ -149,7 +150,7 @@ fn an_lbfgs_run_killed_and_resumed_ends_where_an_uninterrupted_one_does() {
 /// Bad optimisation settings are rejected with a message naming the key.
 #[test]
 fn bad_optimisation_input_is_rejected() {
-    let base = include_str!("../assets/scenes/recover_box.toml");
+    let base = builtin_text("recover_box");
     let cases = [
         ("params = [\"v\"]", "params = [\"speed\"]", "unknown parameter \"speed\""),
         ("learning_rate = 5.0", "learning_rate = -1.0", "optimize.optimizer.learning_rate"),
@@ -184,7 +185,7 @@ fn bad_optimisation_input_is_rejected() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("bad.toml");
     std::fs::write(&path, base.replacen("params = [\"v\"]", "params = [\"speed\"]", 1)).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_diffluid"))
+    let out = Command::new(EXE)
         .args(["optimize"])
         .arg(&path)
         .args(["--quiet", "--out"])
@@ -359,7 +360,7 @@ fn resume_with_no_epochs_left_is_refused() {
     let dir = std::env::temp_dir().join(format!("diffluid-resume-epochs-{}", std::process::id()));
     std::fs::remove_dir_all(&dir).ok();
     let optimize = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_diffluid"))
+        Command::new(EXE)
             .args(["optimize", "recover_box", "--quiet", "--out"])
             .arg(&dir)
             .args(args)
