@@ -1,7 +1,7 @@
 //! Optimise a body's initial velocity through the Rust API: a box must end 20 steps later
 //! at a target. `cargo run --release --example optimize_velocity`.
-use diffluid::gradients::{value_and_gradient, BodyTargetLoss, GradientSettings};
 use diffluid::geometry::body::BodyState;
+use diffluid::gradients::{value_and_gradient, BodyTargetLoss, GradientSettings};
 use diffluid::math::Vec3;
 use diffluid::Scene;
 

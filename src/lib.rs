@@ -80,14 +80,13 @@
 //! let mut scene = Scene::builtin("gradcheck_box")?;
 //! scene.time.steps = 4;
 //! let sim = scene.build()?;
+//! let boxed = sim.handles()[0];
 //! let loss = BodyTargetLoss {
-//!     body: 0,
 //!     position: Some((Vec3::new(0.35, 0.2, 0.45), 1.0)),
-//!     orientation: None,
-//!     velocity: None,
+//!     ..BodyTargetLoss::on(&sim, boxed)?
 //! };
 //! let run = value_and_gradient(&sim, 4, &loss, &GradientSettings::default())?;
-//! let g = run.gradient.bodies[0]; // ∂L/∂v₀, ∂L/∂ω₀, ∂L/∂x₀, ∂L/∂θ₀
+//! let g = run.gradient.body(&sim, boxed)?; // ∂L/∂v₀, ∂L/∂ω₀, ∂L/∂x₀, ∂L/∂θ₀
 //! assert!(g.x.length() > 0.0 && run.loss > 0.0);
 //! # Ok::<(), diffluid::Error>(())
 //! ```

@@ -24,7 +24,12 @@ fn ball(r: f64, at: Vec3) -> RigidBody {
 }
 
 fn cube(h: f64, at: Vec3) -> RigidBody {
-    RigidBody::with_density("box".into(), SharedShape::cuboid(h, h, h), Pose::from_translation(at), 600.0)
+    RigidBody::with_density(
+        "box".into(),
+        SharedShape::cuboid(h, h, h),
+        Pose::from_translation(at),
+        600.0,
+    )
 }
 
 /// Penetration depth of two bodies (0 when apart).

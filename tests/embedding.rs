@@ -33,7 +33,9 @@ fn cube(name: &str, half: f64, at: Vec3) -> RigidBody {
 #[test]
 fn external_body_a_few_micrometres_into_the_floor_steps() {
     let mut sim = pool();
-    let h = sim.add_body(cube("crate", 0.05, Vec3::new(0.3, 0.1, 0.2)).with_motion(Motion::External)).unwrap();
+    let h = sim
+        .add_body(cube("crate", 0.05, Vec3::new(0.3, 0.1, 0.2)).with_motion(Motion::External))
+        .unwrap();
     // Resting on the floor as rapier leaves it: 3 µm into it.
     let state = BodyState { x: Vec3::new(0.3, 0.05 - 3e-6, 0.2), ..sim[h].state() };
     sim.set_body_state(h, &state).unwrap();
@@ -210,4 +212,17 @@ fn body_left_tank_names_the_builder_method() {
     assert!(matches!(err, Error::BodyLeftTank { .. }), "{err}");
     let err = err.to_string();
     assert!(err.contains("SimulationBuilder::contact") && err.contains("[contact]"), "{err}");
+}
+
+#[test]
+fn a_loss_and_a_gradient_name_a_body_by_its_handle() {
+    use diffluid::gradients::BodyTargetLoss;
+    let mut sim = pool();
+    let a = sim.add_body(cube("a", 0.05, Vec3::new(0.2, 0.25, 0.2))).unwrap();
+    let b = sim.add_body(cube("b", 0.05, Vec3::new(0.4, 0.25, 0.2))).unwrap();
+    sim.remove_body(a).unwrap();
+    let loss = BodyTargetLoss::on(&sim, b).unwrap();
+    assert_eq!(loss.body, 0, "b is now the first body");
+    assert!(matches!(BodyTargetLoss::on(&sim, a), Err(Error::UnknownBody { .. })));
+    assert!(matches!(BodyTargetLoss::on(&pool(), b), Err(Error::UnknownBody { .. })));
 }

@@ -364,7 +364,8 @@ impl BodyBuilder {
         if !(mp.principal_inertia().is_finite() && mp.local_com.is_finite()) {
             return Err(invalid("the shape's inertia is not finite (is it too large?)".into()));
         }
-        let body = RigidBody::with_mass_properties(self.name.clone(), self.shape.clone(), self.pose, &mp);
+        let body =
+            RigidBody::with_mass_properties(self.name.clone(), self.shape.clone(), self.pose, &mp);
         Ok(body.with_motion(self.motion).with_velocity(self.v, self.w))
     }
 }
@@ -739,8 +740,12 @@ mod tests {
 
     #[test]
     fn cube_mass_properties() {
-        let b =
-            RigidBody::with_density("c".into(), SharedShape::cuboid(0.1, 0.1, 0.1), Pose::IDENTITY, 2000.0);
+        let b = RigidBody::with_density(
+            "c".into(),
+            SharedShape::cuboid(0.1, 0.1, 0.1),
+            Pose::IDENTITY,
+            2000.0,
+        );
         assert!((b.mass - 16.0).abs() < 1e-12);
         // I = m (a² + a²)/12 with a = 0.2.
         let i = 16.0 * (0.04 + 0.04) / 12.0;
@@ -774,8 +779,12 @@ mod tests {
     /// ∂L/∂(q0, q1, ω) of the angular-momentum carry against central differences.
     #[test]
     fn angular_momentum_carry_adjoint_matches_central_differences() {
-        let b =
-            RigidBody::with_density("b".into(), SharedShape::cuboid(0.3, 0.1, 0.2), Pose::IDENTITY, 700.0);
+        let b = RigidBody::with_density(
+            "b".into(),
+            SharedShape::cuboid(0.3, 0.1, 0.2),
+            Pose::IDENTITY,
+            700.0,
+        );
         let li = b.local_inertia;
         let q0 = Rotation::from_axis_angle(Vec3::new(0.3, -0.5, 0.8).normalize(), 0.7);
         let q1 = Rotation::from_axis_angle(Vec3::new(0.2, 0.5, -0.4).normalize(), 1.1);
@@ -807,8 +816,12 @@ mod tests {
     /// kept ω instead turned it by 14%).
     #[test]
     fn free_flight_keeps_the_world_angular_momentum() {
-        let mut b =
-            RigidBody::with_density("b".into(), SharedShape::cuboid(0.3, 0.1, 0.2), Pose::IDENTITY, 700.0);
+        let mut b = RigidBody::with_density(
+            "b".into(),
+            SharedShape::cuboid(0.3, 0.1, 0.2),
+            Pose::IDENTITY,
+            700.0,
+        );
         b.w = Vec3::new(1.1, -0.4, 2.3);
         let l0 = b.world_inertia() * b.w;
         for _ in 0..1000 {

@@ -115,11 +115,7 @@ pub fn load_obj_or_shell(path: &Path, scale: f64, thickness: f64) -> Result<Shar
 }
 
 /// [`load_obj_or_shell`], its error a message.
-fn shell_obj(
-    path: &Path,
-    scale: f64,
-    thickness: f64,
-) -> std::result::Result<SharedShape, String> {
+fn shell_obj(path: &Path, scale: f64, thickness: f64) -> std::result::Result<SharedShape, String> {
     let name = path.display();
     if !(thickness.is_finite() && thickness > 0.0) {
         return Err(format!(

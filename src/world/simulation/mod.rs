@@ -20,8 +20,8 @@ mod builder;
 mod memory;
 mod stepping;
 
-use builder::{check_body, overlap, overlap_message, thin_body_warning, volume_warning};
 pub use builder::SimulationBuilder;
+use builder::{check_body, overlap, overlap_message, thin_body_warning, volume_warning};
 
 /// A body's name in a [`Simulation`], stable while other bodies come and go. It carries the
 /// identity of the simulation that gave it out (shared by that simulation's clones), so a
@@ -98,7 +98,6 @@ pub struct Simulation {
     /// Whether a step that fails is rolled back ([`Simulation::set_rollback`]).
     rollback: bool,
 }
-
 
 /// How far (in cells) an [`Motion::External`](crate::geometry::body::Motion::External)
 /// body may reach into a wall: the caller's engine resolves its contact, which leaves a
@@ -261,10 +260,7 @@ impl Simulation {
             if u.c[a].len() != want {
                 return Err(Error::InvalidSettings {
                     key: "velocity field".into(),
-                    message: format!(
-                        "has {} faces along axis {a}, the grid {want}",
-                        u.c[a].len()
-                    ),
+                    message: format!("has {} faces along axis {a}, the grid {want}", u.c[a].len()),
                 });
             }
             if let Some(f) = u.c[a].iter().position(|x| !x.is_finite()) {
@@ -343,7 +339,11 @@ impl Simulation {
 
     /// Sets who moves body `h` (see [`Motion`](crate::geometry::body::Motion)); its state
     /// stays. Errors: an unknown handle.
-    pub fn set_motion(&mut self, h: BodyHandle, motion: crate::geometry::body::Motion) -> Result<()> {
+    pub fn set_motion(
+        &mut self,
+        h: BodyHandle,
+        motion: crate::geometry::body::Motion,
+    ) -> Result<()> {
         let i = self.index(h)?;
         self.bodies[i].motion = motion;
         Ok(())
@@ -360,7 +360,8 @@ impl Simulation {
     /// where one of the two is dynamic (nothing would keep them apart). A body thinner or
     /// smaller than the grid resolves gets its warning ([`Simulation::warnings`]) here.
     pub fn add_body(&mut self, body: RigidBody) -> Result<BodyHandle> {
-        let invalid = |message| Error::InvalidSettings { key: format!("body {:?}", body.name), message };
+        let invalid =
+            |message| Error::InvalidSettings { key: format!("body {:?}", body.name), message };
         check_body(&body, self.grid.size(), 0.0).map_err(invalid)?;
         if !self.settings.contact.enabled {
             if let Some(other) = self.bodies.iter().find(|b| overlap(b, &body)) {
@@ -388,7 +389,9 @@ impl Simulation {
             self.warn(&mut warnings, w);
         }
         let faces = body.face_fractions(&self.grid);
-        if let Some(w) = volume_warning(&body, faces.volume_error(&self.grid, body.volume()), self.grid.dx) {
+        if let Some(w) =
+            volume_warning(&body, faces.volume_error(&self.grid, body.volume()), self.grid.dx)
+        {
             self.warn_about(&mut warnings, "volume", h, w);
         }
         self.bodies.push(body);

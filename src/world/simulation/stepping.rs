@@ -719,7 +719,10 @@ impl Simulation {
     }
 
     /// What the density projection of a step with `geometry` reads (None when it is off).
-    pub(crate) fn density_inputs<'a>(&'a self, geometry: &'a Geometry) -> Option<DensityInputs<'a>> {
+    pub(crate) fn density_inputs<'a>(
+        &'a self,
+        geometry: &'a Geometry,
+    ) -> Option<DensityInputs<'a>> {
         let solver = &self.settings.solver;
         solver.density_correction.then(|| DensityInputs {
             grid: &self.grid,
