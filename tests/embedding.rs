@@ -226,3 +226,16 @@ fn a_loss_and_a_gradient_name_a_body_by_its_handle() {
     assert!(matches!(BodyTargetLoss::on(&sim, a), Err(Error::UnknownBody { .. })));
     assert!(matches!(BodyTargetLoss::on(&pool(), b), Err(Error::UnknownBody { .. })));
 }
+
+#[test]
+fn particles_of_a_narrow_band_cannot_be_replaced() {
+    let solver = diffluid::world::SolverSettings { narrow_band: 2, ..Default::default() };
+    let mut sim = Simulation::builder([0.6, 0.4, 0.4], 0.05)
+        .solver(solver)
+        .liquid(Solid::aabb(Vec3::ZERO, Vec3::new(0.6, 0.3, 0.4)))
+        .build()
+        .unwrap();
+    let p = sim.particles().to_vec();
+    let err = sim.set_particles(p).unwrap_err().to_string();
+    assert!(err.contains("solver.narrow_band"), "{err}");
+}

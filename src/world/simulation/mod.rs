@@ -280,8 +280,18 @@ impl Simulation {
     }
 
     /// Replaces the marker particles (with the surface frozen, φ_L stays the initial
-    /// particles'). Errors: a position that is not finite or outside the tank.
+    /// particles'). Errors: a position that is not finite or outside the tank, and a
+    /// simulation with a narrow band (`solver.narrow_band`), whose deep cells stand for
+    /// particles it does not hold.
     pub fn set_particles(&mut self, particles: Vec<Vec3>) -> Result<()> {
+        if self.band.is_some() {
+            return Err(Error::InvalidSettings {
+                key: "solver.narrow_band".into(),
+                message: "the particles of a simulation with a narrow band cannot be replaced \
+                          (its deep cells stand for particles it does not hold)"
+                    .into(),
+            });
+        }
         let size = self.grid.size();
         if let Some(i) = particles
             .iter()
