@@ -18,7 +18,7 @@
 //! starts goes from 0.130 m (untrained) to 0.012 m (0.09 of it); `--check` agrees with central
 //! differences to 4e-5 or better (8.5e-7 with `--frozen`).
 
-use diffluid::geometry::body::Motion;
+use diffluid::geometry::body::{BodyState, Motion};
 use diffluid::gradients::backward::SurfaceGradient;
 use diffluid::gradients::{BodyAdjoint, GradientOptions, Stepper};
 use diffluid::math::Vec3;
@@ -180,7 +180,9 @@ fn episode(
     grad: Option<&mut [f64]>,
 ) -> diffluid::Result<f64> {
     let mut sim = base.clone();
-    sim.bodies_mut()[BALL].x = Vec3::new(start[0], 0.31, start[1]);
+    let ball = sim.handles()[BALL];
+    let at = BodyState { x: Vec3::new(start[0], 0.31, start[1]), ..sim[ball].state() };
+    sim.set_body_state(ball, &at)?;
     let paddle = sim.handles()[PADDLE];
     let mut stepper = Stepper::new(&sim, &[paddle], STEPS_PER_ACTION, options)?;
     let mut s = stepper.states();
@@ -218,7 +220,7 @@ fn main() -> diffluid::Result<()> {
     let text = SCENE.replace("FROZEN", if frozen { "true" } else { "false" });
     let mut base = Scene::from_toml(&text, "<closed_loop>")?.build()?;
     // At rest in the scene file (fixed): the actions set its velocity.
-    base.bodies_mut()[PADDLE].motion = Motion::Kinematic;
+    base.set_motion(base.handles()[PADDLE], Motion::Kinematic)?;
     let surface = if frozen { SurfaceGradient::Frozen } else { SurfaceGradient::Live };
     let options = GradientOptions { surface, ..Default::default() };
 

@@ -1,5 +1,6 @@
 //! Optimise a body's initial velocity through the Rust API: a box must end 20 steps later
 //! at a target. `cargo run --release --example optimize_velocity`.
+use diffluid::geometry::body::BodyState;
 use diffluid::gradients::{value_and_gradient, BodyTargetLoss, GradientSettings};
 use diffluid::math::Vec3;
 use diffluid::Scene;
@@ -25,7 +26,9 @@ fn main() -> diffluid::Result<()> {
                 sim.bodies()[0].v.to_array()
             );
         }
-        sim.bodies_mut()[0].v -= learning_rate * g;
+        let h = sim.handles()[0];
+        let state = BodyState { v: sim[h].v - learning_rate * g, ..sim[h].state() };
+        sim.set_body_state(h, &state)?;
     }
     println!("final v0 = {:.4?}", sim.bodies()[0].v.to_array());
     Ok(())

@@ -3,11 +3,8 @@
 //! diffluid the bodies' poses and velocities, diffluid solves the liquid and the bodies in one
 //! pressure solve, and rapier takes back the pressure impulse.
 //! `cargo run --release --example rapier_coupling` (also run by `cargo test`).
-use diffluid::geometry::body::{BodyState, Motion, RigidBody};
-use diffluid::geometry::{mesh::load_obj, shape::Solid};
-use diffluid::math::{SharedShape, Vec3};
-use diffluid::world::Simulation;
-use rapier3d_f64::prelude::*;
+use diffluid::prelude::*;
+use rapier3d_f64::prelude::{ColliderBuilder, PhysicsWorld, RigidBodyBuilder};
 
 /// Runs `steps` steps and returns the bodies' final heights.
 fn run(steps: usize) -> diffluid::Result<Vec<f64>> {
@@ -19,8 +16,7 @@ fn run(steps: usize) -> diffluid::Result<Vec<f64>> {
         ColliderBuilder::cuboid(1.0, 0.05, 1.0).translation(Vec3::new(0.4, -0.05, 0.3)),
     );
     let mesh =
-        load_obj(concat!(env!("CARGO_MANIFEST_DIR"), "/assets/meshes/cube.obj").as_ref(), 0.6)
-            .map_err(|m| diffluid::Error::InvalidSettings { key: "mesh".into(), message: m })?;
+        load_obj(concat!(env!("CARGO_MANIFEST_DIR"), "/assets/meshes/cube.obj").as_ref(), 0.6)?;
     let shapes = [(SharedShape::cuboid(0.08, 0.05, 0.06), 0.25, 600.0), (mesh, 0.55, 400.0)];
     let mut sim = Simulation::builder([0.8, 0.6, 0.6], 0.04)
         .dt(dt)
@@ -33,13 +29,12 @@ fn run(steps: usize) -> diffluid::Result<Vec<f64>> {
             .rotation(Vec3::new(0.0, 0.0, 0.3));
         let (h, _) = world.insert(rb, ColliderBuilder::new(shape.clone()).density(density));
         let b = &world.bodies[h];
-        let body = RigidBody::with_mass_properties(
-            "b".into(),
-            shape,
-            *b.position(),
-            &b.mass_properties().local_mprops,
-        );
-        pairs.push((h, sim.add_body(body.with_motion(Motion::External))?));
+        let body = RigidBody::builder(format!("b{}", pairs.len()), shape)
+            .mass_properties(b.mass_properties().local_mprops)
+            .pose(*b.position())
+            .motion(Motion::External)
+            .build()?;
+        pairs.push((h, sim.add_body(body)?));
     }
     for _ in 0..steps {
         for &(h, body) in &pairs {
@@ -54,7 +49,7 @@ fn run(steps: usize) -> diffluid::Result<Vec<f64>> {
         }
         sim.step()?;
         for &(h, body) in &pairs {
-            let (force, torque) = sim.fluid_force(body).expect("a body of the simulation");
+            let (force, torque) = sim.fluid_force(body)?;
             world.bodies[h].apply_impulse(dt * force, true);
             world.bodies[h].apply_torque_impulse(dt * torque, true);
         }

@@ -31,14 +31,19 @@ fn main() -> diffluid::Result<()> {
     let mut sim = Simulation::builder([3.2, 1.6, 3.2], dx)
         .dt(1.0 / 60.0)
         .liquid(Solid::aabb(Vec3::ZERO, Vec3::new(3.2, 0.7, 3.2)))
-        .body(RigidBody::new(
+        .body(RigidBody::with_density(
             "crate".into(),
             SharedShape::cuboid(0.2, 0.15, 0.2),
             at(0.8, 0.72, 0.9),
             400.0,
         ))
-        .body(RigidBody::new("ball".into(), SharedShape::ball(0.2), at(1.7, 0.72, 2.1), 600.0))
-        .body(RigidBody::new("log".into(), SharedShape::capsule_y(0.3, 0.1), log, 700.0))
+        .body(RigidBody::with_density(
+            "ball".into(),
+            SharedShape::ball(0.2),
+            at(1.7, 0.72, 2.1),
+            600.0,
+        ))
+        .body(RigidBody::with_density("log".into(), SharedShape::capsule_y(0.3, 0.1), log, 700.0))
         .build()?;
     let grid = *sim.grid();
     println!(

@@ -80,10 +80,12 @@ pub enum Error {
         /// Which quantity, and how: "the fluid velocity is not finite".
         what: String,
     },
-    /// A body left the tank (contact is off).
+    /// A body left the tank (contact is off). The message names both ways to turn contact
+    /// on: `SimulationBuilder::contact` for a world built in Rust, `[contact]` in a scene.
     #[error(
-        "body {body} left the tank at step {step} (bounds {bounds:?}); turn on [contact] or \
-         change its initial state"
+        "body {body} left the tank at step {step} (bounds {bounds:?}); turn contact on \
+         (SimulationBuilder::contact(ContactSettings {{ enabled: true, .. }}) in Rust, \
+         [contact] enabled = true in a scene file) or change its initial state"
     )]
     BodyLeftTank {
         /// The step.
@@ -109,6 +111,16 @@ pub enum Error {
         /// The file.
         path: PathBuf,
         /// What is wrong, naming the checkpoint's key.
+        message: String,
+    },
+    /// A mesh file that cannot be loaded as a body ([`crate::geometry::mesh::load_obj`]): it
+    /// cannot be read, is not valid OBJ, is not a closed oriented surface, or is too large
+    /// once scaled. The message names the file and, for an open surface, the alternatives.
+    #[error("{message}")]
+    Mesh {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, starting with the file's name.
         message: String,
     },
     /// Writing an output failed.
@@ -196,5 +208,6 @@ pub enum GradientError {
     },
 }
 
-/// Result with diffluid's error.
-pub type Result<T> = std::result::Result<T, Error>;
+/// Result with diffluid's error (another error type can be named, so that the prelude's
+/// `Result` does not hide the standard one).
+pub type Result<T, E = Error> = std::result::Result<T, E>;

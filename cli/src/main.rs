@@ -397,7 +397,7 @@ fn run(args: RunArgs) -> Outcome {
          (start {:.4}), max speed {:.3} m/s; wrote {}",
         scene.name,
         scene.time.steps,
-        sim.particles.len(),
+        sim.particles().len(),
         last.liquid_cells,
         last.liquid_volume,
         rec.initial_volume(),

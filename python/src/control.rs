@@ -660,8 +660,8 @@ impl Stepper {
         this.inner.reset();
         if masses.is_some() {
             let mut start = this.inner.simulation().clone();
-            for (b, m) in start.bodies_mut().iter_mut().zip(base.bodies()) {
-                b.set_mass(m.mass);
+            for (&h, m) in base.handles().iter().zip(base.bodies()) {
+                start.set_mass(h, m.mass).map_err(crate::to_py)?;
             }
             this.inner =
                 Stepper::start(&start, &this.controlled, this.steps_per_action, this.options)?;

@@ -332,7 +332,7 @@ pub fn rollout(
     }
     if let Some(u) = u {
         let flat = read_flat("u", &u, sim.faces_len())?;
-        initial.u = sim.mac_from_flat(&flat);
+        initial.set_velocity_field(sim.mac_from_flat(&flat)).map_err(to_py)?;
     }
     if let Some(m) = masses {
         set_masses(&mut initial, &m)?;

@@ -4,7 +4,7 @@
 //! side alone.
 
 use crate::convert::read_flat;
-use crate::errors::{borrow, borrow_mut, run, value_error};
+use crate::errors::{borrow, borrow_mut, run, to_py, value_error};
 use diffluid::geometry::body::Motion;
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::BodyTargetLoss;
@@ -102,9 +102,9 @@ pub(crate) fn set_masses(sim: &mut RSim, masses: &PyReadonlyArrayDyn<'_, f64>) -
     for (i, &kg) in m.iter().enumerate() {
         check_mass(&format!("masses[{i}]"), kg)?;
     }
-    for (b, kg) in sim.bodies_mut().iter_mut().zip(m) {
-        if b.motion == Motion::Dynamic {
-            b.set_mass(kg);
+    for (i, kg) in m.into_iter().enumerate() {
+        if sim.bodies()[i].motion == Motion::Dynamic {
+            sim.set_mass(sim.handles()[i], kg).map_err(to_py)?;
         }
     }
     Ok(())

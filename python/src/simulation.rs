@@ -224,7 +224,8 @@ impl Simulation {
         let mut this = sim_mut(slf)?;
         let i = this.body_index(body)?;
         check_mass("kg", kg)?;
-        this.inner.bodies_mut()[i].set_mass(kg);
+        let h = this.inner.handles()[i];
+        this.inner.set_mass(h, kg).map_err(crate::to_py)?;
         Ok(())
     }
 
@@ -330,7 +331,7 @@ impl Simulation {
     fn set_kinematic(slf: &Bound<'_, Self>, body: &Bound<'_, PyAny>) -> PyResult<()> {
         let mut this = sim_mut(slf)?;
         let i = this.body_index(body)?;
-        let b = &mut this.inner.bodies_mut()[i];
+        let b = &this.inner.bodies()[i];
         if b.motion == Motion::External {
             return Err(value_error(format!(
                 "body {:?} is moved by the caller's engine (external): it cannot be made \
@@ -338,14 +339,14 @@ impl Simulation {
                 b.name
             )));
         }
-        b.motion = Motion::Kinematic;
-        Ok(())
+        let h = this.inner.handles()[i];
+        this.inner.set_motion(h, Motion::Kinematic).map_err(crate::to_py)
     }
 
     /// Marker particle positions, shape (particles, 3), m (a copy).
     #[getter]
     fn particles<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        rows(py, sim(slf)?.inner.particles.iter().map(|p| p.to_array()))
+        rows(py, sim(slf)?.inner.particles().iter().map(|p| p.to_array()))
     }
 
     /// Pressure at cell centres from the last solve, shape (nx, ny, nz), Pa (a copy; zero
@@ -371,7 +372,7 @@ impl Simulation {
         let this = sim(slf)?;
         let shapes = this.face_shapes();
         let parts: Vec<Bound<'py, PyAny>> = (0..3)
-            .map(|a| lattice(py, shapes[a], this.inner.u.c[a].clone()))
+            .map(|a| lattice(py, shapes[a], this.inner.velocity_field().c[a].clone()))
             .collect::<PyResult<_>>()?;
         PyTuple::new(py, parts)
     }
@@ -379,7 +380,7 @@ impl Simulation {
     /// The fluid velocity as one flat array: u, v then w, each x-fastest (the order
     /// :func:`diffluid.torch.rollout` takes and returns it in).
     fn velocity_flat<'py>(slf: &Bound<'py, Self>, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let flat: Vec<f64> = sim(slf)?.inner.u.c.iter().flatten().copied().collect();
+        let flat: Vec<f64> = sim(slf)?.inner.velocity_field().c.iter().flatten().copied().collect();
         read_only(numpy::PyArray1::from_vec(py, flat))
     }
 
@@ -387,7 +388,8 @@ impl Simulation {
     fn set_velocity_flat(slf: &Bound<'_, Self>, u: PyReadonlyArrayDyn<'_, f64>) -> PyResult<()> {
         let mut this = sim_mut(slf)?;
         let flat = read_flat("u", &u, this.faces_len())?;
-        this.inner.u = this.mac_from_flat(&flat);
+        let u = this.mac_from_flat(&flat);
+        this.inner.set_velocity_field(u).map_err(crate::to_py)?;
         Ok(())
     }
 

@@ -719,7 +719,8 @@ impl Scene {
         };
         check_finite(&format!("{key}.velocity"), &b.velocity)?;
         check_finite(&format!("{key}.angular_velocity"), &b.angular_velocity)?;
-        let mut body = RigidBody::new(b.name_or_default(i), solid.shape, solid.pose, density);
+        let mut body =
+            RigidBody::with_density(b.name_or_default(i), solid.shape, solid.pose, density);
         if !(body.mass.is_finite() && body.mass > 0.0) {
             return Err(problem(&key, "the shape has no volume (degenerate shape)"));
         }

@@ -242,7 +242,8 @@ impl Placed {
             return Err(format!("position {:?} must be finite", self.position));
         }
         positive("mesh scale", *scale)?;
-        let shape = crate::geometry::mesh::load_obj_or_shell(&base.join(obj), *scale, thickness)?;
+        let shape = crate::geometry::mesh::load_obj_or_shell(&base.join(obj), *scale, thickness)
+            .map_err(|e| e.to_string())?;
         let rot = self.rotation()?;
         Ok(Solid { shape, pose: Pose::from_parts(v3(self.position), rot) })
     }

@@ -260,9 +260,134 @@ impl std::fmt::Debug for RigidBody {
     }
 }
 
+/// How a [`BodyBuilder`] gives a body its mass.
+#[derive(Clone, Debug)]
+enum MassSpec {
+    Density(f64),
+    Mass(f64),
+    Properties(parry3d_f64::mass_properties::MassProperties),
+}
+
+/// Builds a [`RigidBody`] with named settings: its density or mass, pose, motion and
+/// velocity ([`RigidBody::builder`]). Unset, a body is dynamic, at rest at the origin's pose,
+/// with the density of water (1000 kg/m³: neutrally buoyant in the default fluid).
+///
+/// ```
+/// use diffluid::prelude::*;
+///
+/// let ball = RigidBody::builder("ball", SharedShape::ball(0.05))
+///     .density(500.0)
+///     .pose(Pose::from_translation(Vec3::new(0.3, 0.2, 0.2)))
+///     .build()?;
+/// assert!((ball.mass - 500.0 * 4.0 / 3.0 * std::f64::consts::PI * 0.05f64.powi(3)).abs() < 1e-9);
+/// assert!(RigidBody::builder("ghost", SharedShape::ball(0.05)).density(-1.0).build().is_err());
+/// # Ok::<(), diffluid::Error>(())
+/// ```
+#[derive(Clone, Debug)]
+#[must_use = "a builder does nothing until .build()"]
+pub struct BodyBuilder {
+    name: String,
+    shape: SharedShape,
+    mass: MassSpec,
+    pose: Pose,
+    motion: Motion,
+    v: Vec3,
+    w: Vec3,
+}
+
+impl BodyBuilder {
+    /// Mass properties from a uniform density, kg/m³ (the default: 1000).
+    pub fn density(mut self, density: f64) -> Self {
+        self.mass = MassSpec::Density(density);
+        self
+    }
+
+    /// A total mass, kg, spread uniformly over the shape (its inertia that of the shape at
+    /// the density that gives this mass).
+    pub fn mass(mut self, mass: f64) -> Self {
+        self.mass = MassSpec::Mass(mass);
+        self
+    }
+
+    /// Mass properties in the shape frame, such as a rapier body's
+    /// `mass_properties().local_mprops`.
+    pub fn mass_properties(mut self, mp: parry3d_f64::mass_properties::MassProperties) -> Self {
+        self.mass = MassSpec::Properties(mp);
+        self
+    }
+
+    /// Where the shape's frame is (default: the identity pose).
+    pub fn pose(mut self, pose: Pose) -> Self {
+        self.pose = pose;
+        self
+    }
+
+    /// Who moves the body (default [`Motion::Dynamic`]).
+    pub fn motion(mut self, motion: Motion) -> Self {
+        self.motion = motion;
+        self
+    }
+
+    /// Initial linear and angular velocity, world frame (default at rest).
+    pub fn velocity(mut self, v: Vec3, w: Vec3) -> Self {
+        self.v = v;
+        self.w = w;
+        self
+    }
+
+    /// The body. Errors ([`crate::Error::InvalidSettings`] naming the body): a density or
+    /// mass that is not a positive finite number, or a shape whose mass properties are not
+    /// finite and positive (an empty or enormous shape). Where the body may go is checked
+    /// when a simulation takes it ([`crate::Simulation::add_body`]).
+    pub fn build(self) -> crate::Result<RigidBody> {
+        let invalid = |message: String| crate::Error::InvalidSettings {
+            key: format!("body {:?}", self.name),
+            message,
+        };
+        let positive = |what: &str, x: f64| {
+            if x.is_finite() && x > 0.0 {
+                Ok(x)
+            } else {
+                Err(invalid(format!("{what} must be a positive number, got {x}")))
+            }
+        };
+        let mp = match &self.mass {
+            MassSpec::Density(d) => self.shape.mass_properties(positive("density", *d)?),
+            MassSpec::Mass(m) => {
+                let m = positive("mass", *m)?;
+                let unit = self.shape.mass_properties(1.0);
+                self.shape.mass_properties(m / positive("the shape's volume", unit.mass())?)
+            }
+            MassSpec::Properties(mp) => *mp,
+        };
+        positive("mass", mp.mass())?;
+        if !(mp.principal_inertia().is_finite() && mp.local_com.is_finite()) {
+            return Err(invalid("the shape's inertia is not finite (is it too large?)".into()));
+        }
+        let body =
+            RigidBody::with_mass_properties(self.name.clone(), self.shape.clone(), self.pose, &mp);
+        Ok(body.with_motion(self.motion).with_velocity(self.v, self.w))
+    }
+}
+
 impl RigidBody {
-    /// A body from a shape at a pose, with mass properties at `density` (kg/m³).
-    pub fn new(name: String, shape: SharedShape, pose: Pose, density: f64) -> RigidBody {
+    /// A [`BodyBuilder`] for a body named `name` of `shape`, which names its density or
+    /// mass, pose, motion and velocity.
+    pub fn builder(name: impl Into<String>, shape: SharedShape) -> BodyBuilder {
+        BodyBuilder {
+            name: name.into(),
+            shape,
+            mass: MassSpec::Density(1000.0),
+            pose: Pose::IDENTITY,
+            motion: Motion::Dynamic,
+            v: Vec3::ZERO,
+            w: Vec3::ZERO,
+        }
+    }
+
+    /// A body from a shape at a pose, with mass properties at `density` (kg/m³), unchecked
+    /// ([`RigidBody::builder`] checks the density).
+    pub fn with_density(name: String, shape: SharedShape, pose: Pose, density: f64) -> RigidBody {
         let mp = shape.mass_properties(density);
         RigidBody::with_mass_properties(name, shape, pose, &mp)
     }
@@ -578,7 +703,7 @@ mod tests {
 
     #[test]
     fn pose_derivative_of_the_distance_matches_central_differences() {
-        let mut b = RigidBody::new(
+        let mut b = RigidBody::with_density(
             "c".into(),
             SharedShape::cuboid(0.2, 0.1, 0.15),
             Pose::from_parts(
@@ -615,8 +740,12 @@ mod tests {
 
     #[test]
     fn cube_mass_properties() {
-        let b =
-            RigidBody::new("c".into(), SharedShape::cuboid(0.1, 0.1, 0.1), Pose::IDENTITY, 2000.0);
+        let b = RigidBody::with_density(
+            "c".into(),
+            SharedShape::cuboid(0.1, 0.1, 0.1),
+            Pose::IDENTITY,
+            2000.0,
+        );
         assert!((b.mass - 16.0).abs() < 1e-12);
         // I = m (a² + a²)/12 with a = 0.2.
         let i = 16.0 * (0.04 + 0.04) / 12.0;
@@ -650,8 +779,12 @@ mod tests {
     /// ∂L/∂(q0, q1, ω) of the angular-momentum carry against central differences.
     #[test]
     fn angular_momentum_carry_adjoint_matches_central_differences() {
-        let b =
-            RigidBody::new("b".into(), SharedShape::cuboid(0.3, 0.1, 0.2), Pose::IDENTITY, 700.0);
+        let b = RigidBody::with_density(
+            "b".into(),
+            SharedShape::cuboid(0.3, 0.1, 0.2),
+            Pose::IDENTITY,
+            700.0,
+        );
         let li = b.local_inertia;
         let q0 = Rotation::from_axis_angle(Vec3::new(0.3, -0.5, 0.8).normalize(), 0.7);
         let q1 = Rotation::from_axis_angle(Vec3::new(0.2, 0.5, -0.4).normalize(), 1.1);
@@ -683,8 +816,12 @@ mod tests {
     /// kept ω instead turned it by 14%).
     #[test]
     fn free_flight_keeps_the_world_angular_momentum() {
-        let mut b =
-            RigidBody::new("b".into(), SharedShape::cuboid(0.3, 0.1, 0.2), Pose::IDENTITY, 700.0);
+        let mut b = RigidBody::with_density(
+            "b".into(),
+            SharedShape::cuboid(0.3, 0.1, 0.2),
+            Pose::IDENTITY,
+            700.0,
+        );
         b.w = Vec3::new(1.1, -0.4, 2.3);
         let l0 = b.world_inertia() * b.w;
         for _ in 0..1000 {

@@ -761,7 +761,7 @@ mod derivative_tests {
         ];
         for (shape, rot) in shapes {
             let pose = Pose::from_parts(Vec3::new(0.3813, 0.2871, 0.4127), rot);
-            let mut b = RigidBody::new("b".into(), shape, pose, 1000.0);
+            let mut b = RigidBody::with_density("b".into(), shape, pose, 1000.0);
             let dual = b.face_fractions_dual(&grid);
             let eps = 1e-6;
             let mut worst: f64 = 0.0;
@@ -839,7 +839,7 @@ mod thin_tests {
                 + 0.1 * Vec3::new(lcg(&mut state), lcg(&mut state), lcg(&mut state));
             let q = Rotation::from_axis_angle(random_unit(&mut state), 3.0 * lcg(&mut state));
             let shape = SharedShape::cuboid(0.15, 0.25 * grid.dx / 2.0, 0.1);
-            let b = RigidBody::new("plate".into(), shape, Pose::from_parts(x, q), 1000.0);
+            let b = RigidBody::with_density("plate".into(), shape, Pose::from_parts(x, q), 1000.0);
             assert_eq!(b.samples_per_cell(grid.dx), 8);
             worst = worst.max(b.face_fractions(&grid).volume_error(&grid, b.volume()));
             let coarse = body_faces(&grid, b.bounds(), |p| b.sdf(p), Some(b.volume()), SUBSAMPLE);

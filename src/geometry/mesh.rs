@@ -9,6 +9,7 @@
 //! decide on which side of the closest feature a point lies. Without it,
 //! `distance_to_point(pose, p, false)` is the unsigned distance to the surface.
 
+use crate::error::{Error, Result};
 use crate::math::{Pose, SharedShape, Vec3};
 use parry3d_f64::shape::{TriMeshFlags, TypedShape};
 use std::borrow::Cow;
@@ -43,7 +44,29 @@ const MIN_RELATIVE_VOLUME: f64 = 1e-9;
 /// not rejected: its orientation is unambiguous, only reversed. A mesh with several shells
 /// is flipped as a whole, so a hollow body (outer shell outward, inner shell inward) is kept
 /// as it is.
-pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
+///
+/// A mesh so large once scaled that its volume or inertia is not a finite number is refused
+/// too. Each error is [`Error::Mesh`], whose message names the file.
+///
+/// ```
+/// use diffluid::geometry::mesh::load_obj;
+///
+/// let path = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/meshes/cube.obj");
+/// let cube = load_obj(path.as_ref(), 0.5)?;
+/// assert!(cube.mass_properties(1.0).mass() > 0.0);
+/// # Ok::<(), diffluid::Error>(())
+/// ```
+pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape> {
+    closed_obj(path, scale).map_err(|message| mesh_error(path, message))
+}
+
+/// [`Error::Mesh`] for the mesh at `path`.
+fn mesh_error(path: &Path, message: String) -> Error {
+    Error::Mesh { path: path.to_path_buf(), message }
+}
+
+/// [`load_obj`], its error a message.
+fn closed_obj(path: &Path, scale: f64) -> std::result::Result<SharedShape, String> {
     let name = path.display();
     if !(scale.is_finite() && scale > 0.0) {
         return Err(format!("mesh {name}: scale must be a positive number, got {scale}"));
@@ -55,8 +78,27 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
     for v in &mut closed.vertices {
         *v *= scale;
     }
-    SharedShape::trimesh_with_flags(closed.vertices, closed.triangles, TriMeshFlags::ORIENTED)
-        .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))
+    let shape =
+        SharedShape::trimesh_with_flags(closed.vertices, closed.triangles, TriMeshFlags::ORIENTED)
+            .map_err(|e| format!("mesh {name}: parry rejected the triangles: {e}"))?;
+    finite_mass(&shape, scale).map_err(|e| format!("mesh {name} {e}"))?;
+    Ok(shape)
+}
+
+/// A shape's volume and inertia (at unit density) must be finite numbers: a mesh scaled by
+/// 1e300 has vertices in range and neither. The error completes a sentence starting with the
+/// mesh's name.
+fn finite_mass(shape: &SharedShape, scale: f64) -> std::result::Result<(), String> {
+    let mp = shape.mass_properties(1.0);
+    let volume = mp.mass();
+    if !(volume.is_finite() && mp.principal_inertia().is_finite() && mp.local_com.is_finite()) {
+        return Err(format!(
+            "scaled by {scale} has a volume of {volume} m³ and inertia {:?}: not finite numbers \
+             (scale it down)",
+            mp.principal_inertia().to_array()
+        ));
+    }
+    Ok(())
 }
 
 /// Loads an OBJ as [`load_obj`] does when it is closed (today's rules, `thickness` unused);
@@ -66,14 +108,21 @@ pub fn load_obj(path: &Path, scale: f64) -> Result<SharedShape, String> {
 /// so a body's mass at a density, is thickness × area (to first order in thickness over the
 /// surface's curvature radius). An open surface must be consistently wound and manifold, and
 /// the thickness small against its curvature (the sheets must not cross).
-pub fn load_obj_or_shell(path: &Path, scale: f64, thickness: f64) -> Result<SharedShape, String> {
+///
+/// Errors as [`load_obj`]'s ([`Error::Mesh`]).
+pub fn load_obj_or_shell(path: &Path, scale: f64, thickness: f64) -> Result<SharedShape> {
+    shell_obj(path, scale, thickness).map_err(|message| mesh_error(path, message))
+}
+
+/// [`load_obj_or_shell`], its error a message.
+fn shell_obj(path: &Path, scale: f64, thickness: f64) -> std::result::Result<SharedShape, String> {
     let name = path.display();
     if !(thickness.is_finite() && thickness > 0.0) {
         return Err(format!(
             "mesh {name}: shell_thickness must be a positive number, got {thickness}"
         ));
     }
-    let closed = load_obj(path, scale);
+    let closed = closed_obj(path, scale);
     if closed.is_ok() {
         return closed;
     }
@@ -90,8 +139,11 @@ pub fn load_obj_or_shell(path: &Path, scale: f64, thickness: f64) -> Result<Shar
     let solid = ClosedMesh::new(&shell.0, &shell.1)
         .map_err(|e| format!("mesh {name} as a shell {thickness} m thick {e}"))?
         .outward();
-    SharedShape::trimesh_with_flags(solid.vertices, solid.triangles, TriMeshFlags::ORIENTED)
-        .map_err(|e| format!("mesh {name}: parry rejected the shell's triangles: {e}"))
+    let shape =
+        SharedShape::trimesh_with_flags(solid.vertices, solid.triangles, TriMeshFlags::ORIENTED)
+            .map_err(|e| format!("mesh {name}: parry rejected the shell's triangles: {e}"))?;
+    finite_mass(&shape, scale).map_err(|e| format!("mesh {name} {e}"))?;
+    Ok(shape)
 }
 
 /// A triangle mesh: vertices and triangles.
@@ -219,14 +271,21 @@ fn read_obj(path: &Path) -> Result<(Vec<Vec3>, Vec<[u32; 3]>), String> {
 }
 
 /// The convex hull of an OBJ file's vertices (the fallback of a mesh that fails the checks
-/// of [`load_obj`]).
-pub fn load_obj_hull(path: &Path, scale: f64) -> Result<SharedShape, String> {
+/// of [`load_obj`]). Errors as [`load_obj`]'s ([`Error::Mesh`]).
+pub fn load_obj_hull(path: &Path, scale: f64) -> Result<SharedShape> {
+    hull_obj(path, scale).map_err(|message| mesh_error(path, message))
+}
+
+/// [`load_obj_hull`], its error a message.
+fn hull_obj(path: &Path, scale: f64) -> std::result::Result<SharedShape, String> {
     let name = path.display();
     let (positions, _) = read_obj(path)?;
     let points: Vec<Vec3> =
         positions.into_iter().filter(|p| p.is_finite()).map(|p| p * scale).collect();
-    SharedShape::convex_hull(&points)
-        .ok_or_else(|| format!("mesh {name}: its vertices have no convex hull (degenerate)"))
+    let hull = SharedShape::convex_hull(&points)
+        .ok_or_else(|| format!("mesh {name}: its vertices have no convex hull (degenerate)"))?;
+    finite_mass(&hull, scale).map_err(|e| format!("mesh {name} {e}"))?;
+    Ok(hull)
 }
 
 /// A validated closed, consistently oriented triangle mesh.
@@ -290,7 +349,8 @@ impl ClosedMesh {
             }
             // An open surface (a sail, a hull without a deck) can be a body's shell.
             let shell = if boundary > 0 {
-                "; an open surface loads as a shell with the body's `shell_thickness` (m)"
+                "; an open surface loads as a shell: give the body a `shell_thickness` (m) in a \
+                 scene, or load it with `load_obj_or_shell` in Rust; or close the mesh"
             } else {
                 ""
             };
@@ -712,6 +772,11 @@ fn append_placed(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// [`super::load_obj`] with its error as text, for the tests to read.
+    fn load_obj(path: &Path, scale: f64) -> std::result::Result<SharedShape, String> {
+        super::load_obj(path, scale).map_err(|e| e.to_string())
+    }
     use crate::math::{PointQuery, Rotation};
     use parry3d_f64::shape::TriMesh;
     use std::path::PathBuf;

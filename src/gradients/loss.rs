@@ -3,7 +3,7 @@
 use crate::geometry::body::Param;
 use crate::geometry::grid::Mac;
 use crate::math::{Rotation, Vec3};
-use crate::world::Simulation;
+use crate::world::{BodyHandle, Simulation};
 
 /// The adjoint of one body's state: ∂L/∂x, ∂L/∂q (in the quaternion embedding), ∂L/∂v,
 /// ∂L/∂ω.
@@ -81,6 +81,16 @@ pub struct BodyTargetLoss {
     pub velocity: Option<(Vec3, f64)>,
 }
 
+impl BodyTargetLoss {
+    /// A loss on body `h` of `sim` with no target yet (set `position`, `orientation` or
+    /// `velocity`): the Rust API names a body by its handle (a scene file by its name).
+    /// Errors: [`crate::Error::UnknownBody`].
+    pub fn on(sim: &Simulation, h: BodyHandle) -> crate::Result<BodyTargetLoss> {
+        let body = sim.index_of(h).ok_or(crate::Error::UnknownBody { handle: h.id() })?;
+        Ok(BodyTargetLoss { body, position: None, orientation: None, velocity: None })
+    }
+}
+
 impl Loss for BodyTargetLoss {
     fn value(&self, sim: &Simulation) -> f64 {
         let b = &sim.bodies()[self.body];
@@ -152,4 +162,14 @@ pub struct Gradient {
     pub bodies: Vec<BodyGradient>,
     /// ∂L/∂(initial marker particle positions) (empty with a frozen surface).
     pub particles: Vec<Vec3>,
+}
+
+impl Gradient {
+    /// The part for body `h` of `sim`, the initial state the gradient was taken at.
+    /// Errors: [`crate::Error::UnknownBody`].
+    pub fn body(&self, sim: &Simulation, h: BodyHandle) -> crate::Result<&BodyGradient> {
+        sim.index_of(h)
+            .and_then(|i| self.bodies.get(i))
+            .ok_or(crate::Error::UnknownBody { handle: h.id() })
+    }
 }

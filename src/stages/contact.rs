@@ -64,6 +64,12 @@ impl Default for ContactSettings {
 }
 
 impl ContactSettings {
+    /// Contact on, with the default friction and restitution:
+    /// `Simulation::builder(..).contact(ContactSettings::on())`.
+    pub fn on() -> Self {
+        ContactSettings { enabled: true, ..ContactSettings::default() }
+    }
+
     /// The settings' own checks: `(key, message)` of the first that fails.
     pub fn validate(&self) -> std::result::Result<(), (String, String)> {
         if !(self.friction.is_finite() && self.friction >= 0.0) {

@@ -543,13 +543,13 @@ mod tests {
         let pose = |x: Vec3, q: Rotation| Pose::from_parts(x, q);
         let tilt = Rotation::from_scaled_axis(Vec3::new(0.3, 0.5, -0.2));
         let mut bodies = vec![
-            RigidBody::new(
+            RigidBody::with_density(
                 "box".into(),
                 SharedShape::cuboid(0.17, 0.12, 0.14),
                 pose(Vec3::new(0.33, 0.41, 0.36), tilt),
                 700.0,
             ),
-            RigidBody::new(
+            RigidBody::with_density(
                 "ball".into(),
                 SharedShape::ball(0.16),
                 pose(Vec3::new(0.61, 0.37, 0.33), Rotation::IDENTITY),

@@ -66,7 +66,8 @@ mod tests {
             Vec3::new(0.2, 0.3, 0.1),
             Rotation::from_axis_angle(Vec3::new(0.4, 1.0, -0.3).normalize(), 0.8),
         );
-        let mut b = RigidBody::new("b".into(), SharedShape::cuboid(0.3, 0.1, 0.2), pose, 700.0);
+        let mut b =
+            RigidBody::with_density("b".into(), SharedShape::cuboid(0.3, 0.1, 0.2), pose, 700.0);
         b.torque = Vec3::new(0.7, -1.3, 0.4);
         let (dt, w_bar) = (0.01, Vec3::new(0.3, 0.5, -0.9));
         let g = body_velocity_pose_adjoint(&b, dt, w_bar);

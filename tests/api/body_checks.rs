@@ -265,7 +265,7 @@ fn touching_the_lid_is_touching_a_wall_as_the_floor_is() {
     use diffluid::math::{Pose, SharedShape};
     let cube = |y: f64| {
         let pose = Pose::from_translation(Vec3::new(0.3, y, 0.3));
-        RigidBody::new("cube".into(), SharedShape::cuboid(0.1, 0.1, 0.1), pose, 500.0)
+        RigidBody::with_density("cube".into(), SharedShape::cuboid(0.1, 0.1, 0.1), pose, 500.0)
     };
     for (y, wall) in [(0.1, "floor"), (0.5, "lid"), (0.1 + 1e-12, "floor"), (0.5 - 1e-12, "lid")] {
         let built = diffluid::Simulation::builder([0.6, 0.6, 0.6], 0.1).body(cube(y)).build();

@@ -1,8 +1,10 @@
-//! The library's shape: the checks `add_body` makes, and the layers no module reaches above.
+//! The library's shape: the checks `add_body` makes, the path a program embedding it walks,
+//! and the layers no module reaches above.
 
 #[allow(dead_code)] // each group uses part of it
 #[path = "../common/mod.rs"]
 mod common;
 
 mod body_checks;
+mod embedding;
 mod layers;

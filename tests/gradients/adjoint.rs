@@ -58,11 +58,11 @@ fn weights_for(sim: &Simulation) -> Mac {
 
 fn run(scene: &Scene, u0: &Mac, c: &Mac) -> f64 {
     let mut sim = scene.build().unwrap();
-    sim.u = u0.clone();
+    sim.set_velocity_field(u0.clone()).unwrap();
     for _ in 0..scene.time.steps {
         sim.step().unwrap();
     }
-    sim.u.dot(c)
+    sim.velocity_field().dot(c)
 }
 
 #[test]
@@ -81,14 +81,14 @@ fn fluid_velocity_gradient_matches_central_differences() {
     }
     let c = weights_for(&sim0);
     let mut sim = sim0.clone();
-    sim.u = u0.clone();
+    sim.set_velocity_field(u0.clone()).unwrap();
     let mut tape = Tape::default();
     for _ in 0..scene.time.steps {
         sim.step_taped(&mut tape).unwrap();
     }
     let adj = AdjointState { u: c.clone(), bodies: vec![], particles: vec![], mass: vec![] };
     let mut init = sim0.clone();
-    init.u = u0.clone();
+    init.set_velocity_field(u0.clone()).unwrap();
     let grad = backward(&init, &tape, adj, &GradientOptions::new(GradientMode::Full)).unwrap();
     // A smooth direction.
     let mut d = Mac::zeros(&g);

@@ -72,9 +72,9 @@ fn the_smoothed_gradient_is_the_gradient_of_its_estimate() {
     assert_eq!(run.losses.len(), 4);
     let at = |c: Coordinate, h: f64| {
         let mut moved = sim.clone();
-        let b = &mut moved.bodies_mut()[0];
-        let state = c.param.perturbed(&b.state(), c.axis, h);
-        b.set_state(&state);
+        let h0 = moved.handles()[0];
+        let state = c.param.perturbed(&moved[h0].state(), c.axis, h);
+        moved.set_body_state(h0, &state).unwrap();
         value_and_smoothed_gradient(&moved, steps, &loss, &settings, &s).unwrap().loss
     };
     let eps = 1e-6;
@@ -92,7 +92,7 @@ fn the_smoothed_gradient_is_the_gradient_of_its_estimate() {
     let m = sim.bodies()[0].mass;
     let with_mass = |mass: f64| {
         let mut s2 = sim.clone();
-        s2.bodies_mut()[0].set_mass(mass);
+        s2.set_mass(s2.handles()[0], mass).unwrap();
         value_and_smoothed_gradient(&s2, steps, &loss, &settings, &s).unwrap().loss
     };
     let h = 1e-6 * m;

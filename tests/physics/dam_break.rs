@@ -20,13 +20,13 @@ fn dam_break_keeps_volume_and_the_front_advances_to_the_wall() {
     let mut sim = scene.build().unwrap();
     let v0 = sim.liquid_volume();
     assert!((v0 - 0.4 * 0.7 * 1.0).abs() < 1e-9, "seeded volume {v0}");
-    let front = |sim: &Simulation| sim.particles.iter().map(|p| p.x).fold(f64::MAX, f64::min);
+    let front = |sim: &Simulation| sim.particles().iter().map(|p| p.x).fold(f64::MAX, f64::min);
     let mut last = front(&sim);
     assert!((last - 3.6).abs() < 0.5 * dx);
     let counted = |sim: &Simulation| {
         let grid = *sim.grid();
         let mut n = vec![0usize; grid.num_cells()];
-        for x in &sim.particles {
+        for x in sim.particles() {
             n[diffluid::stages::surface::cell_of(&grid, *x)] += 1;
         }
         n.iter().map(|&k| (k as f64 / 8.0).min(1.0)).sum::<f64>() * dx.powi(3)

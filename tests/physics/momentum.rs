@@ -52,7 +52,7 @@ tolerance = 1e-10
         let mut mixture = [0.0; 3];
         let mut solid = [0.0; 3];
         for a in 0..3 {
-            mixture[a] = rho * dx3 * sim.u.c[a].iter().sum::<f64>();
+            mixture[a] = rho * dx3 * sim.velocity_field().c[a].iter().sum::<f64>();
             // The body's share as the grid sees it: Σ β·(v + ω × r)·e_a·dx³.
             let lat = grid.faces(a);
             for &(f, beta) in &geo.body_faces[0].faces[a] {

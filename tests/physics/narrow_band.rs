@@ -14,7 +14,7 @@ fn counted(sim: &Simulation) -> f64 {
     let cell = grid.dx.powi(3);
     let band = sim.band().expect("a band");
     let owed: f64 = band.owed.iter().sum();
-    (band.deep_cells() as f64 + sim.particles.len() as f64 / ppc) * cell + owed
+    (band.deep_cells() as f64 + sim.particles().len() as f64 / ppc) * cell + owed
 }
 
 fn with_band(name: &str, width: usize) -> Scene {
@@ -31,7 +31,7 @@ fn still_water_with_a_band_is_the_full_volume_still_water() {
     let mut full = with_band("still_water", 0).build().unwrap();
     let deep = band.band().unwrap().deep_cells();
     assert_eq!(deep, 20 * 20 * 6, "rows 0..6 are more than 4 cells under the surface");
-    assert_eq!(band.particles.len() * 10, full.particles.len() * 4);
+    assert_eq!(band.particles().len() * 10, full.particles().len() * 4);
     let v0 = band.liquid_volume();
     assert!((v0 - full.liquid_volume()).abs() < 1e-12);
     for _ in 0..20 {

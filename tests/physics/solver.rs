@@ -188,7 +188,7 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
     }
     .build(std::path::Path::new("."))
     .unwrap();
-    let mut body = RigidBody::new("ball".into(), ball.shape.clone(), ball.pose, 600.0);
+    let mut body = RigidBody::with_density("ball".into(), ball.shape.clone(), ball.pose, 600.0);
     body.v = diffluid::math::v3([0.1, -0.5, 0.05]);
     body.w = diffluid::math::v3([0.0, 0.3, 2.0]);
     let faces = body.face_fractions(&grid);

@@ -646,8 +646,10 @@ fn generated_obj_files_load_or_give_one_error_line() {
             }
             match (loaded, hull) {
                 (Ok(_), _) => Ok(2),
-                (Err(e), Ok(_)) => check(&e).map(|()| 1),
-                (Err(e), Err(h)) => check(&e).and_then(|()| check(&h)).map(|()| 0),
+                (Err(e), Ok(_)) => check(&e.to_string()).map(|()| 1),
+                (Err(e), Err(h)) => {
+                    check(&e.to_string()).and_then(|()| check(&h.to_string())).map(|()| 0)
+                }
             }
         });
     std::fs::remove_dir_all(&dir).ok();

@@ -53,7 +53,7 @@ freeze_surface = {frozen}
     );
     let mut sim = Scene::from_toml(&text, "<control>").unwrap().build().unwrap();
     // A paddle at rest is a kinematic body the actions set in motion.
-    sim.bodies_mut()[0].motion = Motion::Kinematic;
+    sim.set_motion(sim.handles()[0], Motion::Kinematic).unwrap();
     sim
 }
 
@@ -138,7 +138,7 @@ fn check(frozen: bool, rtol: f64) {
     let h = 1e-6 * m;
     let with_mass = |mass: f64| {
         let mut s = sim.clone();
-        s.bodies_mut()[1].set_mass(mass);
+        s.set_mass(s.handles()[1], mass).unwrap();
         run(&s, &schedule, &loss)
     };
     let fd = (with_mass(m + h) - with_mass(m - h)) / (2.0 * h);
@@ -173,7 +173,7 @@ fn bad_schedules_are_refused() {
     let nan = vec![vec![[0.0, f64::NAN, 0.0, 0.0, 0.0, 0.0], [0.0; 6]]];
     assert!(err(Schedule::new(&sim, &h, 1, nan)).contains("not finite"));
     let mut fixed = sim.clone();
-    fixed.bodies_mut()[0].motion = Motion::Fixed;
+    fixed.set_motion(fixed.handles()[0], Motion::Fixed).unwrap();
     assert!(err(Schedule::new(&fixed, &h, 1, vec![vec![[0.0; 6]; 2]])).contains("fixed"));
     let mut other = scene(true);
     let gone = other.remove_body(other.handles()[1]).map(|_| h[1]).unwrap();

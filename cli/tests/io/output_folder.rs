@@ -196,7 +196,7 @@ fn the_recorder_refuses_names_a_scene_file_could_not_give() {
     let sandbox = Sandbox::new("recorder");
     let ball = |name: &str, x: f64| {
         let pose = Pose::from_translation(Vec3::new(x, 0.45, 0.3));
-        RigidBody::new(name.into(), SharedShape::ball(0.08), pose, 500.0)
+        RigidBody::with_density(name.into(), SharedShape::ball(0.08), pose, 500.0)
     };
     let frames = Frames { every: 1, particles: false, vtk: true, surface: None };
     for bodies in [vec![ball("../escape", 0.3)], vec![ball("b", 0.2), ball("b", 0.6)]] {

@@ -40,7 +40,7 @@ fn frames_parse_back_with_the_simulations_counts() {
     series.write_frame(&sim, 1).unwrap();
 
     let liquid = poly(&dir.join("liquid_0001.vtp"));
-    let n = sim.particles.len();
+    let n = sim.particles().len();
     assert!(n > 0);
     assert_eq!(liquid.num_points(), n);
     assert_eq!(liquid.verts.as_ref().unwrap().num_cells(), n);

@@ -267,7 +267,7 @@ mod adjoint {
         let grid = grid();
         let pose = |x: [f64; 3], q: Rotation| Pose::from_parts(Vec3::from_array(x), q);
         let bodies = vec![
-            RigidBody::new(
+            RigidBody::with_density(
                 "box".into(),
                 SharedShape::cuboid(0.15, 0.1, 0.12),
                 pose(
@@ -276,7 +276,7 @@ mod adjoint {
                 ),
                 500.0,
             ),
-            RigidBody::new(
+            RigidBody::with_density(
                 "ball".into(),
                 SharedShape::ball(0.1),
                 pose([0.55, 0.4, 0.3], Rotation::IDENTITY),

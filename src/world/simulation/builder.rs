@@ -23,24 +23,19 @@ use std::sync::Arc;
 /// regions, static obstacles and bodies. Everything has a default but the tank.
 ///
 /// ```
-/// use diffluid::geometry::body::RigidBody;
-/// use diffluid::geometry::shape::Solid;
-/// use diffluid::math::{Pose, SharedShape, Vec3};
-/// use diffluid::world::Simulation;
+/// use diffluid::prelude::*;
 ///
 /// let pool = Solid::aabb(Vec3::ZERO, Vec3::new(0.6, 0.2, 0.4));
-/// let ball = RigidBody::new(
-///     "ball".into(),
-///     SharedShape::ball(0.06),
-///     Pose::from_translation(Vec3::new(0.3, 0.3, 0.2)),
-///     500.0,
-/// );
+/// let ball = RigidBody::builder("ball", SharedShape::ball(0.06))
+///     .density(500.0)
+///     .pose(Pose::from_translation(Vec3::new(0.3, 0.3, 0.2)))
+///     .build()?;
 /// let mut sim = Simulation::builder([0.6, 0.4, 0.4], 0.05).dt(0.01).liquid(pool).body(ball).build()?;
 /// let ball = sim.handles()[0];
 /// for _ in 0..5 {
 ///     sim.step()?;
 /// }
-/// assert!(sim.body(ball).unwrap().v.y < 0.0, "the ball falls toward the water");
+/// assert!(sim[ball].v.y < 0.0, "the ball falls toward the water");
 /// # Ok::<(), diffluid::Error>(())
 /// ```
 #[derive(Clone, Debug)]
@@ -86,7 +81,16 @@ impl SimulationBuilder {
         self
     }
 
-    /// Contact settings.
+    /// Contact settings (default off, as in a scene file): `.contact(ContactSettings::on())`
+    /// lets rapier hold bodies against the walls, the floor and each other (needs the
+    /// `contact` feature). Off, a body that reaches a wall stops the step with
+    /// [`Error::BodyLeftTank`], and [`Simulation::add_body`] warns about a dynamic body
+    /// denser than the liquid.
+    ///
+    /// Why off by default: the gradients do not pass through contact (a taped run in which
+    /// it acted is [`crate::GradientError::ThroughContact`]), and a world built in code gives
+    /// the same numbers as the scene file that describes it. A program that only steps
+    /// forward (a game loop) wants it on.
     pub fn contact(mut self, contact: crate::world::settings::ContactSettings) -> Self {
         self.settings.contact = contact;
         self
@@ -139,6 +143,14 @@ impl SimulationBuilder {
         }
         for (i, b) in self.bodies.iter().enumerate() {
             check_body(b, size, 0.0).map_err(|m| SettingError::new(format!("body[{i}]"), m))?;
+            if !self.settings.contact.enabled {
+                if let Some(other) = self.bodies[..i].iter().find(|o| overlap(o, b)) {
+                    return Err(SettingError::new(
+                        format!("body[{i}]"),
+                        format!("body {}: {}", b.name, overlap_message(&other.name)),
+                    ));
+                }
+            }
         }
         let (bytes, particles) = self.memory_estimate(&grid);
         if particles > u32::MAX as f64 {
@@ -263,11 +275,13 @@ impl SimulationBuilder {
         let mut warnings = self.notes.clone();
         warnings.extend(self.bodies.iter().filter_map(|b| thin_body_warning(b, grid.dx)));
         let band = band.map(Arc::new);
+        let world = super::next_world();
         let mut sim = Simulation {
             band,
             frozen_phi,
             frozen_volume,
-            handles: (0..n as u32).map(BodyHandle).collect(),
+            handles: (0..n as u32).map(|id| BodyHandle { world, id }).collect(),
+            world,
             next_handle: n as u32,
             fluid_forces: vec![[0.0; 6]; n],
             bodies: self.bodies,
@@ -343,6 +357,19 @@ pub(super) fn check_body(b: &RigidBody, size: Vec3, reach: f64) -> std::result::
     finite("force", b.force)?;
     finite("torque", b.torque)?;
     finite("position", b.x)?;
+    let norm = b.q.length();
+    if !norm.is_finite() {
+        return Err(format!("orientation must be finite, got {:?}", b.q.to_array()));
+    }
+    if (norm - 1.0).abs() > QUATERNION_TOLERANCE {
+        return Err(format!(
+            "orientation {:?} has length {norm}: it must be a unit quaternion (normalise it)",
+            b.q.to_array()
+        ));
+    }
+    if !b.local_inertia.is_finite() || !b.local_com.is_finite() {
+        return Err("inertia and centre of mass must be finite (a shape too large?)".into());
+    }
     let (lo, hi) = b.bounds();
     let inside = if reach == 0.0 {
         // Within round-off of a wall is touching it, at the floor (0) and at the lid (n·dx,
@@ -369,12 +396,56 @@ pub(super) fn check_body(b: &RigidBody, size: Vec3, reach: f64) -> std::result::
     Ok(())
 }
 
+/// How far from unit length a body's orientation quaternion may be: rapier's and glam's
+/// normalised quaternions are within a few ulps; one further off is not a rotation (it scales
+/// the shape's samples: 0.046 N of force where 6.52 N was right).
+const QUATERNION_TOLERANCE: f64 = 1e-6;
+
+/// Whether bodies `a` and `b` overlap where one of them is dynamic: with contact off nothing
+/// keeps them apart (an external body's engine keeps its own apart; fixed and kinematic
+/// bodies go where they are told). Shapes parry cannot test against each other count as
+/// apart.
+pub(super) fn overlap(a: &RigidBody, b: &RigidBody) -> bool {
+    use crate::geometry::body::Motion;
+    if a.motion != Motion::Dynamic && b.motion != Motion::Dynamic {
+        return false;
+    }
+    parry3d_f64::query::intersection_test(&a.pose(), &*a.shape.0, &b.pose(), &*b.shape.0)
+        .is_ok_and(|i| i.intersecting)
+}
+
+/// The message of a body that overlaps body `other` with contact off.
+pub(super) fn overlap_message(other: &str) -> String {
+    format!(
+        "overlaps body {other}, and with contact off nothing keeps them apart: move it, or \
+         turn contact on (SimulationBuilder::contact, or [contact] enabled = true in a scene)"
+    )
+}
+
+/// A body's face fractions may miss its volume by this much (relative) before a step warns.
+const VOLUME_TOLERANCE: f64 = 1e-3;
+
+/// The warning about a body whose face fractions miss the fraction `error` of its volume,
+/// if that is more than [`VOLUME_TOLERANCE`].
+pub(super) fn volume_warning(b: &RigidBody, error: f64, dx: f64) -> Option<String> {
+    (error > VOLUME_TOLERANCE).then(|| {
+        format!(
+            "body {}: its face fractions miss {:.1}% of its volume, so its buoyancy is off by \
+             as much (it is too small or thin for cells of {} m; each step's report has its \
+             volume_error)",
+            b.name,
+            100.0 * error,
+            dx
+        )
+    })
+}
+
 /// A warning when a body is thinner than the finest sampling of its face fractions
 /// ([`RigidBody::samples_per_cell`], down to dx/16; its thickness taken as 2·V/S, exact for a
 /// plate): it falls between the samples and loses part of its buoyancy (a quarter-cell plate
 /// sampled every dx/2 lost 75%). A thinner body down to that sampling keeps its volume, and
 /// seals the liquid on its two sides as it moves ([`crate::geometry::seal`]).
-fn thin_body_warning(b: &RigidBody, dx: f64) -> Option<String> {
+pub(super) fn thin_body_warning(b: &RigidBody, dx: f64) -> Option<String> {
     let t = b.thickness;
     let r = b.samples_per_cell(dx);
     (t < 0.5 * dx && dx / r as f64 > t).then(|| {

@@ -20,21 +20,44 @@ mod builder;
 mod memory;
 mod stepping;
 
-use builder::check_body;
 pub use builder::SimulationBuilder;
+use builder::{check_body, overlap, overlap_message, thin_body_warning, volume_warning};
 
-/// A body's name in a [`Simulation`], stable while other bodies come and go.
+/// A body's name in a [`Simulation`], stable while other bodies come and go. It carries the
+/// identity of the simulation that gave it out (shared by that simulation's clones), so a
+/// handle from another simulation names no body there: [`Error::UnknownBody`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct BodyHandle(u32);
+pub struct BodyHandle {
+    /// The simulation (and its clones) that gave the handle out.
+    world: u32,
+    /// The body's number in it.
+    id: u32,
+}
 
 impl BodyHandle {
-    /// The handle's number (handles are never reused).
+    /// The handle's number (handles are never reused within a simulation).
     pub fn id(self) -> u32 {
-        self.0
+        self.id
     }
 }
 
+/// The identity of the next simulation built (see [`BodyHandle`]).
+static NEXT_WORLD: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+/// A fresh simulation identity.
+fn next_world() -> u32 {
+    NEXT_WORLD.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+}
+
 /// A running simulation.
+///
+/// Bodies are named by [`BodyHandle`]s. Every method that takes a handle returns
+/// [`Error::UnknownBody`] for one that names no body here (removed, or given out by another
+/// simulation); `sim[h]` panics on one, as a slice does on an index out of range, and
+/// [`Simulation::index_of`] asks without failing. The state changes only through setters that
+/// check what they are given ([`Simulation::set_body_state`], [`Simulation::set_mass`],
+/// [`Simulation::set_motion`], [`Simulation::set_velocity_field`],
+/// [`Simulation::set_particles`]).
 #[derive(Clone, Debug)]
 pub struct Simulation {
     grid: Grid,
@@ -42,15 +65,18 @@ pub struct Simulation {
     /// Shared between clones (checkpoint snapshots, finite differences): it never changes.
     statics: Arc<StaticGeometry>,
     radius: f64,
-    /// Fluid velocity on faces.
-    pub u: Mac,
-    /// Marker particle positions.
-    pub particles: Vec<Vec3>,
+    /// Fluid velocity on faces ([`Simulation::velocity_field`],
+    /// [`Simulation::set_velocity_field`]).
+    pub(crate) u: Mac,
+    /// Marker particle positions ([`Simulation::particles`], [`Simulation::set_particles`]).
+    pub(crate) particles: Vec<Vec3>,
     /// The narrow band's deep cells (`solver.narrow_band`), shared between clones until the
     /// next update.
     band: Option<Arc<Band>>,
     bodies: Vec<RigidBody>,
     handles: Vec<BodyHandle>,
+    /// This simulation's identity in its handles (its clones share it).
+    world: u32,
     next_handle: u32,
     /// Per body, the pressure force and torque of the last step's solve.
     fluid_forces: Vec<[f64; 6]>,
@@ -75,8 +101,11 @@ pub struct Simulation {
     rollback: bool,
 }
 
-/// A body's face fractions may miss its volume by this much (relative) before a step warns.
-const VOLUME_TOLERANCE: f64 = 1e-3;
+/// How far (in cells) an [`Motion::External`](crate::geometry::body::Motion::External)
+/// body may reach into a wall: the caller's engine resolves its contact, which leaves a
+/// little penetration (rapier's is a few micrometres at rest); a quarter cell keeps the
+/// body's face fractions and the liquid it displaces well defined.
+const EXTERNAL_REACH: f64 = 0.25;
 
 impl Simulation {
     /// A builder for a tank of `size` metres (x, y up, z) cut into cubes of side `dx`.
@@ -222,9 +251,72 @@ impl Simulation {
         &self.bodies
     }
 
-    /// The bodies, to change their state in place (their number and order stay).
-    pub fn bodies_mut(&mut self) -> &mut [RigidBody] {
+    /// The bodies, to change their state in place, unchecked (their number and order stay).
+    pub(crate) fn bodies_mut(&mut self) -> &mut [RigidBody] {
         &mut self.bodies
+    }
+
+    /// Fluid velocity on the grid's faces, m/s.
+    pub fn velocity_field(&self) -> &Mac {
+        &self.u
+    }
+
+    /// Replaces the fluid velocity on the faces. Errors: a field of another grid's shape, or
+    /// a velocity that is not finite.
+    pub fn set_velocity_field(&mut self, u: Mac) -> Result<()> {
+        for a in 0..3 {
+            let want = self.grid.faces(a).len();
+            if u.c[a].len() != want {
+                return Err(Error::InvalidSettings {
+                    key: "velocity field".into(),
+                    message: format!("has {} faces along axis {a}, the grid {want}", u.c[a].len()),
+                });
+            }
+            if let Some(f) = u.c[a].iter().position(|x| !x.is_finite()) {
+                return Err(Error::InvalidSettings {
+                    key: "velocity field".into(),
+                    message: format!("face {f} along axis {a} is {}, not finite", u.c[a][f]),
+                });
+            }
+        }
+        self.u = u;
+        Ok(())
+    }
+
+    /// Marker particle positions, m.
+    pub fn particles(&self) -> &[Vec3] {
+        &self.particles
+    }
+
+    /// Replaces the marker particles (with the surface frozen, φ_L stays the initial
+    /// particles'). Errors: a position that is not finite or outside the tank, and a
+    /// simulation with a narrow band (`solver.narrow_band`), whose deep cells stand for
+    /// particles it does not hold.
+    pub fn set_particles(&mut self, particles: Vec<Vec3>) -> Result<()> {
+        if self.band.is_some() {
+            return Err(Error::InvalidSettings {
+                key: "solver.narrow_band".into(),
+                message: "the particles of a simulation with a narrow band cannot be replaced \
+                          (its deep cells stand for particles it does not hold)"
+                    .into(),
+            });
+        }
+        let size = self.grid.size();
+        if let Some(i) = particles
+            .iter()
+            .position(|p| !(p.is_finite() && p.cmpge(Vec3::ZERO).all() && p.cmple(size).all()))
+        {
+            return Err(Error::InvalidSettings {
+                key: format!("particles[{i}]"),
+                message: format!(
+                    "{:?} must be finite and inside the tank [0, 0, 0]..{:?}",
+                    particles[i].to_array(),
+                    size.to_array()
+                ),
+            });
+        }
+        self.particles = particles;
+        Ok(())
     }
 
     /// Each body's handle, in the order of [`Simulation::bodies`].
@@ -232,37 +324,95 @@ impl Simulation {
         &self.handles
     }
 
-    /// Where body `h` is in [`Simulation::bodies`].
+    /// Where body `h` is in [`Simulation::bodies`] (None for a removed body or a handle of
+    /// another simulation).
     pub fn index_of(&self, h: BodyHandle) -> Option<usize> {
+        if h.world != self.world {
+            return None;
+        }
         self.handles.iter().position(|&x| x == h)
     }
 
     fn index(&self, h: BodyHandle) -> Result<usize> {
-        self.index_of(h).ok_or(Error::UnknownBody { handle: h.0 })
+        self.index_of(h).ok_or(Error::UnknownBody { handle: h.id })
     }
 
-    /// Body `h`.
-    pub fn body(&self, h: BodyHandle) -> Option<&RigidBody> {
-        self.index_of(h).map(|i| &self.bodies[i])
+    /// Body `h` (also `sim[h]`).
+    pub fn body(&self, h: BodyHandle) -> Result<&RigidBody> {
+        Ok(&self.bodies[self.index(h)?])
     }
 
-    /// Body `h`, to change it.
-    pub fn body_mut(&mut self, h: BodyHandle) -> Option<&mut RigidBody> {
-        self.index_of(h).map(|i| &mut self.bodies[i])
+    /// Scales body `h`'s mass to `kg`, its inertia with it (its density changes, not its
+    /// shape). Errors: an unknown handle, a mass that is not a positive finite number.
+    pub fn set_mass(&mut self, h: BodyHandle, kg: f64) -> Result<()> {
+        let i = self.index(h)?;
+        if !(kg.is_finite() && kg > 0.0) {
+            return Err(Error::InvalidSettings {
+                key: format!("body {:?}", self.bodies[i].name),
+                message: format!("mass must be a positive number, got {kg}"),
+            });
+        }
+        self.bodies[i].set_mass(kg);
+        Ok(())
+    }
+
+    /// Sets who moves body `h` (see [`Motion`](crate::geometry::body::Motion)); its state
+    /// stays. Errors: an unknown handle.
+    pub fn set_motion(
+        &mut self,
+        h: BodyHandle,
+        motion: crate::geometry::body::Motion,
+    ) -> Result<()> {
+        let i = self.index(h)?;
+        self.bodies[i].motion = motion;
+        Ok(())
     }
 
     /// Adds a body at runtime. It must lie inside the tank, with a finite state and a
     /// positive mass; marker particles inside it are removed (the body displaces that
     /// liquid).
+    ///
+    /// Refused with [`Error::InvalidSettings`] naming the body: a mass or inertia that is
+    /// not a positive finite number, a pose or velocity that is not finite, an orientation
+    /// further than 10⁻⁶ from a unit quaternion (one that close is used as it is), a body
+    /// not strictly inside the tank, and, with contact off, a body that overlaps another
+    /// where one of the two is dynamic (nothing would keep them apart). A body thinner or
+    /// smaller than the grid resolves gets its warning ([`Simulation::warnings`]) here.
     pub fn add_body(&mut self, body: RigidBody) -> Result<BodyHandle> {
-        check_body(&body, self.grid.size(), 0.0).map_err(|message| Error::InvalidSettings {
-            key: format!("body {:?}", body.name),
-            message,
-        })?;
+        let invalid =
+            |message| Error::InvalidSettings { key: format!("body {:?}", body.name), message };
+        check_body(&body, self.grid.size(), 0.0).map_err(invalid)?;
+        if !self.settings.contact.enabled {
+            if let Some(other) = self.bodies.iter().find(|b| overlap(b, &body)) {
+                return Err(invalid(overlap_message(&other.name)));
+            }
+        }
         let margin = 1e-3 * self.grid.dx;
         self.particles.retain(|x| body.sdf(*x) > margin);
-        let h = BodyHandle(self.next_handle);
+        let h = BodyHandle { world: self.world, id: self.next_handle };
         self.next_handle += 1;
+        let mut warnings = Vec::new();
+        if let Some(w) = thin_body_warning(&body, self.grid.dx) {
+            self.warn(&mut warnings, w);
+        }
+        if !self.settings.contact.enabled
+            && body.motion == crate::geometry::body::Motion::Dynamic
+            && body.mass > self.settings.fluid.density * body.volume()
+        {
+            let w = format!(
+                "body {} is denser than the liquid and contact is off: when it reaches the \
+                 floor the step fails with BodyLeftTank (turn contact on with \
+                 SimulationBuilder::contact(ContactSettings::on()))",
+                body.name
+            );
+            self.warn(&mut warnings, w);
+        }
+        let faces = body.face_fractions(&self.grid);
+        if let Some(w) =
+            volume_warning(&body, faces.volume_error(&self.grid, body.volume()), self.grid.dx)
+        {
+            self.warn_about(&mut warnings, "volume", h, w);
+        }
         self.bodies.push(body);
         self.handles.push(h);
         self.fluid_forces.push([0.0; 6]);
@@ -297,7 +447,7 @@ impl Simulation {
         let i = self.index(h)?;
         let mut b = self.bodies[i].clone();
         b.set_state(state);
-        check_body(&b, self.grid.size(), 0.25 * self.grid.dx).map_err(|message| {
+        check_body(&b, self.grid.size(), EXTERNAL_REACH * self.grid.dx).map_err(|message| {
             Error::InvalidSettings { key: format!("body {:?}", b.name), message }
         })?;
         self.bodies[i] = b;
@@ -307,9 +457,15 @@ impl Simulation {
     /// The pressure force (N) and torque (N·m, about the centre of mass) of the last step's
     /// solve on body `h` (zero before the first step and for bodies held still; for a
     /// kinematic body, what driving it along its motion meets).
-    pub fn fluid_force(&self, h: BodyHandle) -> Option<(Vec3, Vec3)> {
-        let f = self.fluid_forces[self.index_of(h)?];
-        Some((Vec3::new(f[0], f[1], f[2]), Vec3::new(f[3], f[4], f[5])))
+    ///
+    /// With contact on ([`crate::world::ContactSettings`]), the force includes what holds a
+    /// body up against the floor or a wall: contact is held inside the pressure solve, so a
+    /// body resting on the floor shows its weight less its buoyancy there as well. For a
+    /// [`Motion::External`](crate::geometry::body::Motion::External) body, hand the caller's
+    /// engine this force and leave contact off here (its engine resolves it).
+    pub fn fluid_force(&self, h: BodyHandle) -> Result<(Vec3, Vec3)> {
+        let f = self.fluid_forces[self.index(h)?];
+        Ok((Vec3::new(f[0], f[1], f[2]), Vec3::new(f[3], f[4], f[5])))
     }
 
     /// A copy to re-run steps from (a gradient's checkpoint snapshot): with the surface
@@ -359,7 +515,7 @@ impl Simulation {
 
     /// Where the solids are with `bodies` in place of this simulation's, whose face fractions
     /// are `faces` (the backward pass has them on its tape).
-    pub fn geometry_with(
+    pub(crate) fn geometry_with(
         &self,
         bodies: &[RigidBody],
         faces: Vec<fractions::BodyFaces>,
@@ -462,5 +618,18 @@ impl Simulation {
             })
             .reduce(|| 0.0, f64::max);
         squared.sqrt()
+    }
+}
+
+impl std::ops::Index<BodyHandle> for Simulation {
+    type Output = RigidBody;
+
+    /// Body `h`. Panics for a handle that names no body here; [`Simulation::body`] returns
+    /// [`Error::UnknownBody`] instead.
+    fn index(&self, h: BodyHandle) -> &RigidBody {
+        match self.index_of(h) {
+            Some(i) => &self.bodies[i],
+            None => panic!("no body with handle {} in this simulation", h.id),
+        }
     }
 }

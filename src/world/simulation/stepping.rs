@@ -22,9 +22,9 @@
 //!
 //! Every stage is timed; the solve's iterations and residual are reported every step.
 
-use super::{BodyHandle, Simulation, VOLUME_TOLERANCE};
+use super::{volume_warning, BodyHandle, Simulation, EXTERNAL_REACH};
 use crate::error::{Error, Result};
-use crate::geometry::body::{BodyState, RigidBody};
+use crate::geometry::body::{BodyState, Motion, RigidBody};
 use crate::geometry::grid::Mac;
 use crate::math::pool::{run_spread, Spread, SERIAL_BELOW};
 use crate::math::{v3, Vec3};
@@ -236,7 +236,7 @@ impl Simulation {
 
     /// Whether a step keeps the pool's other workers spinning (`solver.spin_workers`; by
     /// default for grids of 64³ cells and more).
-    pub fn spins(&self) -> bool {
+    pub(crate) fn spins(&self) -> bool {
         self.settings.solver.spin_workers.unwrap_or(self.grid.num_cells() >= 1 << 18)
     }
 
@@ -327,7 +327,7 @@ impl Simulation {
     }
 
     /// What the step's system is assembled with for a step of `dt`.
-    pub fn step_params(&self, dt: f64) -> StepParams {
+    pub(crate) fn step_params(&self, dt: f64) -> StepParams {
         let s = &self.settings;
         StepParams {
             pressure: PressureParams {
@@ -463,18 +463,7 @@ impl Simulation {
             .iter()
             .zip(&self.handles)
             .zip(&volume_errors)
-            .filter(|(_, e)| **e > VOLUME_TOLERANCE)
-            .map(|((b, h), e)| {
-                let w = format!(
-                    "body {}: its face fractions miss {:.1}% of its volume, so its buoyancy \
-                     is off by as much (it is too small or thin for cells of {} m; each step's \
-                     report has its volume_error)",
-                    b.name,
-                    100.0 * e,
-                    grid.dx
-                );
-                (*h, w)
-            })
+            .filter_map(|((b, h), e)| Some((*h, volume_warning(b, *e, grid.dx)?)))
             .collect();
         for (h, w) in found {
             self.warn_about(&mut warnings, "volume", h, w);
@@ -751,17 +740,20 @@ impl Simulation {
     }
 
     /// How far out of a body a particle is pushed.
-    pub fn push_margin(&self) -> f64 {
+    pub(crate) fn push_margin(&self) -> f64 {
         1e-3 * self.grid.dx
     }
 
     /// How φ_L is made from the particles.
-    pub fn surface_model(&self) -> SurfaceModel {
+    pub(crate) fn surface_model(&self) -> SurfaceModel {
         SurfaceModel { radius: self.radius, sparse_cells: self.settings.solver.sparse_cells }
     }
 
     /// What the density projection of a step with `geometry` reads (None when it is off).
-    pub fn density_inputs<'a>(&'a self, geometry: &'a Geometry) -> Option<DensityInputs<'a>> {
+    pub(crate) fn density_inputs<'a>(
+        &'a self,
+        geometry: &'a Geometry,
+    ) -> Option<DensityInputs<'a>> {
         let solver = &self.settings.solver;
         solver.density_correction.then(|| DensityInputs {
             grid: &self.grid,
@@ -948,10 +940,15 @@ impl Simulation {
         }
         let _ = contact;
         let size = self.grid.size();
+        // An external body is where the caller's engine put it, and may sit as far into a
+        // wall as [`Simulation::set_body_state`] allows (rapier's contact leaves a few
+        // micrometres of overlap with the floor it rests on).
+        let external_reach = EXTERNAL_REACH * self.grid.dx;
         for b in self.bodies.iter_mut() {
             b.integrate(dt);
+            let reach = if b.motion == Motion::External { external_reach } else { 0.0 };
             let (lo, hi) = b.bounds();
-            if lo.min_element() < 0.0 || (hi - size).max_element() > 0.0 {
+            if lo.min_element() < -reach || (hi - size).max_element() > reach {
                 return Err(Error::BodyLeftTank {
                     step: self.step + 1,
                     body: b.name.clone(),
