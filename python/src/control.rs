@@ -661,7 +661,7 @@ impl Stepper {
         if masses.is_some() {
             let mut start = this.inner.simulation().clone();
             for (&h, m) in base.handles().iter().zip(base.bodies()) {
-                start.set_mass(h, m.mass).map_err(crate::to_py)?;
+                start.set_mass(h, m.mass).map_err(crate::errors::to_py)?;
             }
             this.inner =
                 Stepper::start(&start, &this.controlled, this.steps_per_action, this.options)?;

@@ -225,7 +225,7 @@ impl Simulation {
         let i = this.body_index(body)?;
         check_mass("kg", kg)?;
         let h = this.inner.handles()[i];
-        this.inner.set_mass(h, kg).map_err(crate::to_py)?;
+        this.inner.set_mass(h, kg).map_err(crate::errors::to_py)?;
         Ok(())
     }
 
@@ -340,7 +340,7 @@ impl Simulation {
             )));
         }
         let h = this.inner.handles()[i];
-        this.inner.set_motion(h, Motion::Kinematic).map_err(crate::to_py)
+        this.inner.set_motion(h, Motion::Kinematic).map_err(crate::errors::to_py)
     }
 
     /// Marker particle positions, shape (particles, 3), m (a copy).
@@ -389,7 +389,7 @@ impl Simulation {
         let mut this = sim_mut(slf)?;
         let flat = read_flat("u", &u, this.faces_len())?;
         let u = this.mac_from_flat(&flat);
-        this.inner.set_velocity_field(u).map_err(crate::to_py)?;
+        this.inner.set_velocity_field(u).map_err(crate::errors::to_py)?;
         Ok(())
     }
 
