@@ -181,8 +181,9 @@ pub struct RealtimeRow {
     pub n: String,
     /// Grid cells.
     pub cells: usize,
-    /// Threads of the pool the frames ran on.
-    pub threads: usize,
+    /// `1 thread`, `2 threads` (the default spread) or `2 threads, parallel` (every loop
+    /// split, small grids too).
+    pub mode: String,
     /// Marker particles at the end.
     pub particles: usize,
     /// Median wall time of a frame (`advance(1/60)`, after the first ten), s.
@@ -217,14 +218,16 @@ axis_angle = { axis = [0, 0, 1], degrees = 90 }"#;
 }
 
 /// A game loop's frame time against grid size: [`game_pool`] at 32, 48, 64 and 96 cells
-/// across (`quick`: 32 and 48), advanced 1/60 s a frame for `seconds` of simulated time,
-/// on one thread and on two.
+/// across (`quick`: 32 and 48), advanced 1/60 s a frame, on one thread, on two as the
+/// defaults spread the step ([`crate::math::pool::Spread`]: one thread below
+/// [`crate::math::pool::SERIAL_BELOW`] cells), and on two with every loop parallel
+/// (`spin_workers = false`), which measures where the serial path pays.
 pub fn realtime(quick: bool) -> Result<Vec<RealtimeRow>> {
     let sizes: &[usize] = if quick { &[32, 48] } else { &[32, 48, 64, 96] };
     let frames = if quick { 20 } else { 120 };
     let mut rows = Vec::new();
     for &cells in sizes {
-        for threads in [1, 2] {
+        for (threads, mode) in [(1, "1 thread"), (2, "2 threads"), (2, "2 threads, parallel")] {
             let pool =
                 rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|e| {
                     crate::Error::InvalidSettings {
@@ -233,7 +236,11 @@ pub fn realtime(quick: bool) -> Result<Vec<RealtimeRow>> {
                     }
                 })?;
             let row = pool.install(|| -> Result<RealtimeRow> {
-                let mut sim = game_pool(cells)?.build()?;
+                let mut scene = game_pool(cells)?;
+                if mode.ends_with("parallel") {
+                    scene.solver.spin_workers = Some(false);
+                }
+                let mut sim = scene.build()?;
                 let (mut times, mut steps) = (Vec::new(), 0);
                 for _ in 0..frames {
                     let t = Instant::now();
@@ -245,7 +252,7 @@ pub fn realtime(quick: bool) -> Result<Vec<RealtimeRow>> {
                 Ok(RealtimeRow {
                     n: format!("{}x{}x{}", grid.n[0], grid.n[1], grid.n[2]),
                     cells: grid.num_cells(),
-                    threads,
+                    mode: mode.into(),
                     particles: sim.particles.len(),
                     frame_seconds: frame,
                     frames_per_second: 1.0 / frame,

@@ -676,10 +676,9 @@ fn write_realtime(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> R
     progress("a game loop's frame time against grid size");
     let rows = bench::realtime(quick)?;
     write_csv(&at("realtime.csv"), &rows)?;
-    let threads = |t: usize| {
-        let points = rows.iter().filter(|r| r.threads == t);
-        let label = if t == 1 { "1 thread".to_string() } else { format!("{t} threads") };
-        (label, points.map(|r| (r.cells as f64, 1e3 * r.frame_seconds)).collect::<Vec<_>>())
+    let mode = |m: &str| {
+        let points = rows.iter().filter(|r| r.mode == m);
+        (m.to_string(), points.map(|r| (r.cells as f64, 1e3 * r.frame_seconds)).collect::<Vec<_>>())
     };
     let (lo, hi) = (rows[0].cells as f64, rows[rows.len() - 1].cells as f64);
     let budget = |fps: f64| (format!("{fps:.0} frames/s"), vec![(lo, 1e3 / fps), (hi, 1e3 / fps)]);
@@ -688,16 +687,21 @@ fn write_realtime(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> R
         "a pool with three floating bodies, advance(1/60) a frame",
         ("grid cells", "ms a frame (median)"),
         (true, true),
-        &[threads(1), threads(2), budget(30.0), budget(60.0)],
+        &[
+            mode("1 thread"),
+            mode("2 threads"),
+            mode("2 threads, parallel"),
+            budget(30.0),
+            budget(60.0),
+        ],
     )?;
     Ok(rows
         .iter()
         .map(|r| {
             format!(
-                "{} ({} thread{}): {:.1} ms a frame, {:.1} frames/s, {:.2} steps a frame",
+                "{} ({}): {:.1} ms a frame, {:.1} frames/s, {:.2} steps a frame",
                 r.n,
-                r.threads,
-                if r.threads == 1 { "" } else { "s" },
+                r.mode,
                 1e3 * r.frame_seconds,
                 r.frames_per_second,
                 r.steps_per_frame
