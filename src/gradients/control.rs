@@ -469,7 +469,7 @@ impl Stepper {
         let mut tape = crate::world::Tape::default();
         for t in 0..self.steps_per_action {
             schedule.apply(&mut self.sim, t);
-            self.sim.step_taped_unreported(&mut tape)?;
+            self.sim.step_unreported(Some(&mut tape))?;
         }
         self.blocks.push((tape, first));
         Ok(self.states())

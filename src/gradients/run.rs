@@ -117,8 +117,8 @@ impl Rollout {
                     for t in done..done + len {
                         before(&mut sim, t);
                         match solves.as_mut() {
-                            Some(solves) => sim.step_recording(solves).map(drop)?,
-                            None => sim.step_unreported()?,
+                            Some(solves) => sim.step_recording(solves)?,
+                            None => sim.step_unreported(None)?,
                         };
                     }
                     (len, Kept::Rerun(solves))
@@ -126,7 +126,7 @@ impl Rollout {
                     let mut tape = Tape::default();
                     for t in done..steps {
                         before(&mut sim, t);
-                        sim.step_taped_unreported(&mut tape)?;
+                        sim.step_unreported(Some(&mut tape))?;
                     }
                     (steps - done, Kept::Tape(tape))
                 };
@@ -237,7 +237,7 @@ impl Segment {
                     }
                     match replay.as_mut() {
                         Some(replay) => sim.step_replayed(&mut tape, replay)?,
-                        None => sim.step_taped_unreported(&mut tape)?,
+                        None => sim.step_unreported(Some(&mut tape))?,
                     }
                 }
                 rerun = tape;

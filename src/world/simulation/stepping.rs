@@ -294,27 +294,20 @@ impl Simulation {
         self.step_inner(dt, Some(tape), Pressures::Solve, true)
     }
 
-    /// [`Simulation::step_taped`] for a gradient's forward pass, which reads no report: the
-    /// report's liquid volume, speeds and energy are not measured (on `block_drop` the
-    /// particles' energy alone was 13% of an optimisation's time), and a failed step is not
-    /// rolled back (the gradient fails with it).
-    pub(crate) fn step_taped_unreported(&mut self, tape: &mut Tape) -> Result<()> {
+    /// A step for a gradient's forward pass, recorded on `tape` when there is one. Its report
+    /// would be dropped, so the liquid's volume, speeds and energy are not measured (on
+    /// `block_drop` the particles' energy alone was 13% of an optimisation's time), and a
+    /// failed step is not rolled back (the gradient fails with it).
+    pub(crate) fn step_unreported(&mut self, tape: Option<&mut Tape>) -> Result<()> {
         let dt = self.settings.dt;
-        self.step_inner(dt, Some(tape), Pressures::Solve, false).map(drop)
+        self.step_inner(dt, tape, Pressures::Solve, false).map(drop)
     }
 
-    /// [`Simulation::step`] for a gradient's forward pass, which reads no report (see
-    /// [`Simulation::step_taped_unreported`]).
-    pub(crate) fn step_unreported(&mut self) -> Result<()> {
+    /// [`Simulation::step_unreported`] that keeps its pressure solves in `solves` (see
+    /// [`Solves`]).
+    pub(crate) fn step_recording(&mut self, solves: &mut Solves) -> Result<()> {
         let dt = self.settings.dt;
-        self.step_inner(dt, None, Pressures::Solve, false).map(drop)
-    }
-
-    /// Advances one step and keeps its pressure solves in `solves` (see [`Solves`]); for a
-    /// gradient's forward pass, so unreported (see [`Simulation::step_taped_unreported`]).
-    pub(crate) fn step_recording(&mut self, solves: &mut Solves) -> Result<StepReport> {
-        let dt = self.settings.dt;
-        self.step_inner(dt, None, Pressures::Record(solves), false)
+        self.step_inner(dt, None, Pressures::Record(solves), false).map(drop)
     }
 
     /// [`Simulation::step_taped`] that takes its pressures from `replay` instead of solving:
