@@ -25,8 +25,12 @@
 
 use crate::geometry::grid::{Grid, Lattice};
 use crate::geometry::shape::Solid;
-use crate::math::dual::Scalar;
+use crate::math::dual::{Dual, Scalar};
 use crate::math::Vec3;
+
+/// A body's face fractions with their derivatives along its six pose directions, per axis
+/// (see [`crate::geometry::body::RigidBody::face_fractions_dual`]).
+pub type DualFaces = [Vec<(usize, Dual<6>)>; 3];
 
 /// Fraction of a tetrahedron's volume where the linear interpolant of its vertex values is
 /// negative. It depends on the values only (affine invariance), so their order is free.

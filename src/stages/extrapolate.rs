@@ -8,7 +8,7 @@
 //! backward pass (paper, eq. 10).
 
 use crate::geometry::body::RigidBody;
-use crate::geometry::fractions::BodyFaces;
+use crate::geometry::fractions::{BodyFaces, DualFaces};
 use crate::geometry::grid::{Grid, Lattice, Mac};
 use crate::geometry::weights::FaceWeights;
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
@@ -374,6 +374,22 @@ pub struct BodyVelocityAdjoint {
 }
 
 impl BodyVelocityAdjoint {
+    /// ∂L/∂[δx; δθ] of the body's pose: through the torque arms, the spin's axis, and the
+    /// fractions β of the faces it covers in part (`dual`, its dual fractions).
+    pub fn pose(&self, dual: &DualFaces) -> [f64; 6] {
+        let mut out = [self.x.x, self.x.y, self.x.z, self.q.x, self.q.y, self.q.z];
+        let lookup: std::collections::HashMap<(usize, usize), [f64; 6]> =
+            (0..3).flat_map(|a| dual[a].iter().map(move |(f, b)| ((a, *f), b.d))).collect();
+        for &(a, f, c) in &self.dbeta {
+            if let Some(d) = lookup.get(&(a, f)) {
+                for k in 0..6 {
+                    out[k] += c * d[k];
+                }
+            }
+        }
+        out
+    }
+
     fn add(&mut self, o: BodyVelocityAdjoint) {
         for d in 0..6 {
             self.vel[d] += o.vel[d];

@@ -1,4 +1,5 @@
-//! Constant forces (stage 2): gravity on the liquid, and gravity plus each body's external
+//! Stage [`Forces`](super::Stage::Forces) and gravity in
+//! [`AdvectVelocity`](super::Stage::AdvectVelocity): gravity on the liquid, and gravity plus each body's external
 //! force and torque on the bodies. On the liquid they only add an offset to the velocity, so
 //! the adjoint is the identity (paper, eq. 3); on a body the torque acts through the world
 //! inertia, which turns with the body, so it has a pose derivative.
@@ -8,7 +9,7 @@ use crate::geometry::grid::Mac;
 use crate::math::Vec3;
 use rayon::prelude::*;
 
-/// Adds `dt·g` to every face (stage 2, gravity). Its adjoint is the identity.
+/// Adds `dt·g` to every face (gravity). Its adjoint is the identity.
 pub fn add_gravity(u: &mut Mac, gravity: [f64; 3], dt: f64) {
     for (axis, c) in u.c.iter_mut().enumerate() {
         let dv = gravity[axis] * dt;
@@ -52,6 +53,17 @@ pub fn body_velocity_pose_adjoint(b: &RigidBody, dt: f64, w_bar: Vec3) -> Vec3 {
     let inv = b.world_inertia().inverse();
     let y = inv * b.torque;
     dt * (y.cross(w_bar) - b.torque.cross(inv * w_bar))
+}
+
+/// Adjoint of [`body_velocity`] for a body whose [v; ω] after the stage has the adjoint
+/// `bar`: [v̄; ω̄] before it is `bar` itself (gravity and the loads add a constant); returns
+/// ∂L/∂(mass scale) of the loads' part, −bar·Δt·[F/m; I_w⁻¹τ]/m (the inertia scales with
+/// the mass), and ∂L/∂[δx; δθ] of the body's pose, the torque's through the world inertia.
+pub fn body_velocity_adjoint(b: &RigidBody, dt: f64, bar: &[f64; 6]) -> (f64, [f64; 6]) {
+    let dv = load_velocity(b, dt);
+    let load: f64 = (0..6).map(|d| bar[d] * dv[d]).sum();
+    let gw = body_velocity_pose_adjoint(b, dt, Vec3::new(bar[3], bar[4], bar[5]));
+    (-load / b.mass, [0.0, 0.0, 0.0, gw.x, gw.y, gw.z])
 }
 
 #[cfg(test)]

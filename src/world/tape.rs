@@ -7,10 +7,9 @@ use crate::error::{Error, GradientError, Result};
 use crate::geometry::body::BodyState;
 use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::Mac;
-use crate::math::Vec3;
 use crate::solvers::cg::CgStats;
-use crate::stages::band::BandChange;
 use crate::stages::extrapolate::AirBodyFaces;
+pub use crate::stages::particles::ParticleRecord;
 
 /// One forward step's record.
 #[derive(Clone, Debug)]
@@ -34,7 +33,7 @@ pub struct StepRecord {
     /// Each body's face fractions at the start of the step (a few kB; recomputing them cost
     /// 4% of the backward pass).
     pub body_faces: Vec<BodyFaces>,
-    /// Each body's external force and torque in the step, [f; τ] (stage `forces` reads
+    /// Each body's external force and torque in the step, [f; τ] (the `forces` stage reads
     /// them; a per-step action changes them from step to step).
     pub loads: Vec<[f64; 6]>,
     /// The fluid velocity the correction extrapolated onto the faces the bodies cover in part
@@ -48,32 +47,6 @@ pub struct StepRecord {
     pub contact: bool,
     /// The marker particles' stage (None when the surface is frozen).
     pub particles: Option<ParticleRecord>,
-}
-
-/// What stage 0 (the marker particles) leaves for the backward pass: the positions it
-/// started from and after advection, its sub-steps and the density projection's potential;
-/// the rest (the push out of the bodies, the density system, the displacement, the positions
-/// after it) is replayed.
-#[derive(Clone, Debug)]
-pub struct ParticleRecord {
-    /// Positions at the start of the step.
-    pub start: Vec<Vec3>,
-    /// Sub-steps of the advection.
-    pub substeps: usize,
-    /// Positions after advection, before the push out of the bodies (which the backward
-    /// pass replays: it is cheap, and its adjoint reads the positions before it).
-    pub moved: Vec<Vec3>,
-    /// The density projection's potential q (None when no cell was over full or it is off).
-    pub density: Option<Vec<f64>>,
-    /// Per cell, the particle (at the end of the step) whose distance the step's φ_L is
-    /// (`NONE` where φ does not move with a particle).
-    pub nearest: Vec<u32>,
-    /// What the narrow band's update before the advection did to the particle list
-    /// (`start` is the list after it); None without a band.
-    pub change: Option<BandChange>,
-    /// The narrow band's deep cells that the step's density projection and φ_L read (the
-    /// rest of the band, its deposit, is a function of them).
-    pub deep: Option<Vec<bool>>,
 }
 
 /// The recorded forward pass.

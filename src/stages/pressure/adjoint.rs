@@ -152,20 +152,35 @@ impl PressureSystem {
     /// for fixed geometry (paper, eqs. 8–9, in this code's terms): from the adjoints of the
     /// projected face velocities `adj_u` and of the bodies' `[v; ω]` after the solve, one more
     /// solve with the same operator gives `s` ([`PressureSystem::adjoint_solve`]), and the
-    /// adjoints before the projection are `adj_u − Fᵀ s` and `adj_v − J s`. Returns (adjoint
-    /// of u, of each body's velocity, s). `weights` are the face weights the system was built
-    /// with. (The backward pass calls the three parts itself, to update its field in place.)
+    /// adjoints before the projection are `adj_u − Fᵀ s` (left in `adj_u`) and `adj_v − J s`.
+    /// With `surface` (φ_L extended into the solids, and the step's pressure), also ∂L/∂φ_L
+    /// through the ghost-fluid θ ([`PressureSystem::phi_adjoint`]). `weights` are the face
+    /// weights the system was built with.
     pub fn projection_adjoint(
         &self,
-        adj_u: &Mac,
+        adj_u: &mut Mac,
         adj_v: &[[f64; 6]],
         weights: &FaceWeights,
         how: &LinearSolve,
-    ) -> (Mac, Vec<[f64; 6]>, Vec<f64>, CgStats) {
+        surface: Option<(&[f64], &[f64])>,
+    ) -> ProjectionAdjoint {
         let (s, stats) = self.adjoint_solve(adj_u, adj_v, how);
-        let mut u_hat = adj_u.clone();
-        self.subtract_fluid_flux_adjoint(&s, weights, &mut u_hat);
+        let phi = surface.map(|(phi, p)| self.phi_adjoint(phi, weights, &s, p, adj_u));
+        self.subtract_fluid_flux_adjoint(&s, weights, adj_u);
         let v_hat = self.body_velocity_adjoint(adj_v, &s);
-        (u_hat, v_hat, s, stats)
+        ProjectionAdjoint { v_hat, s, stats, phi }
     }
+}
+
+/// What [`PressureSystem::projection_adjoint`] gives besides the field's adjoint.
+#[derive(Debug)]
+pub struct ProjectionAdjoint {
+    /// ∂L/∂[v; ω] of each coupled body before the solve.
+    pub v_hat: Vec<[f64; 6]>,
+    /// The adjoint solve's solution.
+    pub s: Vec<f64>,
+    /// Its statistics.
+    pub stats: CgStats,
+    /// ∂L/∂φ_L per cell through θ, when asked.
+    pub phi: Option<Vec<f64>>,
 }

@@ -34,6 +34,7 @@ mod pose;
 mod preconditioner;
 mod solve;
 
+pub use adjoint::ProjectionAdjoint;
 pub use coupling::BodyCoupling;
 pub use entrained::{arm_derivative, mass_matrix, Entrained, EntrainedFace};
 pub use pool::{SystemMemory, SystemPool};
@@ -421,7 +422,8 @@ mod tests {
         let dv = sys.bodies[0].dt_minv_times(&sys.bodies[0].force(&p));
         let v1: [f64; 6] = std::array::from_fn(|d| vh[d] + dv[d]);
         // Adjoint.
-        let (ua, va, _, _) = sys.projection_adjoint(&ub, &[vb], &weights, &how);
+        let mut ua = ub.clone();
+        let va = sys.projection_adjoint(&mut ua, &[vb], &weights, &how, None).v_hat;
         let lhs = u1.dot(&ub) + (0..6).map(|d| v1[d] * vb[d]).sum::<f64>();
         let rhs = uh.dot(&ua) + (0..6).map(|d| vh[d] * va[0][d]).sum::<f64>();
         assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");

@@ -18,6 +18,7 @@ use std::sync::Arc;
 
 mod builder;
 mod memory;
+mod recipe;
 mod stepping;
 
 pub use builder::SimulationBuilder;

@@ -1,0 +1,270 @@
+//! The marker particles' stages, written once for both directions:
+//! [`AdvectParticles`](super::Stage::AdvectParticles) (through the step's start velocity,
+//! then pushed out of the bodies) and [`Density`](super::Stage::Density) (the density
+//! projection, then pushed out again). The backward pass replays them from the record with
+//! the same [`ParticleStage`], then runs their adjoints.
+
+use crate::error::{Error, Result, Solve};
+use crate::geometry::body::RigidBody;
+use crate::geometry::fractions::{DualFaces, NodeSdf};
+use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::weights::FaceWeights;
+use crate::math::Vec3;
+use crate::stages::band::BandChange;
+use crate::stages::density::{self, DensityInputs, DensityProjection, DensityStats, Displacement};
+use crate::stages::surface;
+
+/// What the particle stages leave for the backward pass: the positions they started from
+/// and after advection, the sub-steps and the density projection's potential; the rest (the
+/// push out of the bodies, the density system, the displacement, the positions after it) is
+/// replayed ([`ParticleStage::replay`]).
+#[derive(Clone, Debug)]
+pub struct ParticleRecord {
+    /// Positions at the start of the step.
+    pub start: Vec<Vec3>,
+    /// Sub-steps of the advection.
+    pub substeps: usize,
+    /// Positions after advection, before the push out of the bodies (which the backward
+    /// pass replays: it is cheap, and its adjoint reads the positions before it).
+    pub moved: Vec<Vec3>,
+    /// The density projection's potential q (None when no cell was over full or it is off).
+    pub density: Option<Vec<f64>>,
+    /// Per cell, the particle (at the end of the step) whose distance the step's φ_L is
+    /// (`NONE` where φ does not move with a particle).
+    pub nearest: Vec<u32>,
+    /// What the narrow band's update before the advection did to the particle list
+    /// (`start` is the list after it); None without a band.
+    pub change: Option<BandChange>,
+    /// The narrow band's deep cells that the step's density projection and φ_L read (the
+    /// rest of the band, its deposit, is a function of them).
+    pub deep: Option<Vec<bool>>,
+}
+
+/// The particle stages of one step: what they read.
+pub struct ParticleStage<'a> {
+    /// The grid.
+    pub grid: &'a Grid,
+    /// The step's Δt.
+    pub dt: f64,
+    /// The advecting field: the fluid velocity at the start of the step.
+    pub u: &'a Mac,
+    /// The bodies at the start of the step (the push-outs').
+    pub bodies: &'a [RigidBody],
+    /// The static solids' signed distance at the nodes (advection keeps out of them).
+    pub node_sdf: &'a NodeSdf,
+    /// How far out of a body a particle is pushed.
+    pub margin: f64,
+    /// The density projection's inputs (None when it is off).
+    pub density: Option<DensityInputs<'a>>,
+    /// The step's number.
+    pub step: usize,
+}
+
+/// Where the density projection's potential comes from.
+pub enum Potential {
+    /// Solved.
+    Solve,
+    /// A recorded run's potential and iterations, for its re-run (a checkpointed segment).
+    Recorded((Option<Vec<f64>>, usize)),
+    /// The step's recorded potential, in the backward pass's replay: the system is built
+    /// with its adjoint's inputs and kept.
+    Replay(Option<Vec<f64>>),
+}
+
+/// What [`ParticleStage::settle`] did.
+#[derive(Default)]
+pub struct Settled {
+    /// The projection's statistics.
+    pub stats: DensityStats,
+    /// Its potential (None when it found no over-full cell or is off).
+    pub q: Option<Vec<f64>>,
+    /// In a replay: the system and its displacement, and the positions before the second
+    /// push-out.
+    pub kept: Option<(DensityProjection, Displacement, Vec<Vec3>)>,
+}
+
+/// The particle stages replayed from a record: the positions each part started from.
+pub struct Replayed {
+    /// After advection and the first push-out (the density projection's input).
+    pub advected: Vec<Vec3>,
+    /// After the whole stage (φ_L's input).
+    pub end: Vec<Vec3>,
+    /// The density projection as it acted.
+    pub settled: Settled,
+}
+
+impl ParticleStage<'_> {
+    /// The advection's sub-steps: `asked` (0 for as many as the field needs), at least as
+    /// many as it needs.
+    pub fn substeps(&self, asked: usize) -> usize {
+        let needed = surface::advect_substeps(self.u, self.grid, self.dt);
+        match asked {
+            0 => needed,
+            n => n.max(needed),
+        }
+    }
+
+    /// [`AdvectParticles`](super::Stage::AdvectParticles): the particles through the start
+    /// velocity in `substeps`, then pushed out of the bodies. Returns the positions before
+    /// the push when `keep` (the record's `moved`).
+    pub fn advect(&self, particles: &mut [Vec3], substeps: usize, keep: bool) -> Option<Vec<Vec3>> {
+        surface::advect_substepped(particles, self.u, self.grid, self.dt, substeps, self.node_sdf);
+        let moved = keep.then(|| particles.to_vec());
+        self.push(particles);
+        moved
+    }
+
+    /// [`Density`](super::Stage::Density): the density projection, its potential from
+    /// `potential`, then the push out of the bodies again (nothing when it is off).
+    pub fn settle(&self, particles: &mut [Vec3], potential: Potential) -> Result<Settled> {
+        let Some(g) = &self.density else { return Ok(Settled::default()) };
+        let step = self.step;
+        let mut settled = Settled::default();
+        match potential {
+            Potential::Solve => {
+                (settled.stats, settled.q) = density::correct(particles, g, step)?;
+            }
+            Potential::Recorded(recorded) => {
+                (settled.stats, settled.q) =
+                    density::correct_replayed(particles, g, recorded, step)?;
+            }
+            Potential::Replay(q) => {
+                if let (Some(proj), Some(q)) = (DensityProjection::build(particles, g), q) {
+                    let disp = proj.displacement(&q, g);
+                    proj.displace_by(particles, &disp, g);
+                    settled.kept = Some((proj, disp, particles.to_vec()));
+                    settled.q = Some(q);
+                }
+            }
+        }
+        self.push(particles);
+        Ok(settled)
+    }
+
+    /// The particle stages of `rec`'s step replayed from its record.
+    pub fn replay(&self, rec: &ParticleRecord) -> Result<Replayed> {
+        let mut advected = rec.moved.clone();
+        self.push(&mut advected);
+        let mut end = advected.clone();
+        let settled = self.settle(&mut end, Potential::Replay(rec.density.clone()))?;
+        Ok(Replayed { advected, end, settled })
+    }
+
+    /// Adjoint of [`ParticleStage::settle`] (its replay `replayed`): ∂L/∂(positions after) in
+    /// `pbar` becomes ∂L/∂(positions before); the bodies' ∂L/∂[δx; δθ] through the push-out
+    /// and the density system's weights (given each body's dual fractions, `dual_faces`,
+    /// with the static weights `statics`) is added to `pose`. Gives the replay's system
+    /// back.
+    pub fn settle_adjoint(
+        &self,
+        replayed: Replayed,
+        pbar: &mut [Vec3],
+        pose: &mut [[f64; 6]],
+        dual_faces: &[DualFaces],
+        statics: &FaceWeights,
+    ) -> Result<()> {
+        let Some(g) = &self.density else { return Ok(()) };
+        let fd = surface::jacobian_step(self.grid);
+        let Settled { q, kept, .. } = replayed.settled;
+        let Some((proj, disp, displaced)) = kept else {
+            // No projection: the second push-out from the advected positions.
+            let push = surface::push_out_of_bodies_adjoint(
+                &replayed.advected,
+                pbar,
+                self.bodies,
+                self.margin,
+                fd,
+            );
+            add_pose(pose, push);
+            return Ok(());
+        };
+        let push =
+            surface::push_out_of_bodies_adjoint(&displaced, pbar, self.bodies, self.margin, fd);
+        add_pose(pose, push);
+        let q = q.expect("a kept projection has its potential");
+        let (s, stats) = proj.adjoint_with(&replayed.advected, &q, &disp, pbar, g);
+        if !stats.converged {
+            return Err(Error::NotConverged {
+                solve: Solve::DensityAdjoint,
+                step: self.step,
+                iterations: stats.iterations,
+                residual: stats.relative_residual,
+                tolerance: g.solve.tolerance,
+            });
+        }
+        density_weight_pose(&proj, &q, &s, g, dual_faces, statics, pose);
+        g.give_back(None, Some(disp.d));
+        proj.give_back(g);
+        Ok(())
+    }
+
+    /// Adjoint of [`ParticleStage::advect`]: ∂L/∂(positions after the push-out) in `pbar`
+    /// becomes ∂L/∂(start positions); ∂L/∂u of the start velocity is added to `ubar` and the
+    /// bodies' ∂L/∂[δx; δθ] through the push-out to `pose`.
+    pub fn advect_adjoint(
+        &self,
+        rec: &ParticleRecord,
+        pbar: &mut [Vec3],
+        ubar: &mut Mac,
+        pose: &mut [[f64; 6]],
+    ) {
+        let fd = surface::jacobian_step(self.grid);
+        let push =
+            surface::push_out_of_bodies_adjoint(&rec.moved, pbar, self.bodies, self.margin, fd);
+        add_pose(pose, push);
+        surface::advect_adjoint(
+            &rec.start,
+            pbar,
+            self.u,
+            self.grid,
+            self.dt,
+            rec.substeps,
+            self.node_sdf,
+            ubar,
+        );
+    }
+
+    /// Pushes the particles out of the bodies.
+    fn push(&self, particles: &mut [Vec3]) {
+        surface::push_out_of_bodies(particles, self.bodies, self.margin);
+    }
+}
+
+/// pose += g, body by body.
+fn add_pose(pose: &mut [[f64; 6]], g: Vec<[f64; 6]>) {
+    for (p, g) in pose.iter_mut().zip(g) {
+        for d in 0..6 {
+            p[d] += g[d];
+        }
+    }
+}
+
+/// The density system's part of the pose derivative: its weights lose what a body covers,
+/// so −sᵀ·δA·q = Σ_f ∂β_f/∂pose · Δt·dx/ρ·θ·(g·s)(g·q) over the faces the body covers in
+/// part (inside the clamp of w = w_static − β).
+fn density_weight_pose(
+    proj: &DensityProjection,
+    q: &[f64],
+    s: &[f64],
+    g: &DensityInputs<'_>,
+    dual_faces: &[DualFaces],
+    statics: &FaceWeights,
+    pose: &mut [[f64; 6]],
+) {
+    // A face the projection closed at a deep cell does not see the body.
+    let weights = proj.weights(g);
+    for (i, faces) in dual_faces.iter().enumerate() {
+        for (axis, list) in faces.iter().enumerate() {
+            for (f, beta) in list {
+                let raw = statics.weight(axis, *f) - beta.v;
+                if !(raw > 0.0 && raw < 1.0 && weights.weight(axis, *f) > 0.0) {
+                    continue;
+                }
+                let w = proj.sys.weight_adjoint(axis, *f, weights, &proj.phi, s, q);
+                for k in 0..6 {
+                    pose[i][k] += beta.d[k] * w;
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,305 @@
+//! Stage [`Pressure`](super::Stage::Pressure): the coupled solve of the step's system with
+//! contact held inside it, the velocity update, and the bodies' velocities and pressure
+//! forces after it; and its adjoint (one more solve with the same operator, the surface's
+//! part through the ghost-fluid θ, the carried liquid, the masses, the pose derivative).
+
+use crate::error::{Error, Result, Solve};
+use crate::geometry::body::RigidBody;
+use crate::geometry::fractions::DualFaces;
+use crate::geometry::grid::Mac;
+use crate::geometry::weights::FaceWeights;
+use crate::math::Vec3;
+use crate::solvers::cg::CgStats;
+use crate::solvers::LinearSolve;
+use crate::stages::contact::{hold_contact, ContactChange, ContactHold, ContactSettings};
+use crate::stages::pressure::{kinematic_pose_adjoint, projection_pose_adjoint, PoseAdjointInputs};
+use crate::stages::system::{generalized_velocity, StepSystem};
+
+/// What the projection leaves.
+#[derive(Debug)]
+pub struct Projection {
+    /// The pressure per liquid cell.
+    pub p: Vec<f64>,
+    /// The solve's statistics.
+    pub stats: CgStats,
+    /// Per coupled body: [v; ω] the solve started from (with the contact kick).
+    pub v_hat: Vec<[f64; 6]>,
+    /// Per coupled body: [v; ω] after the solve.
+    pub v_after: Vec<[f64; 6]>,
+    /// Per coupled body: the pressure force and torque J·p (less the weight and momentum of
+    /// the liquid a thin body carries).
+    pub forces: Vec<[f64; 6]>,
+    /// What holding contact took.
+    pub hold: ContactHold,
+}
+
+/// A pressure solve: from the predicted field û, the coupled bodies' velocities (with the
+/// liquid they carry) and a warm start (the previous contact iteration's pressure, or None
+/// for the caller's own), the pressure and its statistics. The caller's, so that a solve
+/// can be recorded or replayed.
+pub type PressureSolve<'a> =
+    &'a mut dyn FnMut(&Mac, &[[f64; 6]], Option<Vec<f64>>) -> Result<(Vec<f64>, CgStats)>;
+
+/// Contact held inside the projection: the bodies as they are, rapier's settings, and the
+/// velocity change below which contact counts as done.
+#[derive(Clone, Copy)]
+pub struct HeldContact<'a> {
+    /// Every body (the coupled ones' velocities are replaced by the solve's).
+    pub bodies: &'a [RigidBody],
+    /// The tank's size, m.
+    pub size: Vec3,
+    /// rapier's settings.
+    pub settings: &'a ContactSettings,
+    /// The largest velocity change, m/s, that counts as none.
+    pub tolerance: f64,
+}
+
+/// The projection from the fluid velocity `u_hat` and the coupled bodies' velocities
+/// `v_hat` over `dt`, each solve made by `solve`, with contact held inside it when given
+/// (see [`hold_contact`]). Returns the projection and `u_hat` updated by its pressure.
+pub fn project(
+    sys: &StepSystem,
+    u_hat: Mac,
+    v_hat: &[[f64; 6]],
+    dt: f64,
+    contact: Option<HeldContact<'_>>,
+    solve: PressureSolve<'_>,
+) -> Result<(Projection, Mac)> {
+    let mut last_p: Option<Vec<f64>> = None;
+    let one = |kick: &[[f64; 6]]| {
+        let vel: Vec<[f64; 6]> =
+            v_hat.iter().zip(kick).map(|(v, k)| std::array::from_fn(|d| v[d] + k[d])).collect();
+        // With the liquid the thin bodies carry (`vel` where they carry none).
+        let vel_e = sys.entrained_velocities(&vel, &u_hat);
+        let (p, stats) = solve(&u_hat, &vel_e, last_p.take())?;
+        let mut forces: Vec<[f64; 6]> = sys.couplings().iter().map(|c| c.force(&p)).collect();
+        let after: Vec<[f64; 6]> = sys
+            .couplings()
+            .iter()
+            .zip(&vel_e)
+            .zip(&forces)
+            .map(|((c, v), f)| {
+                let dv = c.dt_minv_times(f);
+                std::array::from_fn(|d| v[d] + dv[d])
+            })
+            .collect();
+        // A body carrying liquid feels M·(V' − V̂)/Δt of it: J·p less the weight and the
+        // momentum of the liquid it carries.
+        for (k, ent) in sys.entrained.iter().enumerate().filter(|(_, e)| !e.is_empty()) {
+            let dv: [f64; 6] = std::array::from_fn(|d| (after[k][d] - vel[k][d]) / dt);
+            forces[k] = std::array::from_fn(|r| (0..6).map(|c| ent.mass[r][c] * dv[c]).sum());
+        }
+        last_p = Some(p.clone());
+        let proj = Projection {
+            p,
+            stats,
+            v_hat: vel,
+            v_after: after.clone(),
+            forces,
+            hold: ContactHold::default(),
+        };
+        Ok((proj, after))
+    };
+    let change = |after: &[[f64; 6]]| match contact {
+        Some(c) => contact_change(c, &sys.coupled, after, dt),
+        None => Vec::new(),
+    };
+    let held: Option<ContactChange<'_>> = contact.map(|_| &change as ContactChange<'_>);
+    let tolerance = contact.map_or(0.0, |c| c.tolerance);
+    let (mut proj, hold) = hold_contact(sys.coupled.len(), one, held, tolerance)?;
+    proj.hold = hold;
+    // The velocity update of the solve that stands (the field is not copied per contact
+    // iteration).
+    let mut u = u_hat;
+    sys.pressure.update_velocity(&proj.p, &mut u);
+    Ok((proj, u))
+}
+
+/// What rapier's contact step would do to each coupled body's [v; ω] if the bodies had the
+/// velocities `after`: its velocity after the step minus before.
+fn contact_change(
+    contact: HeldContact<'_>,
+    coupled: &[usize],
+    after: &[[f64; 6]],
+    dt: f64,
+) -> Vec<[f64; 6]> {
+    #[cfg(feature = "contact")]
+    {
+        let mut bodies = contact.bodies.to_vec();
+        for (&i, v) in coupled.iter().zip(after) {
+            bodies[i].v = Vec3::new(v[0], v[1], v[2]);
+            bodies[i].w = Vec3::new(v[3], v[4], v[5]);
+        }
+        let before = bodies.clone();
+        crate::stages::contact::ContactWorld::new(contact.size, &bodies, contact.settings)
+            .step(&mut bodies, dt);
+        coupled
+            .iter()
+            .map(|&i| {
+                let (a, b) = (generalized_velocity(&bodies[i]), generalized_velocity(&before[i]));
+                std::array::from_fn(|d| a[d] - b[d])
+            })
+            .collect()
+    }
+    #[cfg(not(feature = "contact"))]
+    {
+        let _ = (contact, after, dt);
+        vec![[0.0; 6]; coupled.len()]
+    }
+}
+
+/// What the projection's adjoint reads besides the adjoints it is given.
+pub struct ProjectAdjointInputs<'a> {
+    /// The step's system, as the forward step assembled it.
+    pub sys: &'a StepSystem,
+    /// The bodies at the start of the step.
+    pub bodies: &'a [RigidBody],
+    /// The step's pressure.
+    pub p: &'a [f64],
+    /// Per coupled body, [v; ω] the solve started from ([`Projection::v_hat`]).
+    pub v_hat: &'a [[f64; 6]],
+    /// Per body, [v; ω] after the solve (the coupled ones' [`Projection::v_after`]).
+    pub v_after: &'a [[f64; 6]],
+    /// The predicted field û on the faces the bodies cover (at least).
+    pub u_hat: &'a Mac,
+    /// The static solids' weights.
+    pub static_weights: &'a FaceWeights,
+    /// Each body's dual face fractions: the pose derivative is taken when given.
+    pub dual_faces: Option<&'a [DualFaces]>,
+    /// Whether ∂L/∂φ_L through θ and the carried liquid is wanted (the moving surface).
+    pub surface: bool,
+    /// The adjoint solve's settings.
+    pub how: LinearSolve,
+    /// The liquid's density, kg/m³.
+    pub density: f64,
+    /// The ghost-fluid θ clamp.
+    pub theta_min: f64,
+    /// The step's Δt.
+    pub dt: f64,
+    /// The step's number (for the error of a solve that fails).
+    pub step: usize,
+}
+
+/// What the projection's adjoint gives.
+#[derive(Debug)]
+pub struct ProjectAdjoint {
+    /// ∂L/∂û, the predicted field.
+    pub u_hat: Mac,
+    /// ∂L/∂φ_L per cell, of φ_L extended into the solids (with the surface moving).
+    pub phi: Option<Vec<f64>>,
+}
+
+/// Adjoint of [`project`] without contact (the gradient takes contact as free flight): from
+/// ∂L/∂u after the update (`ubar`) and ∂L/∂[v; ω] after the solve per body (`vbar`), ∂L/∂û
+/// and ∂L/∂φ_L (returned); `vbar` becomes ∂L/∂[v; ω] before the solve for the coupled and
+/// the kinematic bodies; the masses' adjoints are added to `mass` and the poses' ∂L/∂[δx;
+/// δθ] to `pose` (one per body).
+pub fn project_adjoint(
+    g: &ProjectAdjointInputs<'_>,
+    mut ubar: Mac,
+    vbar: &mut [[f64; 6]],
+    mass: &mut [f64],
+    pose: &mut [[f64; 6]],
+) -> Result<ProjectAdjoint> {
+    let sys = g.sys;
+    let adj_v: Vec<[f64; 6]> = sys.coupled.iter().map(|&i| vbar[i]).collect();
+    let phi = g.surface.then_some(sys.phi.as_slice());
+    let solved = sys.pressure.projection_adjoint(
+        &mut ubar,
+        &adj_v,
+        &sys.geometry.weights,
+        &g.how,
+        phi.map(|phi| (phi, g.p)),
+    );
+    if !solved.stats.converged {
+        return Err(Error::NotConverged {
+            solve: Solve::PressureAdjoint,
+            step: g.step,
+            iterations: solved.stats.iterations,
+            residual: solved.stats.relative_residual,
+            tolerance: g.how.tolerance,
+        });
+    }
+    let (s, mut vhat_bar, mut phi_bar) = (solved.s, solved.v_hat, solved.phi);
+    let mut uhat_bar = ubar;
+    // The liquid a thin body carries: V_e = M_e⁻¹·(M·V̂ + Σ m_f·û_f·a_f) back to V̂ and û,
+    // and through its masses' liquid fractions to φ_L. y = M_e⁻¹·V̄_e per coupled body.
+    let v_e = sys.entrained_velocities(g.v_hat, g.u_hat);
+    let mut ys = vec![[0.0; 6]; sys.coupled.len()];
+    for (k, ent) in sys.entrained.iter().enumerate().filter(|(_, e)| !e.is_empty()) {
+        let (vb, y) = ent.velocity_adjoint(&vhat_bar[k], &mut uhat_bar);
+        vhat_bar[k] = vb;
+        ys[k] = y;
+        if let Some(out) = phi_bar.as_mut() {
+            let v_new = &g.v_after[sys.coupled[k]];
+            ent.phi_adjoint(&y, v_new, g.u_hat, &sys.phi, g.theta_min, out);
+        }
+    }
+    // The masses, the inertias scaling with them (M → s·M): −V̂̄·(V′ − V̂)/m (the pressure's
+    // impulse M·(V′ − V̂) held, ∂L/∂M⁻¹ = V̂̄ ⊗ impulse).
+    for (k, &i) in sys.coupled.iter().enumerate() {
+        let (vh, va, vb) = (g.v_hat[k], g.v_after[i], vhat_bar[k]);
+        let impulse: f64 = (0..6).map(|d| vb[d] * (va[d] - vh[d])).sum();
+        mass[i] -= impulse / g.bodies[i].mass;
+    }
+    if let Some(dual_faces) = g.dual_faces {
+        let inputs = PoseAdjointInputs {
+            sys: &sys.pressure,
+            weights: &sys.geometry.weights,
+            phi: &sys.phi,
+            static_weights: g.static_weights,
+            u_hat: g.u_hat,
+            p: g.p,
+            s: &s,
+            dt: g.dt,
+        };
+        // J's faces: the fractions, and on the faces a thin body crosses the static weight.
+        let coupling_faces: Vec<DualFaces> = dual_faces
+            .iter()
+            .zip(&sys.geometry.seals)
+            .map(|(d, seal)| if seal.is_empty() { d.clone() } else { seal.coupling_dual(d) })
+            .collect();
+        for (k, &i) in sys.coupled.iter().enumerate() {
+            let (b, ent) = (&g.bodies[i], &sys.entrained[k]);
+            let mut gr =
+                projection_pose_adjoint(&inputs, b, &coupling_faces[i], k, &v_e[k], &adj_v[k], ent);
+            if !ent.is_empty() {
+                let (v_hat, v_new) = (&g.v_hat[k], &g.v_after[i]);
+                let grid = &sys.pressure.grid;
+                let ge = ent.pose_adjoint(
+                    grid,
+                    b,
+                    &dual_faces[i],
+                    &ys[k],
+                    v_hat,
+                    v_new,
+                    g.u_hat,
+                    g.density,
+                );
+                add6(&mut gr, &ge);
+            }
+            add6(&mut pose[i], &gr);
+        }
+        // Kinematic bodies: J and the fractions move with the prescribed pose.
+        for (i, bc, v) in &sys.kinematic {
+            let gr = kinematic_pose_adjoint(&inputs, &g.bodies[*i], &coupling_faces[*i], bc, v);
+            add6(&mut pose[*i], &gr);
+        }
+    }
+    for (k, &i) in sys.coupled.iter().enumerate() {
+        vbar[i] = vhat_bar[k];
+    }
+    // Kinematic bodies: b ∋ −Jᵀ·v, so v̄ −= J·s; the pressure does not change their velocity.
+    for (i, c, _) in &sys.kinematic {
+        let js = c.force(&s);
+        vbar[*i] = std::array::from_fn(|d| vbar[*i][d] - js[d]);
+    }
+    Ok(ProjectAdjoint { u_hat: uhat_bar, phi: phi_bar.take() })
+}
+
+/// a += b.
+fn add6(a: &mut [f64; 6], b: &[f64; 6]) {
+    for d in 0..6 {
+        a[d] += b[d];
+    }
+}

@@ -1,0 +1,460 @@
+//! The step as a recipe: the stages of [`Stage::ALL`] in their order, each a call into
+//! `stages/` (where its adjoint sits beside it). The backward pass
+//! (`gradients/backward.rs`) runs the same stages' adjoints in the reverse order.
+
+use super::stepping::{Pressures, LARGEST};
+use super::{volume_warning, BodyHandle, Simulation, EXTERNAL_REACH};
+use crate::error::{Error, Result};
+use crate::geometry::body::RigidBody;
+use crate::geometry::grid::Mac;
+use crate::math::{v3, Vec3};
+use crate::solvers::cg::CgStats;
+use crate::stages::band::Band;
+use crate::stages::contact::contact_possible;
+use crate::stages::density::DensityStats;
+use crate::stages::extrapolate::correct_with_bodies;
+use crate::stages::forces::body_velocity;
+use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
+use crate::stages::project::{project, HeldContact, Projection};
+use crate::stages::rigid::{integrate, Tank};
+use crate::stages::surface::{self, Bins};
+use crate::stages::system::{generalized_velocity, predicted_velocity, Geometry, StepSystem};
+use crate::stages::{Stage, StageClock, StageSeconds};
+use crate::world::step::{kinetic_energy, BodyForce, Energy, StepParams, StepReport};
+use crate::world::tape::{StepRecord, Tape};
+use rayon::prelude::*;
+
+/// A contact velocity change below this (a thousandth of what gravity adds in a step) is
+/// taken as none.
+fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
+    1e-3 * v3(gravity).length().max(1.0) * dt
+}
+
+/// The largest |u| over every face, NaN if one is NaN: one parallel pass for both checks.
+pub(super) fn largest_magnitude(u: &Mac) -> f64 {
+    let most = |a: f64, b: f64| if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) };
+    u.c.iter()
+        .map(|c| {
+            c.par_iter()
+                .with_min_len(crate::math::par::MIN_LEN)
+                .map(|x| x.abs())
+                .reduce(|| 0.0, most)
+        })
+        .fold(0.0, most)
+}
+
+/// The stages' timings of one step.
+struct Timed {
+    clock: StageClock,
+    times: StageSeconds,
+}
+
+impl Timed {
+    fn lap(&mut self, stage: Stage) {
+        self.clock.lap(stage, &mut self.times);
+    }
+}
+
+impl Simulation {
+    /// [`Simulation::step_inner`]'s stages, in the order of [`Stage::ALL`].
+    pub(super) fn step_stages(
+        &mut self,
+        dt: f64,
+        tape: Option<&mut Tape>,
+        mut pressures: Pressures,
+        report: bool,
+    ) -> Result<StepReport> {
+        let start = tape
+            .as_ref()
+            .map(|_| (self.u.clone(), self.bodies.iter().map(RigidBody::state).collect()));
+        let taped = start.is_some();
+        let mut timed = Timed { clock: StageClock::new(), times: StageSeconds::default() };
+        let (grid, gravity) = (self.grid, self.settings.fluid.gravity);
+
+        let geometry = self.geometry();
+        let (volume_errors, warnings) = self.check_volumes(&geometry);
+        timed.lap(Stage::Geometry);
+
+        // Band, AdvectParticles, Density (nothing with a frozen surface).
+        let (mut record, density) =
+            self.move_particles(&geometry, dt, taped, &mut pressures, &mut timed)?;
+
+        let phi = self.surface(record.as_mut());
+        let taped_phi = if taped && self.frozen_phi.is_none() { phi.clone() } else { Vec::new() };
+        timed.lap(Stage::Surface);
+
+        // A replayed step is given its pressures: its system needs no operator.
+        let solves = !matches!(pressures, Pressures::Replay(_));
+        let params = StepParams { solves, ..self.step_params(dt) };
+        let memory = self.spare.systems().take();
+        let sys = StepSystem::assemble(&grid, &self.bodies, geometry, phi, params, memory);
+        timed.lap(Stage::Assemble);
+
+        let out = self.spare.velocity(&grid);
+        let u_hat = predicted_velocity(&self.u, &grid, dt, gravity, &sys.needed, out);
+        timed.lap(Stage::AdvectVelocity);
+
+        let v_hat: Vec<[f64; 6]> =
+            sys.coupled.iter().map(|&i| body_velocity(&self.bodies[i], v3(gravity), dt)).collect();
+        timed.lap(Stage::Forces);
+
+        let (proj, u, contact) = self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures)?;
+        let report = report && solves;
+        let (max_divergence, kinetic_energy) = self.projected_measures(&sys, &u, &proj, report);
+        timed.lap(Stage::Pressure);
+
+        let mut u = u;
+        let air_body_faces = correct_with_bodies(
+            &mut u,
+            &sys.projected_mask(),
+            &self.bodies,
+            &sys.geometry.body_faces,
+            &sys.geometry.weights,
+            &self.statics.weights,
+            &grid,
+            self.settings.solver.extrapolation_layers,
+        );
+        timed.lap(Stage::CorrectVelocity);
+
+        // Whether rapier integrates the bodies: contact possible at their new velocities.
+        let contact_moves = self.contact_on(dt);
+        if let Pressures::Record(solves) = &mut pressures {
+            solves.contact |= contact || contact_moves;
+        }
+        if let (Some(t), Some((u0, bodies))) = (tape, start) {
+            t.steps.push(StepRecord {
+                u: u0,
+                bodies,
+                v_hat: proj.v_hat.clone(),
+                v_after: self.bodies.iter().map(generalized_velocity).collect(),
+                p: proj.p.clone(),
+                phi: taped_phi,
+                body_faces: sys.geometry.body_faces.clone(),
+                loads: self.bodies.iter().map(RigidBody::load).collect(),
+                air_body_faces,
+                contact: contact || contact_moves,
+                particles: record,
+            });
+        }
+        let tank = Tank { size: grid.size(), external_reach: EXTERNAL_REACH * grid.dx };
+        let contact = contact_moves.then_some(&self.settings.contact);
+        integrate(&mut self.bodies, dt, tank, contact, self.step + 1)?;
+        timed.lap(Stage::Rigid);
+
+        let measured =
+            Measured { volume_errors, warnings, density, max_divergence, kinetic_energy };
+        self.finish(dt, u, sys, proj, measured, timed.times, report)
+    }
+
+    /// Whether rapier contact is on and could act this step (see [`contact_possible`]).
+    fn contact_on(&self, dt: f64) -> bool {
+        self.settings.contact.enabled && contact_possible(&self.bodies, self.grid.size(), dt)
+    }
+
+    /// [`Stage::Geometry`]'s check: each body's volume error on the grid, and a warning
+    /// for a body whose face fractions cannot hold its volume.
+    fn check_volumes(&mut self, geometry: &Geometry) -> (Vec<f64>, Vec<String>) {
+        let grid = self.grid;
+        let volume_errors: Vec<f64> = self
+            .bodies
+            .iter()
+            .zip(&geometry.body_faces)
+            .map(|(b, f)| f.volume_error(&grid, b.volume()))
+            .collect();
+        let mut warnings = Vec::new();
+        let found: Vec<(BodyHandle, String)> = self
+            .bodies
+            .iter()
+            .zip(&self.handles)
+            .zip(&volume_errors)
+            .filter_map(|((b, h), e)| Some((*h, volume_warning(b, *e, grid.dx)?)))
+            .collect();
+        for (h, w) in found {
+            self.warn_about(&mut warnings, "volume", h, w);
+        }
+        (volume_errors, warnings)
+    }
+
+    /// The stage list's particle part ([`Stage::Band`], [`Stage::AdvectParticles`],
+    /// [`Stage::Density`]; nothing with a frozen surface). Returns what the backward pass
+    /// needs when `taped`.
+    fn move_particles(
+        &mut self,
+        geometry: &Geometry,
+        dt: f64,
+        taped: bool,
+        pressures: &mut Pressures,
+        timed: &mut Timed,
+    ) -> Result<(Option<ParticleRecord>, DensityStats)> {
+        if self.frozen_phi.is_some() {
+            return Ok((None, DensityStats::default()));
+        }
+        let change = self.update_band(geometry, dt);
+        timed.lap(Stage::Band);
+        let step = self.step + 1;
+        let density_on = self.settings.solver.density_correction;
+        let potential = match pressures {
+            Pressures::Replay(replay) if density_on => {
+                Potential::Recorded(replay.next_density(step)?)
+            }
+            _ => Potential::Solve,
+        };
+        let mut particles = std::mem::take(&mut self.particles);
+        let (substeps, start, moved, settled) = {
+            let stage = ParticleStage {
+                grid: &self.grid,
+                dt,
+                u: &self.u,
+                bodies: &self.bodies,
+                node_sdf: &self.statics.node_sdf,
+                margin: self.push_margin(),
+                density: self.density_inputs(geometry),
+                step,
+            };
+            let substeps = stage.substeps(self.settings.solver.particle_substeps);
+            let start = taped.then(|| particles.clone());
+            let moved = stage.advect(&mut particles, substeps, taped);
+            timed.lap(Stage::AdvectParticles);
+            (substeps, start, moved, stage.settle(&mut particles, potential))
+        };
+        self.particles = particles;
+        let settled = settled?;
+        if let (Pressures::Record(solves), true) = (&mut *pressures, density_on) {
+            solves.push_density(settled.q.clone(), settled.stats.cg_iterations);
+        }
+        timed.lap(Stage::Density);
+        let record = start.zip(moved).map(|(start, moved)| ParticleRecord {
+            start,
+            substeps,
+            moved,
+            density: settled.q,
+            nearest: Vec::new(),
+            change,
+            deep: self.band.as_ref().map(|b| b.deep.clone()),
+        });
+        Ok((record, settled.stats))
+    }
+
+    /// [`Stage::Surface`]: φ_L where the particles are now (with a frozen surface: where it
+    /// was at the start). Taped, the record keeps the particle each cell's φ is the distance
+    /// to.
+    fn surface(&mut self, record: Option<&mut ParticleRecord>) -> Vec<f64> {
+        match record {
+            Some(r) => {
+                let bins = Bins::new(&self.particles, &self.grid);
+                let deep = self.band.as_deref().map(Band::deep);
+                let model = self.surface_model();
+                let (phi, nearest) =
+                    surface::liquid_sdf_nearest(&self.particles, &bins, &self.grid, &model, deep);
+                r.nearest = nearest;
+                phi
+            }
+            // Nothing reads the last step's φ_L after the band's update: its memory takes
+            // this step's, which the step's system holds until the step ends (a failed step
+            // gives it back, see `Simulation::step_inner`).
+            None => {
+                let mut phi = std::mem::take(&mut self.phi);
+                self.particle_phi_into(&mut phi);
+                phi
+            }
+        }
+    }
+
+    /// [`Stage::Pressure`]: the projection, with contact held inside it when contact is
+    /// possible for the bodies moving at their velocities `v_hat` before the pressure acts;
+    /// sets the coupled bodies' velocities and fluid forces. Returns the projection, the
+    /// updated field and whether contact was held.
+    fn pressure_stage(
+        &mut self,
+        sys: &StepSystem,
+        u_hat: Mac,
+        v_hat: &[[f64; 6]],
+        dt: f64,
+        pressures: &mut Pressures,
+    ) -> Result<(Projection, Mac, bool)> {
+        let contact = self.settings.contact.enabled && {
+            let mut moving = self.bodies.clone();
+            for (&i, v) in sys.coupled.iter().zip(v_hat) {
+                moving[i].v = Vec3::new(v[0], v[1], v[2]);
+                moving[i].w = Vec3::new(v[3], v[4], v[5]);
+            }
+            contact_possible(&moving, self.grid.size(), dt)
+        };
+        let held = contact.then(|| HeldContact {
+            bodies: &self.bodies,
+            size: self.grid.size(),
+            settings: &self.settings.contact,
+            tolerance: contact_tolerance(self.settings.fluid.gravity, dt),
+        });
+        let mut solve = |u_hat: &Mac, vel_e: &[[f64; 6]], warm: Option<Vec<f64>>| {
+            self.solve_pressure(sys, u_hat, vel_e, warm, pressures)
+        };
+        let (proj, u) = project(sys, u_hat, v_hat, dt, held, &mut solve)?;
+        for ((&i, v), f) in sys.coupled.iter().zip(&proj.v_after).zip(&proj.forces) {
+            let b = &mut self.bodies[i];
+            b.v = Vec3::new(v[0], v[1], v[2]);
+            b.w = Vec3::new(v[3], v[4], v[5]);
+            self.fluid_forces[i] = *f;
+        }
+        // A kinematic body's force is what its motion costs: J·p.
+        for (i, c, _) in &sys.kinematic {
+            self.fluid_forces[*i] = c.force(&proj.p);
+        }
+        Ok((proj, u, contact))
+    }
+
+    /// One pressure solve of the step's projection, as `pressures` says: solved from `warm`
+    /// (or the last step's pressure), and kept when recording; or taken from the record.
+    fn solve_pressure(
+        &self,
+        sys: &StepSystem,
+        u_hat: &Mac,
+        vel_e: &[[f64; 6]],
+        warm: Option<Vec<f64>>,
+        pressures: &mut Pressures,
+    ) -> Result<(Vec<f64>, CgStats)> {
+        let step = self.step + 1;
+        let how = self.settings.solver.linear();
+        let (p, stats) = match pressures {
+            Pressures::Replay(replay) => replay.next(sys.pressure.len(), step)?,
+            _ => {
+                let b = sys.rhs(u_hat, vel_e);
+                // Warm start: the last solve's pressure (this step's previous contact
+                // iteration, or the last step's).
+                let guess = warm.unwrap_or_else(|| {
+                    let cells = &sys.pressure.cell_of_row;
+                    let min = crate::math::par::MIN_LEN;
+                    let gather = |&c: &u32| self.pressure[c as usize];
+                    cells.par_iter().with_min_len(min).map(gather).collect()
+                });
+                sys.pressure.solve_from(&b, guess, &how)
+            }
+        };
+        if let Pressures::Record(solves) = pressures {
+            solves.push(p.clone(), stats);
+        }
+        if !stats.relative_residual.is_finite() {
+            return Err(Error::NonFinite {
+                step,
+                what: "the pressure solve's residual is not finite".into(),
+            });
+        }
+        if !stats.converged {
+            return Err(Error::NotConverged {
+                solve: crate::error::Solve::Pressure,
+                step,
+                iterations: stats.iterations,
+                residual: stats.relative_residual,
+                tolerance: how.tolerance,
+            });
+        }
+        Ok((p, stats))
+    }
+
+    /// What only the report reads of the projection (the largest divergence left, the
+    /// liquid's kinetic energy); NaN when not `report` (a gradient's forward pass and a
+    /// replayed re-run drop their reports).
+    fn projected_measures(
+        &self,
+        sys: &StepSystem,
+        u: &Mac,
+        proj: &Projection,
+        report: bool,
+    ) -> (f64, f64) {
+        if !report {
+            return (f64::NAN, f64::NAN);
+        }
+        let flux = sys.flux(u, &proj.v_after);
+        let rho = self.settings.fluid.density;
+        let dx3 = self.grid.dx.powi(3);
+        (
+            flux.iter().fold(0.0f64, |m, f| m.max(f.abs())) / dx3,
+            kinetic_energy(u, &sys.pressure, &sys.geometry.weights, rho),
+        )
+    }
+
+    /// The end of a step: the state it leaves is checked (finite, and below [`LARGEST`]: a
+    /// larger one only overflows a step later), then kept, and reported.
+    #[allow(clippy::too_many_arguments)]
+    fn finish(
+        &mut self,
+        dt: f64,
+        u: Mac,
+        sys: StepSystem,
+        proj: Projection,
+        measured: Measured,
+        stage_seconds: StageSeconds,
+        report: bool,
+    ) -> Result<StepReport> {
+        let step = self.step + 1;
+        let fluid = largest_magnitude(&u);
+        if fluid.is_nan() || fluid >= LARGEST {
+            let what = format!("the fluid velocity is not finite (up to {fluid:.3e} m/s)");
+            return Err(Error::NonFinite { step, what });
+        }
+        for b in &self.bodies {
+            let state = [b.x, b.v, b.w].map(|v| v.abs().max_element());
+            if !(state.iter().all(|x| *x < LARGEST) && b.q.is_finite()) {
+                return Err(Error::NonFinite {
+                    step,
+                    what: format!(
+                        "body {}'s state is not finite (x up to {:.3e} m, v {:.3e} m/s, ω {:.3e} \
+                         rad/s)",
+                        b.name, state[0], state[1], state[2]
+                    ),
+                });
+            }
+        }
+        self.step = step;
+        self.time += dt;
+        self.spare.keep_velocity(std::mem::replace(&mut self.u, u));
+        sys.pressure.scatter_into(&proj.p, &mut self.pressure);
+        self.phi = sys.phi;
+        let bodies = sys
+            .coupled
+            .iter()
+            .zip(&proj.forces)
+            .map(|(&i, f)| BodyForce {
+                name: self.bodies[i].name.clone(),
+                force: [f[0], f[1], f[2]],
+                torque: [f[3], f[4], f[5]],
+                volume_error: measured.volume_errors[i],
+            })
+            .collect();
+        let liquid_cells = sys.pressure.len();
+        let (max_speed, liquid_volume) = if report {
+            (self.max_liquid_speed(&sys.pressure.cell_of_row), self.liquid_volume())
+        } else {
+            (f64::NAN, f64::NAN)
+        };
+        self.spare.keep_system(sys.geometry, sys.pressure);
+        let energy = if report { self.energy() } else { Energy::default() };
+        Ok(StepReport {
+            step: self.step,
+            time: self.time,
+            liquid_cells,
+            cg_iterations: proj.stats.iterations,
+            cg_relative_residual: proj.stats.relative_residual,
+            density_cg_iterations: measured.density.cg_iterations,
+            max_divergence: measured.max_divergence,
+            liquid_volume,
+            max_speed,
+            kinetic_energy: measured.kinetic_energy,
+            energy,
+            bodies,
+            contact_iterations: proj.hold.iterations,
+            contact_residual: proj.hold.residual,
+            stage_seconds,
+            warnings: measured.warnings,
+        })
+    }
+}
+
+/// What a step measured along the way for its report.
+struct Measured {
+    volume_errors: Vec<f64>,
+    warnings: Vec<String>,
+    density: DensityStats,
+    max_divergence: f64,
+    kinetic_energy: f64,
+}
