@@ -1,4 +1,4 @@
-//! Rigid bodies: parry shape, mass properties, pose, and the quaternion update (stage 6).
+//! Rigid bodies: parry shape, mass properties, pose, and the quaternion update (stage `rigid`).
 //!
 //! A body's state is the world position of its centre of mass `x`, the orientation `q` of
 //! its shape frame, its linear velocity `v` and angular velocity `ω` (world frame). The
@@ -607,7 +607,7 @@ impl RigidBody {
         (aabb.mins, aabb.maxs)
     }
 
-    /// Stage 6: x += Δt·v; q += Δt/2·[0, ω]⊗q, then normalised (the paper's f_x); for a
+    /// The `rigid` stage for one body: x += Δt·v; q += Δt/2·[0, ω]⊗q, then normalised (the paper's f_x); for a
     /// dynamic body, then ω ← I_w(q')⁻¹·I_w(q)·ω ([`carry_angular_momentum`]), which keeps
     /// its world angular momentum (the gyroscopic term ω × Iω, integrated exactly). A
     /// kinematic body keeps its prescribed ω.

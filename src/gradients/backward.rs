@@ -1,15 +1,9 @@
 //! The backward pass (the paper's Algorithm 3): walks the taped steps in reverse and, per
-//! step, rebuilds the step's system with the forward pass's own
-//! [`StepSystem::assemble`], then runs the stages' adjoints in the mirrored order, each the
-//! exact transpose of its forward linearisation:
-//!
-//! 6ᵀ rigid integration (quaternion product and normalisation), 5ᵀ velocity correction
-//! (rigid faces, closed faces, extrapolation layers), 4ᵀ projection (one more solve with the
-//! same operator, the pose derivative of its geometry, and ∂L/∂φ_L through the ghost-fluid
-//! θ), 2ᵀ forces (the identity, and the torque's pose derivative), 1ᵀ advection
-//! ((W + ∂W/∂u·u)ᵀ), 0ᵀ the marker particles (density projection, push-outs, advection),
-//! whose positions are part of the state: the adjoint carries ∂L/∂(particles) from step to
-//! step.
+//! step, rebuilds what the stages read with the forward pass's own functions
+//! ([`StepSystem::assemble`], the predicted field), then runs the adjoints of the stages of
+//! [`Stage::ALL`] in the reverse order, each the exact transpose of its forward
+//! linearisation and each beside its forward function in `stages/`. The marker particles'
+//! positions are part of the state: the adjoint carries ∂L/∂(particles) from step to step.
 //!
 //! [`SurfaceGradient::Live`] (the default) differentiates the surface's motion, so the
 //! gradient is that of the forward map wherever no cell or face changes kind;
@@ -19,29 +13,25 @@
 //! fractions, J, the world inertia, the rigid velocity set inside bodies, the push-outs);
 //! [`GradientMode::Paper`] drops it, as the paper does.
 
-use super::loss::{AdjointState, BodyAdjoint, BodyGradient, Gradient};
-use crate::error::{Error, GradientError, Result, Solve};
-use crate::geometry::body::{
-    carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, Motion, RigidBody,
-};
-use crate::geometry::grid::Mac;
-use crate::math::dual::Dual;
+use super::loss::{AdjointState, BodyGradient, Gradient};
+use crate::error::{GradientError, Result};
+use crate::geometry::body::{Motion, RigidBody};
+use crate::geometry::fractions::DualFaces;
 use crate::math::pool::run_spread;
 use crate::math::so3;
-use crate::math::{Rotation, Vec3};
+use crate::math::Vec3;
 use crate::stages::advect::{advect_adjoint_into, needed_faces};
 use crate::stages::band::Band;
-use crate::stages::density::{DensityInputs, DensityProjection};
 use crate::stages::extrapolate::correct_with_bodies_adjoint;
-use crate::stages::forces::{body_velocity_pose_adjoint, load_velocity};
-use crate::stages::pressure::{
-    kinematic_pose_adjoint, projection_pose_adjoint, Coupling, PoseAdjointInputs,
-};
+use crate::stages::forces::body_velocity_adjoint;
+use crate::stages::particles::ParticleStage;
+use crate::stages::pressure::Coupling;
+use crate::stages::project::{project_adjoint, ProjectAdjointInputs};
+use crate::stages::rigid::integrate_adjoint;
 use crate::stages::surface;
-use crate::world::step::{predicted_velocity, Geometry};
-use crate::world::tape::ParticleRecord;
+use crate::stages::system::predicted_velocity;
+use crate::stages::{Stage, StageClock, StageSeconds};
 use crate::world::{Simulation, StepRecord, StepSystem, Tape};
-use std::time::Instant;
 
 /// Which gradient to compute.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -135,34 +125,9 @@ impl GradientOptions {
     }
 }
 
-/// Wall time of each stage's adjoint over a backward pass, in seconds (summed over steps).
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
-pub struct AdjointSeconds {
-    /// Rebuilding the steps' systems ([`StepSystem::assemble`]) and the pose derivatives of
-    /// the fractions.
-    pub assemble: f64,
-    /// 6ᵀ.
-    pub rigid: f64,
-    /// 5ᵀ, with the intermediate fields it reads.
-    pub correct_velocity: f64,
-    /// 4ᵀ: the adjoint solve and the pose part.
-    pub pressure: f64,
-    /// 1ᵀ.
-    pub advect_velocity: f64,
-    /// 0ᵀ: the marker particles (advection, push-outs, density projection, φ_L).
-    pub advect_particles: f64,
-}
-
-impl std::ops::AddAssign for AdjointSeconds {
-    fn add_assign(&mut self, o: AdjointSeconds) {
-        self.assemble += o.assemble;
-        self.rigid += o.rigid;
-        self.correct_velocity += o.correct_velocity;
-        self.pressure += o.pressure;
-        self.advect_velocity += o.advect_velocity;
-        self.advect_particles += o.advect_particles;
-    }
-}
+/// Wall time of each stage's adjoint over a backward pass, in seconds (summed over steps):
+/// a field per [`Stage`].
+pub type AdjointSeconds = StageSeconds;
 
 /// Whether `initial` and `tape` can be differentiated with `options`: monolithic coupling,
 /// contact only when the options accept it (see [`check_settings`]), and the same bodies in
@@ -280,11 +245,6 @@ fn posed(sys: &StepSystem) -> Vec<usize> {
     out
 }
 
-/// a + b, component-wise (two adjoints in the quaternion embedding).
-fn add_quat(a: Rotation, b: Rotation) -> Rotation {
-    Rotation::from_xyzw(a.x + b.x, a.y + b.y, a.z + b.z, a.w + b.w)
-}
-
 /// The bodies of `initial` in the states and with the loads `rec` recorded at the start of
 /// its step.
 fn bodies_at(initial: &Simulation, rec: &StepRecord) -> Vec<RigidBody> {
@@ -297,7 +257,9 @@ fn bodies_at(initial: &Simulation, rec: &StepRecord) -> Vec<RigidBody> {
 }
 
 /// The adjoint of one step: from the adjoint of the state after step `step` (recorded as
-/// `rec`), the adjoint of the state before it.
+/// `rec`), the adjoint of the state before it. The stages' adjoints in the reverse order of
+/// [`Stage::ALL`], after rebuilding what they read: the step's system, the fractions' pose
+/// derivatives and the predicted field.
 fn step_adjoint(
     initial: &Simulation,
     rec: &StepRecord,
@@ -306,68 +268,25 @@ fn step_adjoint(
     step: usize,
     times: &mut AdjointSeconds,
 ) -> Result<AdjointState> {
-    let mode = options.mode;
-    let live = options.surface == SurfaceGradient::Live;
-    let grid = *initial.grid();
-    let dt = initial.dt();
-    let settings = initial.settings();
-    let mut clock = Instant::now();
-    let mut lap = |slot: &mut f64| {
-        let now = Instant::now();
-        *slot += (now - clock).as_secs_f64();
-        clock = now;
-    };
+    let full = options.mode == GradientMode::Full;
+    let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
+    let mut clock = StageClock::new();
 
-    // The step's system, assembled as the forward step assembled it.
+    // What the stages read, rebuilt as the forward step built it.
     let bodies = bodies_at(initial, rec);
     let geometry = initial.geometry_with(&bodies, rec.body_faces.clone());
     let phi = if rec.phi.is_empty() { initial.particle_phi() } else { rec.phi.clone() };
-    let live_surface = live && rec.particles.is_some();
     let memory = initial.spare().systems().take();
     let sys = StepSystem::assemble(&grid, &bodies, geometry, phi, initial.step_params(dt), memory);
-    // The fractions' derivatives along each body's pose (full gradient only).
-    let dual_faces: Vec<[Vec<(usize, Dual<6>)>; 3]> = if mode == GradientMode::Full {
+    clock.lap(Stage::Assemble, times);
+    let dual_faces: Vec<DualFaces> = if full {
         bodies.iter().map(|b| b.face_fractions_dual(&grid)).collect()
     } else {
         Vec::new()
     };
-    lap(&mut times.assemble);
-
-    // 6ᵀ: rigid integration. The body's velocity after the step is v' itself.
-    let mut vbar: Vec<[f64; 6]> = vec![[0.0; 6]; bodies.len()];
-    let mut out = vec![BodyAdjoint::zero(); bodies.len()];
-    for (i, b) in bodies.iter().enumerate() {
-        let a = &adj.bodies[i];
-        out[i].x = a.x;
-        out[i].q = a.q;
-        if !b.motion.integrated_here() {
-            // Held still, or moved by the caller: its pose after the step is its pose before.
-            vbar[i] = [a.v.x, a.v.y, a.v.z, a.w.x, a.w.y, a.w.z];
-            continue;
-        }
-        let va = rec.v_after[i];
-        let (q0, w_after) = (rec.bodies[i].q, Vec3::new(va[3], va[4], va[5]));
-        let q1 = quat_step(q0, w_after, dt);
-        // A dynamic body carries its angular momentum to the new orientation.
-        let (mut qbar1, mut w_carry, mut q0_carry) =
-            (a.q, a.w, Rotation::from_xyzw(0.0, 0.0, 0.0, 0.0));
-        if b.motion == Motion::Dynamic {
-            let (t0, t1, wb) =
-                carry_angular_momentum_adjoint(&b.local_inertia, q0, q1, w_after, a.w);
-            qbar1 = add_quat(a.q, so3::from_tangent_gradient(q1, t1));
-            q0_carry = so3::from_tangent_gradient(q0, t0);
-            w_carry = wb;
-        }
-        let (qbar, wbar) = quat_step_adjoint(q0, w_after, dt, qbar1);
-        out[i].q = add_quat(qbar, q0_carry);
-        let vb = a.v + dt * a.x;
-        let wb = w_carry + wbar;
-        vbar[i] = [vb.x, vb.y, vb.z, wb.x, wb.y, wb.z];
-    }
-    lap(&mut times.rigid);
-
-    // The intermediate fields 5ᵀ and 4ᵀ read: û (advected, with gravity) and the field after
-    // the pressure update, only on the faces the bodies cover (where they are read).
+    clock.lap(Stage::Geometry, times);
+    // û (advected, with gravity) on the faces the bodies cover, where the adjoints of the
+    // correction and the projection read it.
     let mut at_bodies = needed_faces(&grid, &[], &sys.geometry.body_faces);
     for faces in &dual_faces {
         for (a, m) in at_bodies.iter_mut().enumerate() {
@@ -379,16 +298,22 @@ fn step_adjoint(
     let out_field = initial.spare().velocity(&grid);
     let gravity = settings.fluid.gravity;
     let u_hat = predicted_velocity(&rec.u, &grid, dt, gravity, &at_bodies, out_field);
-    let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
+    clock.lap(Stage::AdvectVelocity, times);
 
-    // 5ᵀ: the bodies' part on faces in air, extrapolation layers and walls, the bodies' part
-    // on the projected and closed faces.
+    let (mut out, mut vbar) =
+        integrate_adjoint(&bodies, &rec.bodies, &rec.v_after, &adj.bodies, dt);
+    let mut pose = vec![[0.0f64; 6]; bodies.len()];
+    let mut mass = adj.mass;
+    mass.resize(bodies.len(), 0.0);
+    clock.lap(Stage::Rigid, times);
+
     let mut ubar = adj.u;
     let mut after = bodies.clone();
     for (b, va) in after.iter_mut().zip(&rec.v_after) {
         b.v = Vec3::new(va[0], va[1], va[2]);
         b.w = Vec3::new(va[3], va[4], va[5]);
     }
+    let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
     let bva = correct_with_bodies_adjoint(
         &mut ubar,
         u_corr,
@@ -401,7 +326,6 @@ fn step_adjoint(
         &grid,
         settings.solver.extrapolation_layers,
     );
-    let mut pose_grad = vec![[0.0f64; 6]; bodies.len()];
     for (i, r) in bva.iter().enumerate() {
         // A fixed body's pose and velocity are constants; a kinematic one's are the
         // prescribed motion's (a control's).
@@ -411,339 +335,114 @@ fn step_adjoint(
         for d in 0..6 {
             vbar[i][d] += r.vel[d];
         }
-        if mode == GradientMode::Full {
-            out[i].x += r.x;
-            for d in 0..3 {
-                pose_grad[i][3 + d] += crate::math::comp(r.q, d);
-            }
-            // ∂L/∂β_f · ∂β_f/∂pose on the faces the body covers in part.
-            let lookup: std::collections::HashMap<(usize, usize), [f64; 6]> = (0..3)
-                .flat_map(|a| dual_faces[i][a].iter().map(move |(f, b)| ((a, *f), b.d)))
-                .collect();
-            for &(a, f, c) in &r.dbeta {
-                if let Some(d) = lookup.get(&(a, f)) {
-                    for k in 0..6 {
-                        pose_grad[i][k] += c * d[k];
-                    }
-                }
+        if full {
+            let g = r.pose(&dual_faces[i]);
+            for d in 0..6 {
+                pose[i][d] += g[d];
             }
         }
     }
-    lap(&mut times.correct_velocity);
+    clock.lap(Stage::CorrectVelocity, times);
 
-    // 4ᵀ: projection.
-    let adj_v: Vec<[f64; 6]> = sys.coupled.iter().map(|&i| vbar[i]).collect();
-    let how = settings.solver.linear();
-    let (s, stats) = sys.pressure.adjoint_solve(&ubar, &adj_v, &how);
-    // The surface's part: ∂L/∂φ_L through the ghost-fluid θ, carried back out of the solids
-    // to the cells the extension read.
-    let mut phi_bar = live_surface
-        .then(|| sys.pressure.phi_adjoint(&sys.phi, &sys.geometry.weights, &s, &rec.p, &ubar));
-    if !stats.converged {
-        return Err(Error::NotConverged {
-            solve: Solve::PressureAdjoint,
-            step,
-            iterations: stats.iterations,
-            residual: stats.relative_residual,
-            tolerance: settings.solver.tolerance,
-        });
-    }
-    // ū before the projection, in place: ū − Fᵀs; the bodies' v̄ − J·s.
-    let mut uhat_bar = ubar;
-    sys.pressure.subtract_fluid_flux_adjoint(&s, &sys.geometry.weights, &mut uhat_bar);
-    let mut vhat_bar = sys.pressure.body_velocity_adjoint(&adj_v, &s);
-    // The liquid a thin body carries: V_e = M_e⁻¹·(M·V̂ + Σ m_f·û_f·a_f) back to V̂ and û,
-    // and through its masses' liquid fractions to φ_L. y = M_e⁻¹·V̄_e per coupled body.
-    let v_e = sys.entrained_velocities(&rec.v_hat, &u_hat);
-    let mut ys = vec![[0.0; 6]; sys.coupled.len()];
-    for (k, ent) in sys.entrained.iter().enumerate().filter(|(_, e)| !e.is_empty()) {
-        let (vb, y) = ent.velocity_adjoint(&vhat_bar[k], &mut uhat_bar);
-        vhat_bar[k] = vb;
-        ys[k] = y;
-        if let Some(g) = phi_bar.as_mut() {
-            let v_new = &rec.v_after[sys.coupled[k]];
-            ent.phi_adjoint(&y, v_new, &u_hat, &sys.phi, settings.solver.theta_min, g);
+    let live_surface = options.surface == SurfaceGradient::Live && rec.particles.is_some();
+    let inputs = ProjectAdjointInputs {
+        sys: &sys,
+        bodies: &bodies,
+        p: &rec.p,
+        v_hat: &rec.v_hat,
+        v_after: &rec.v_after,
+        u_hat: &u_hat,
+        static_weights: &initial.statics().weights,
+        dual_faces: full.then_some(dual_faces.as_slice()),
+        surface: live_surface,
+        how: settings.solver.linear(),
+        density: settings.fluid.density,
+        theta_min: settings.solver.theta_min,
+        dt,
+        step,
+    };
+    let projected = project_adjoint(&inputs, ubar, &mut vbar, &mut mass, &mut pose)?;
+    clock.lap(Stage::Pressure, times);
+
+    for &i in &sys.coupled {
+        let (m, g) = body_velocity_adjoint(&bodies[i], dt, &vbar[i]);
+        mass[i] += m;
+        if full {
+            for d in 3..6 {
+                pose[i][d] += g[d];
+            }
         }
     }
-    let phi_bar = phi_bar.map(|mut g| {
+    for i in posed(&sys) {
+        let v = vbar[i];
+        (out[i].v, out[i].w) = (Vec3::new(v[0], v[1], v[2]), Vec3::new(v[3], v[4], v[5]));
+    }
+    clock.lap(Stage::Forces, times);
+
+    // Gravity is the identity on the fluid; advection into û's field, which nothing reads
+    // any more.
+    let mut u0 = u_hat;
+    let uhat_bar = projected.u_hat;
+    advect_adjoint_into(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed), &mut u0);
+    clock.lap(Stage::AdvectVelocity, times);
+
+    // ∂L/∂φ_L back out of the solids, to the cells the extension read.
+    let phi_bar = projected.phi.map(|mut g| {
         sys.extension.transpose(&mut g);
         g
     });
-    for (k, &i) in sys.coupled.iter().enumerate() {
-        out[i].v = Vec3::new(vhat_bar[k][0], vhat_bar[k][1], vhat_bar[k][2]);
-        out[i].w = Vec3::new(vhat_bar[k][3], vhat_bar[k][4], vhat_bar[k][5]);
-    }
-    // The masses, the inertias scaling with them (M → s·M): 4ᵀ gives −V̂̄·(V′ − V̂)/m (the
-    // pressure's impulse M·(V′ − V̂) held, ∂L/∂M⁻¹ = V̂̄ ⊗ impulse), 2ᵀ gives
-    // −Δt·V̂̄·[F/m; I_w⁻¹τ]/m.
-    let mut mass = adj.mass;
-    mass.resize(bodies.len(), 0.0);
-    for (k, &i) in sys.coupled.iter().enumerate() {
-        let b = &bodies[i];
-        let dv = load_velocity(b, dt);
-        let (vh, va, vb) = (rec.v_hat[k], rec.v_after[i], vhat_bar[k]);
-        let impulse: f64 = (0..6).map(|d| vb[d] * (va[d] - vh[d])).sum();
-        let load: f64 = (0..6).map(|d| vb[d] * dv[d]).sum();
-        mass[i] -= (impulse + load) / b.mass;
-    }
-    // Kinematic bodies: b ∋ −Jᵀ·v, so v̄ −= J·s; the pressure does not change their velocity.
-    for (i, c, _) in &sys.kinematic {
-        let js = c.force(&s);
-        let vb: [f64; 6] = std::array::from_fn(|d| vbar[*i][d] - js[d]);
-        out[*i].v = Vec3::new(vb[0], vb[1], vb[2]);
-        out[*i].w = Vec3::new(vb[3], vb[4], vb[5]);
-    }
-    if mode == GradientMode::Full {
-        let inputs = PoseAdjointInputs {
-            sys: &sys.pressure,
-            weights: &sys.geometry.weights,
-            phi: &sys.phi,
-            static_weights: &initial.statics().weights,
-            u_hat: &u_hat,
-            p: &rec.p,
-            s: &s,
-            dt,
-        };
-        // J's faces: the fractions, and on the faces a thin body crosses the static weight.
-        let coupling_faces: Vec<[Vec<(usize, Dual<6>)>; 3]> = dual_faces
-            .iter()
-            .zip(&sys.geometry.seals)
-            .map(|(d, seal)| if seal.is_empty() { d.clone() } else { seal.coupling_dual(d) })
-            .collect();
-        for (k, &i) in sys.coupled.iter().enumerate() {
-            let ent = &sys.entrained[k];
-            let mut gr = projection_pose_adjoint(
-                &inputs,
-                &bodies[i],
-                &coupling_faces[i],
-                k,
-                &v_e[k],
-                &adj_v[k],
-                ent,
-            );
-            if !ent.is_empty() {
-                let density = settings.fluid.density;
-                let (v_hat, v_new) = (&rec.v_hat[k], &rec.v_after[i]);
-                let b = &bodies[i];
-                let ge = ent.pose_adjoint(
-                    &grid,
-                    b,
-                    &dual_faces[i],
-                    &ys[k],
-                    v_hat,
-                    v_new,
-                    &u_hat,
-                    density,
-                );
-                for d in 0..6 {
-                    gr[d] += ge[d];
-                }
-            }
-            // 2ᵀ for the torque, whose world inertia turns with the body.
-            let gw = body_velocity_pose_adjoint(&bodies[i], dt, out[i].w);
-            for d in 0..6 {
-                pose_grad[i][d] += gr[d];
-            }
-            for d in 0..3 {
-                pose_grad[i][3 + d] += crate::math::comp(gw, d);
-            }
-        }
-        // Kinematic bodies: J and the fractions move with the prescribed pose.
-        for (i, bc, v) in &sys.kinematic {
-            let gr = kinematic_pose_adjoint(&inputs, &bodies[*i], &coupling_faces[*i], bc, v);
-            for d in 0..6 {
-                pose_grad[*i][d] += gr[d];
-            }
-        }
-        for i in posed(&sys) {
-            let gr = pose_grad[i];
-            out[i].x += Vec3::new(gr[0], gr[1], gr[2]);
-            let gq = so3::from_tangent_gradient(bodies[i].q, Vec3::new(gr[3], gr[4], gr[5]));
-            let q = out[i].q;
-            out[i].q = Rotation::from_xyzw(q.x + gq.x, q.y + gq.y, q.z + gq.z, q.w + gq.w);
-        }
-    }
-    lap(&mut times.pressure);
+    clock.lap(Stage::Assemble, times);
 
-    // 2ᵀ: gravity is the identity on the fluid. 1ᵀ: advection.
-    // Into û's field, which nothing reads any more.
-    let mut u0 = u_hat;
-    advect_adjoint_into(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed), &mut u0);
-    lap(&mut times.advect_velocity);
-
-    // 0ᵀ: the marker particles, whose φ_L the step read.
     let mut particles = Vec::new();
     if let (Some(pr), Some(phi_bar)) = (rec.particles.as_ref(), phi_bar) {
-        let ctx = ParticleAdjoint {
-            initial,
+        // The density projection read the band of its own step.
+        let band = pr.deep.as_ref().map(|deep| {
+            let m = surface::per_axis(settings.solver.particles_per_cell);
+            Band::with_deep(&grid, deep.clone(), initial.surface_model().radius, m)
+        });
+        let stage = ParticleStage {
+            grid: &grid,
+            dt,
             u: &rec.u,
             bodies: &bodies,
-            geometry: &sys.geometry,
-            dual_faces: &dual_faces,
+            node_sdf: &initial.statics().node_sdf,
+            margin: initial.push_margin(),
+            density: initial.density_inputs(&sys.geometry).map(|mut g| {
+                g.band = band.as_ref();
+                g
+            }),
+            step,
         };
-        let mut pose = vec![[0.0f64; 6]; bodies.len()];
-        particles = ctx.run(pr, adj.particles, &phi_bar, &mut u0, &mut pose, step)?;
-        if mode == GradientMode::Full {
-            for i in posed(&sys) {
-                let gr = pose[i];
-                out[i].x += Vec3::new(gr[0], gr[1], gr[2]);
-                let gq = so3::from_tangent_gradient(bodies[i].q, Vec3::new(gr[3], gr[4], gr[5]));
-                let q = out[i].q;
-                out[i].q = Rotation::from_xyzw(q.x + gq.x, q.y + gq.y, q.z + gq.z, q.w + gq.w);
-            }
+        let replayed = stage.replay(pr)?;
+        let mut pbar = adj.particles;
+        if pbar.is_empty() {
+            pbar = vec![Vec3::ZERO; replayed.end.len()];
+        }
+        surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, &phi_bar, &mut pbar);
+        clock.lap(Stage::Surface, times);
+        let statics = &initial.statics().weights;
+        stage.settle_adjoint(replayed, &mut pbar, &mut pose, &dual_faces, statics)?;
+        clock.lap(Stage::Density, times);
+        stage.advect_adjoint(pr, &mut pbar, &mut u0, &mut pose);
+        clock.lap(Stage::AdvectParticles, times);
+        // The band's update before the advection: back to the particles' old indices.
+        particles = match &pr.change {
+            Some(change) => change.adjoint(&pbar),
+            None => pbar,
+        };
+        clock.lap(Stage::Band, times);
+    }
+
+    // The step's pose derivatives, of every stage, to the poses it started from.
+    if full {
+        for i in posed(&sys) {
+            out[i].add_pose(bodies[i].q, &pose[i]);
         }
     }
-    lap(&mut times.advect_particles);
+    clock.lap(Stage::Geometry, times);
     initial.spare().keep_velocity(uhat_bar);
     initial.spare().keep_system(sys.geometry, sys.pressure);
     Ok(AdjointState { u: u0, bodies: out, particles, mass })
-}
-
-/// What the particle stage's adjoint (0ᵀ) reads besides the record.
-struct ParticleAdjoint<'a> {
-    initial: &'a Simulation,
-    /// The fluid velocity at the start of the step (the particles' advecting field).
-    u: &'a Mac,
-    bodies: &'a [RigidBody],
-    geometry: &'a Geometry,
-    dual_faces: &'a [[Vec<(usize, Dual<6>)>; 3]],
-}
-
-impl ParticleAdjoint<'_> {
-    /// From ∂L/∂(particles after the step) (`after`, empty for zero) and ∂L/∂φ_L of the step,
-    /// ∂L/∂(particles at its start); adds ∂L/∂u of the start velocity into `ubar` and the
-    /// bodies' ∂L/∂[δx; δθ] through the push-outs and the density system into `pose`. Replays
-    /// the stage from the record: the advection (for the push's input), the density system
-    /// and displacement, the positions after the step.
-    fn run(
-        &self,
-        pr: &ParticleRecord,
-        after: Vec<Vec3>,
-        phi_bar: &[f64],
-        ubar: &mut Mac,
-        pose: &mut [[f64; 6]],
-        step: usize,
-    ) -> Result<Vec<Vec3>> {
-        let sim = self.initial;
-        let grid = *sim.grid();
-        let dt = sim.dt();
-        let margin = sim.push_margin();
-        let fd = surface::jacobian_step(&grid);
-        let add_pose = |pose: &mut [[f64; 6]], g: Vec<[f64; 6]>| {
-            for (p, g) in pose.iter_mut().zip(g) {
-                for d in 0..6 {
-                    p[d] += g[d];
-                }
-            }
-        };
-        // The positions after the step, replayed from the advected ones: the first push-out,
-        // the density projection's displacement and the second push-out.
-        let mut advected = pr.moved.clone();
-        surface::push_out_of_bodies(&mut advected, self.bodies, margin);
-        // The density projection read the band of its own step.
-        let band = pr.deep.as_ref().map(|deep| {
-            let m = surface::per_axis(sim.settings().solver.particles_per_cell);
-            Band::with_deep(&grid, deep.clone(), sim.surface_model().radius, m)
-        });
-        let inputs = sim.density_inputs(self.geometry).map(|mut g| {
-            g.band = band.as_ref();
-            g
-        });
-        let projection = match (&inputs, &pr.density) {
-            (Some(g), Some(q)) => DensityProjection::build(&advected, g).map(|p| {
-                let disp = p.displacement(q, g);
-                (p, q, disp)
-            }),
-            _ => None,
-        };
-        let mut displaced = advected.clone();
-        if let (Some((proj, _, disp)), Some(g)) = (&projection, &inputs) {
-            proj.displace_by(&mut displaced, disp, g);
-        }
-        let mut end = displaced.clone();
-        if inputs.is_some() {
-            surface::push_out_of_bodies(&mut end, self.bodies, margin);
-        }
-        // ∂L/∂(positions after): what later steps and the loss ask, and φ_L of this step.
-        let mut pbar = if after.is_empty() { vec![Vec3::ZERO; end.len()] } else { after };
-        surface::liquid_sdf_adjoint(&end, &pr.nearest, &grid, phi_bar, &mut pbar);
-        // The second push-out and the density projection.
-        if let Some(g) = &inputs {
-            add_pose(
-                pose,
-                surface::push_out_of_bodies_adjoint(&displaced, &mut pbar, self.bodies, margin, fd),
-            );
-            if let Some((proj, q, disp)) = &projection {
-                let (s, stats) = proj.adjoint_with(&advected, q, disp, &mut pbar, g);
-                if !stats.converged {
-                    return Err(Error::NotConverged {
-                        solve: Solve::DensityAdjoint,
-                        step,
-                        iterations: stats.iterations,
-                        residual: stats.relative_residual,
-                        tolerance: g.solve.tolerance,
-                    });
-                }
-                self.density_weight_pose(proj, q, &s, g, pose);
-            }
-        }
-        if let (Some((proj, _, disp)), Some(g)) = (projection, &inputs) {
-            g.give_back(None, Some(disp.d));
-            proj.give_back(g);
-        }
-        // The first push-out, from the advected positions before it, and the advection
-        // through the start velocity.
-        let node_sdf = &sim.statics().node_sdf;
-        add_pose(
-            pose,
-            surface::push_out_of_bodies_adjoint(&pr.moved, &mut pbar, self.bodies, margin, fd),
-        );
-        surface::advect_adjoint(
-            &pr.start,
-            &mut pbar,
-            self.u,
-            &grid,
-            dt,
-            pr.substeps,
-            node_sdf,
-            ubar,
-        );
-        // The band's update before the advection: back to the particles' old indices.
-        Ok(match &pr.change {
-            Some(change) => change.adjoint(&pbar),
-            None => pbar,
-        })
-    }
-
-    /// The density system's part of the pose derivative: its weights lose what a body covers,
-    /// so −sᵀ·δA·q = Σ_f ∂β_f/∂pose · Δt·dx/ρ·θ·(g·s)(g·q) over the faces the body covers in
-    /// part (inside the clamp of w = w_static − β).
-    fn density_weight_pose(
-        &self,
-        proj: &DensityProjection,
-        q: &[f64],
-        s: &[f64],
-        g: &DensityInputs<'_>,
-        pose: &mut [[f64; 6]],
-    ) {
-        let statics = &self.initial.statics().weights;
-        // A face the projection closed at a deep cell does not see the body.
-        let weights = proj.weights(g);
-        for (i, faces) in self.dual_faces.iter().enumerate() {
-            for (axis, list) in faces.iter().enumerate() {
-                for (f, beta) in list {
-                    let raw = statics.weight(axis, *f) - beta.v;
-                    if !(raw > 0.0 && raw < 1.0 && weights.weight(axis, *f) > 0.0) {
-                        continue;
-                    }
-                    let w = proj.sys.weight_adjoint(axis, *f, weights, &proj.phi, s, q);
-                    for k in 0..6 {
-                        pose[i][k] += beta.d[k] * w;
-                    }
-                }
-            }
-        }
-    }
 }
 
 #[cfg(test)]

@@ -3,33 +3,8 @@
 use crate::geometry::body::Param;
 use crate::geometry::grid::Mac;
 use crate::math::{Rotation, Vec3};
+pub use crate::stages::rigid::BodyAdjoint;
 use crate::world::{BodyHandle, Simulation};
-
-/// The adjoint of one body's state: ∂L/∂x, ∂L/∂q (in the quaternion embedding), ∂L/∂v,
-/// ∂L/∂ω.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct BodyAdjoint {
-    /// ∂L/∂x.
-    pub x: Vec3,
-    /// ∂L/∂q as a 4-vector.
-    pub q: Rotation,
-    /// ∂L/∂v.
-    pub v: Vec3,
-    /// ∂L/∂ω.
-    pub w: Vec3,
-}
-
-impl BodyAdjoint {
-    /// Zero.
-    pub fn zero() -> BodyAdjoint {
-        BodyAdjoint {
-            x: Vec3::ZERO,
-            q: Rotation::from_xyzw(0.0, 0.0, 0.0, 0.0),
-            v: Vec3::ZERO,
-            w: Vec3::ZERO,
-        }
-    }
-}
 
 /// ∂L/∂(state): fluid velocity and bodies.
 #[derive(Clone, Debug)]

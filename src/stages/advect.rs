@@ -1,4 +1,4 @@
-//! Semi-Lagrangian advection of the velocity field (stage 1).
+//! Semi-Lagrangian advection of the velocity field (stage `advect_velocity`).
 //!
 //! Each face sample at `x_g` is traced back with one forward-Euler step through the current
 //! field, `x_b = x_g − Δt·U(x_g)`, and takes the trilinear value of its own component there:

@@ -1,5 +1,5 @@
 //! Narrow-band marker particles (after Ferstl, Ando, Wojtan, Westermann & Thuerey 2016,
-//! "Narrow Band FLIP for Liquid Simulations"), part of stage 0, with its adjoint.
+//! "Narrow Band FLIP for Liquid Simulations"), part of the `band` and `density` stages, with its adjoint.
 //!
 //! The free surface reads the particles within two cells of it (φ_L, see `surface.rs`), yet
 //! a full-volume liquid carries eight per cell all the way down. With a band, particles live

@@ -1,5 +1,5 @@
 //! Particle density projection (Kugelstadt, Longva, Thuerey & Bender 2019, "Implicit
-//! density projection for volume conserving liquids"), part of stage 0, with its adjoint.
+//! density projection for volume conserving liquids"), the `density` stage, with its adjoint.
 //!
 //! Trilinear interpolation of a discretely divergence-free MAC field is not divergence-free
 //! between the samples, and marker particles drift together where it converges, most of all

@@ -1,4 +1,4 @@
-//! Velocity correction (stage 5): extrapolate valid velocities into air, then give faces
+//! Velocity correction (stage `correct_velocity`): extrapolate valid velocities into air, then give faces
 //! inside solids the solid's velocity.
 //!
 //! Extrapolation runs a fixed number of Jacobi layers: each invalid face with at least one
@@ -241,7 +241,7 @@ pub fn correct_velocity_adjoint(
 /// pass reads those values for ∂u/∂β; the tape keeps them.
 pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 
-/// Stage 5, the velocity correction with bodies, on `u` after the pressure update
+/// The velocity correction with bodies, on `u` after the pressure update
 /// (`projected`: the faces the update acted on):
 ///
 /// 1. a face a body closes (combined weight `w` = 0) takes that body's rigid velocity

@@ -143,13 +143,10 @@ impl std::ops::AddAssign for StageSeconds {
     }
 }
 
-/// Times the stages of one pass into a [`StageSeconds`] (adding to what it holds), and
-/// keeps the order they ran in, which must be [`Stage::ALL`]'s (forward) or its reverse
-/// (backward): see [`StageClock::order`].
+/// Times the stages of one pass into a [`StageSeconds`] (adding to what it holds).
 #[derive(Debug)]
 pub struct StageClock {
     last: std::time::Instant,
-    order: Vec<Stage>,
 }
 
 impl Default for StageClock {
@@ -161,7 +158,7 @@ impl Default for StageClock {
 impl StageClock {
     /// A clock started now.
     pub fn new() -> StageClock {
-        StageClock { last: std::time::Instant::now(), order: Vec::with_capacity(11) }
+        StageClock { last: std::time::Instant::now() }
     }
 
     /// Ends `stage`: the time since the last lap is added to its slot of `times`.
@@ -169,17 +166,6 @@ impl StageClock {
         let now = std::time::Instant::now();
         *times.get_mut(stage) += (now - self.last).as_secs_f64();
         self.last = now;
-        self.order.push(stage);
-    }
-
-    /// Restarts the clock without charging the time since the last lap to a stage.
-    pub fn skip(&mut self) {
-        self.last = std::time::Instant::now();
-    }
-
-    /// The stages in the order they were lapped.
-    pub fn order(&self) -> &[Stage] {
-        &self.order
     }
 }
 

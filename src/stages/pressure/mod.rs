@@ -1,4 +1,4 @@
-//! The pressure projection (stage 4): right-hand side → solve → velocity update, each a
+//! The pressure projection (the `pressure` stage, see `stages/project.rs`): right-hand side → solve → velocity update, each a
 //! function of its own.
 //!
 //! Unknowns are the liquid cells only (φ_L < 0 with at least one open face), numbered in

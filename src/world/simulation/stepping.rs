@@ -63,8 +63,8 @@ pub(super) enum Pressures<'a, 'b> {
 
 /// What a step changes before it can fail, kept so that a step that fails leaves the
 /// simulation as it was (see [`Simulation::set_rollback`]): the marker particles and the
-/// narrow band (stage 0; neither with a frozen surface), φ_L (whose memory the step builds
-/// into), the bodies (stages 4 and 6), their fluid forces, the step count and the time. The
+/// narrow band (the particle stages; neither with a frozen surface), φ_L (whose memory the step builds
+/// into), the bodies (stages `pressure` and `rigid`), their fluid forces, the step count and the time. The
 /// fluid velocity and the pressure are replaced only once the step has succeeded.
 struct Undo {
     particles: Option<Vec<Vec3>>,
@@ -283,7 +283,7 @@ impl Simulation {
     /// later (a solve that does not converge, a body leaving the tank) puts back the bodies,
     /// their fluid forces, the time, the step count and the tape; the velocity and pressure
     /// are only ever replaced by a step that succeeds. The marker particles (and a narrow
-    /// band) stay where the step's stage 0 moved them, and φ_L follows them, unless the
+    /// band) stay where the step's particle stages moved them, and φ_L follows them, unless the
     /// caller's [`Simulation::rollback`] puts them back too: see [`BodyUndo`] and [`Undo`].
     /// The warnings the step found are kept.
     fn step_inner(
