@@ -8,7 +8,7 @@
 use crate::geometry::fractions;
 use crate::geometry::grid::Grid;
 use crate::math::dual::Dual;
-use crate::math::{Pose, Rotation, SharedShape, Vec3};
+use crate::math::{twist, Pose, Rotation, SharedShape, Twist, TwistParts, Vec3};
 use parry3d_f64::math::Matrix as Mat3;
 
 /// Bodies thinner than this many cells everywhere seal the faces they cross
@@ -550,15 +550,13 @@ impl RigidBody {
     }
 
     /// The external force and torque, [f; τ] (world frame, N and N·m).
-    pub fn load(&self) -> [f64; 6] {
-        let (f, t) = (self.force, self.torque);
-        [f.x, f.y, f.z, t.x, t.y, t.z]
+    pub fn load(&self) -> Twist {
+        twist(self.force, self.torque)
     }
 
     /// Sets the external force and torque from [f; τ].
-    pub fn set_load(&mut self, load: &[f64; 6]) {
-        self.force = Vec3::new(load[0], load[1], load[2]);
-        self.torque = Vec3::new(load[3], load[4], load[5]);
+    pub fn set_load(&mut self, load: &Twist) {
+        (self.force, self.torque) = (load.linear(), load.angular());
     }
 
     /// Which part of the body's rotation reaches the liquid ([`Spin`]). Pressure acts along

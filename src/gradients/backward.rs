@@ -19,7 +19,7 @@ use crate::geometry::body::{Motion, RigidBody};
 use crate::geometry::fractions::DualFaces;
 use crate::math::pool::run_spread;
 use crate::math::so3;
-use crate::math::Vec3;
+use crate::math::{TwistParts, Vec3};
 use crate::stages::advect::{advect_adjoint_into, needed_faces};
 use crate::stages::band::Band;
 use crate::stages::extrapolate::correct_with_bodies_adjoint;
@@ -310,8 +310,7 @@ fn step_adjoint(
     let mut ubar = adj.u;
     let mut after = bodies.clone();
     for (b, va) in after.iter_mut().zip(&rec.v_after) {
-        b.v = Vec3::new(va[0], va[1], va[2]);
-        b.w = Vec3::new(va[3], va[4], va[5]);
+        (b.v, b.w) = (va.linear(), va.angular());
     }
     let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
     let bva = correct_with_bodies_adjoint(
@@ -375,7 +374,7 @@ fn step_adjoint(
     }
     for i in posed(&sys) {
         let v = vbar[i];
-        (out[i].v, out[i].w) = (Vec3::new(v[0], v[1], v[2]), Vec3::new(v[3], v[4], v[5]));
+        (out[i].v, out[i].w) = (v.linear(), v.angular());
     }
     clock.lap(Stage::Forces, times);
 

@@ -23,11 +23,12 @@ use super::loss::{AdjointState, BodyAdjoint, Gradient};
 use super::run::{GradientSettings, Rollout};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, Motion};
-use crate::math::Vec3;
+use crate::math::Twist;
+use crate::math::{TwistParts, Vec3};
 use crate::world::{BodyHandle, Simulation};
 
 /// Actions (or their gradients): `[k][j]` the k-th action on the j-th controlled body.
-pub type Actions = Vec<Vec<[f64; 6]>>;
+pub type Actions = Vec<Vec<Twist>>;
 
 /// What an action sets on a body, from its motion.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -47,7 +48,7 @@ pub struct Schedule {
     pub steps_per_action: usize,
     /// `actions[k][j]`: the action on `bodies[j]` for steps `k·steps_per_action` to
     /// `(k + 1)·steps_per_action − 1`.
-    pub actions: Vec<Vec<[f64; 6]>>,
+    pub actions: Vec<Vec<Twist>>,
 }
 
 impl Schedule {
@@ -59,7 +60,7 @@ impl Schedule {
         sim: &Simulation,
         controlled: &[BodyHandle],
         steps_per_action: usize,
-        actions: Vec<Vec<[f64; 6]>>,
+        actions: Vec<Vec<Twist>>,
     ) -> Result<Schedule> {
         let bad = |key: &str, message: String| Error::InvalidSettings {
             key: format!("control.{key}"),
@@ -132,15 +133,14 @@ impl Schedule {
             match kind {
                 ActionKind::Load => b.set_load(a),
                 ActionKind::Velocity => {
-                    b.v = Vec3::new(a[0], a[1], a[2]);
-                    b.w = Vec3::new(a[3], a[4], a[5]);
+                    (b.v, b.w) = (a.linear(), a.angular());
                 }
             }
         }
     }
 
     /// Zero actions of the same shape.
-    pub fn zeros_like(&self) -> Vec<Vec<[f64; 6]>> {
+    pub fn zeros_like(&self) -> Vec<Vec<Twist>> {
         vec![vec![[0.0; 6]; self.bodies.len()]; self.actions.len()]
     }
 }
@@ -163,7 +163,7 @@ pub struct TrajectorySeed {
     /// ∂L/∂`states[b]`, per body.
     pub states: Vec<Vec<BodyAdjoint>>,
     /// ∂L/∂actions that the loss reads directly (an effort term).
-    pub actions: Vec<Vec<[f64; 6]>>,
+    pub actions: Vec<Vec<Twist>>,
     /// ∂L/∂(the final liquid): its velocity and particles.
     pub liquid: Option<AdjointState>,
 }
@@ -194,7 +194,7 @@ pub struct ControlRun {
     /// L.
     pub loss: f64,
     /// ∂L/∂actions, shaped as the schedule's actions.
-    pub actions: Vec<Vec<[f64; 6]>>,
+    pub actions: Vec<Vec<Twist>>,
     /// ∂L/∂(initial state).
     pub initial: Gradient,
     /// Every body's state at every boundary (see [`Trajectory::states`]).
@@ -316,7 +316,7 @@ fn read_action_gradients(
     states: &[BodyState],
     dt: f64,
     adj: &mut AdjointState,
-    grads: &mut [[f64; 6]],
+    grads: &mut [Twist],
 ) {
     for (&(i, kind), g) in controlled.iter().zip(grads) {
         let a = &mut adj.bodies[i];
@@ -441,7 +441,7 @@ impl Stepper {
 
     /// Takes `action` (one [f; τ] or [v; ω] per controlled body) for `steps_per_action` taped
     /// steps; returns the bodies' states after them.
-    pub fn step(&mut self, action: &[[f64; 6]]) -> Result<Vec<BodyState>> {
+    pub fn step(&mut self, action: &[Twist]) -> Result<Vec<BodyState>> {
         if self.taking_back {
             return Err(Error::InvalidSettings {
                 key: "control".into(),
@@ -478,7 +478,7 @@ impl Stepper {
     /// Takes back the last action not yet taken back: from ∂L/∂(the bodies' states after it)
     /// (with the liquid's adjoint carried from the action after it), the gradient of that
     /// action and ∂L/∂(the bodies' states before it).
-    pub fn backward(&mut self, after: &[BodyAdjoint]) -> Result<(Vec<[f64; 6]>, Vec<BodyAdjoint>)> {
+    pub fn backward(&mut self, after: &[BodyAdjoint]) -> Result<(Vec<Twist>, Vec<BodyAdjoint>)> {
         // Checked before anything is taken: a refused call leaves the run as it was.
         if after.len() != self.start.bodies().len() {
             return Err(Error::InvalidSettings {

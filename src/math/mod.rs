@@ -12,10 +12,12 @@ pub mod par;
 pub mod pool;
 pub mod runs;
 pub mod so3;
+pub mod twist;
 
 pub use parry3d_f64::math::{Pose, Rotation, Vector as Vec3};
 pub use parry3d_f64::query::PointQuery;
 pub use parry3d_f64::shape::{Shape, SharedShape};
+pub use twist::{add_twist, twist, Twist, TwistParts};
 
 /// A 3-vector as a plain array, used in scene files and outputs.
 pub type Arr3 = [f64; 3];

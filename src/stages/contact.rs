@@ -32,6 +32,7 @@ use crate::geometry::body::Motion;
 use crate::geometry::body::RigidBody;
 #[cfg(feature = "contact")]
 use crate::math::Pose;
+use crate::math::Twist;
 use crate::math::Vec3;
 #[cfg(feature = "contact")]
 use rapier3d_f64::dynamics::{
@@ -104,13 +105,13 @@ pub const MAX_CONTACT_ITERATIONS: usize = 4;
 
 /// What contact would do to the coupled bodies' velocities [v; ω] (one per body): the
 /// velocity change.
-pub type ContactChange<'a> = &'a dyn Fn(&[[f64; 6]]) -> Vec<[f64; 6]>;
+pub type ContactChange<'a> = &'a dyn Fn(&[Twist]) -> Vec<Twist>;
 
 /// What [`hold_contact`] did.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ContactHold {
     /// The velocity change [Δv; Δω] per coupled body held as an impulse in the last solve.
-    pub kick: Vec<[f64; 6]>,
+    pub kick: Vec<Twist>,
     /// Extra solves made.
     pub iterations: usize,
     /// Largest velocity change contact still made after the last solve (0 when it converged).
@@ -127,7 +128,7 @@ pub struct ContactHold {
 /// the body velocity that stands. With `change = None` (no contact possible) it is one solve.
 pub fn hold_contact<T>(
     bodies: usize,
-    mut solve: impl FnMut(&[[f64; 6]]) -> Result<(T, Vec<[f64; 6]>)>,
+    mut solve: impl FnMut(&[Twist]) -> Result<(T, Vec<Twist>)>,
     change: Option<ContactChange<'_>>,
     tolerance: f64,
 ) -> Result<(T, ContactHold)> {

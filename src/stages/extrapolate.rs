@@ -376,8 +376,8 @@ pub struct BodyVelocityAdjoint {
 impl BodyVelocityAdjoint {
     /// ∂L/∂[δx; δθ] of the body's pose: through the torque arms, the spin's axis, and the
     /// fractions β of the faces it covers in part (`dual`, its dual fractions).
-    pub fn pose(&self, dual: &DualFaces) -> [f64; 6] {
-        let mut out = [self.x.x, self.x.y, self.x.z, self.q.x, self.q.y, self.q.z];
+    pub fn pose(&self, dual: &DualFaces) -> crate::math::Twist {
+        let mut out = crate::math::twist(self.x, self.q);
         let lookup: std::collections::HashMap<(usize, usize), [f64; 6]> =
             (0..3).flat_map(|a| dual[a].iter().map(move |(f, b)| ((a, *f), b.d))).collect();
         for &(a, f, c) in &self.dbeta {
@@ -632,7 +632,7 @@ mod tests {
         let bva = correct_with_bodies_adjoint(
             &mut cty, u_old, &air, &projected, &bodies, &faces, &weights, &statics, &grid, 3,
         );
-        let gen = |b: &RigidBody| [b.v.x, b.v.y, b.v.z, b.w.x, b.w.y, b.w.z];
+        let gen = |b: &RigidBody| crate::math::twist(b.v, b.w);
         let l = cx.dot(&y);
         let r = x.dot(&cty)
             + bodies

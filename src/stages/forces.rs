@@ -6,7 +6,7 @@
 
 use crate::geometry::body::RigidBody;
 use crate::geometry::grid::Mac;
-use crate::math::Vec3;
+use crate::math::{twist, Twist, TwistParts, Vec3};
 use rayon::prelude::*;
 
 /// Adds `dt·g` to every face (gravity). Its adjoint is the identity.
@@ -21,26 +21,26 @@ pub fn add_gravity(u: &mut Mac, gravity: [f64; 3], dt: f64) {
 
 /// A body's [v; ω] after gravity `g` and its external force and torque act for `dt`:
 /// v + Δt·(g + F/m), ω + Δt·I_w⁻¹·τ.
-pub fn body_velocity(b: &RigidBody, g: Vec3, dt: f64) -> [f64; 6] {
+pub fn body_velocity(b: &RigidBody, g: Vec3, dt: f64) -> Twist {
     let v = b.v + dt * (g + b.force / b.mass);
     let mut w = b.w;
     if b.torque != Vec3::ZERO {
         w += dt * (b.world_inertia().inverse() * b.torque);
     }
-    [v.x, v.y, v.z, w.x, w.y, w.z]
+    twist(v, w)
 }
 
 /// What a body's external force and torque alone add to its [v; ω] in `dt`:
 /// Δt·[F/m; I_w⁻¹·τ]. Scaling the body's mass and inertia by s scales it by 1/s (the mass
 /// gradient reads it).
-pub fn load_velocity(b: &RigidBody, dt: f64) -> [f64; 6] {
+pub fn load_velocity(b: &RigidBody, dt: f64) -> Twist {
     let v = dt * b.force / b.mass;
     let w = if b.torque == Vec3::ZERO {
         Vec3::ZERO
     } else {
         dt * (b.world_inertia().inverse() * b.torque)
     };
-    [v.x, v.y, v.z, w.x, w.y, w.z]
+    twist(v, w)
 }
 
 /// The orientation part of [`body_velocity`]'s adjoint: given ∂L/∂ω after the stage, the
@@ -59,11 +59,11 @@ pub fn body_velocity_pose_adjoint(b: &RigidBody, dt: f64, w_bar: Vec3) -> Vec3 {
 /// `bar`: [v̄; ω̄] before it is `bar` itself (gravity and the loads add a constant); returns
 /// ∂L/∂(mass scale) of the loads' part, −bar·Δt·[F/m; I_w⁻¹τ]/m (the inertia scales with
 /// the mass), and ∂L/∂[δx; δθ] of the body's pose, the torque's through the world inertia.
-pub fn body_velocity_adjoint(b: &RigidBody, dt: f64, bar: &[f64; 6]) -> (f64, [f64; 6]) {
+pub fn body_velocity_adjoint(b: &RigidBody, dt: f64, bar: &Twist) -> (f64, Twist) {
     let dv = load_velocity(b, dt);
     let load: f64 = (0..6).map(|d| bar[d] * dv[d]).sum();
-    let gw = body_velocity_pose_adjoint(b, dt, Vec3::new(bar[3], bar[4], bar[5]));
-    (-load / b.mass, [0.0, 0.0, 0.0, gw.x, gw.y, gw.z])
+    let gw = body_velocity_pose_adjoint(b, dt, bar.angular());
+    (-load / b.mass, twist(Vec3::ZERO, gw))
 }
 
 #[cfg(test)]
@@ -89,7 +89,7 @@ mod tests {
             let mut at = |s: f64| {
                 b.q = (Rotation::from_scaled_axis(s * eps * crate::math::unit(k)) * q0).normalize();
                 let v = body_velocity(&b, Vec3::ZERO, dt);
-                Vec3::new(v[3], v[4], v[5]).dot(w_bar)
+                v.angular().dot(w_bar)
             };
             let fd = (at(1.0) - at(-1.0)) / (2.0 * eps);
             let ad = crate::math::comp(g, k);

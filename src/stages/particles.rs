@@ -9,6 +9,7 @@ use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::{DualFaces, NodeSdf};
 use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::weights::FaceWeights;
+use crate::math::Twist;
 use crate::math::Vec3;
 use crate::stages::band::BandChange;
 use crate::stages::density::{self, DensityInputs, DensityProjection, DensityStats, Displacement};
@@ -159,7 +160,7 @@ impl ParticleStage<'_> {
         &self,
         replayed: Replayed,
         pbar: &mut [Vec3],
-        pose: &mut [[f64; 6]],
+        pose: &mut [Twist],
         dual_faces: &[DualFaces],
         statics: &FaceWeights,
     ) -> Result<()> {
@@ -206,7 +207,7 @@ impl ParticleStage<'_> {
         rec: &ParticleRecord,
         pbar: &mut [Vec3],
         ubar: &mut Mac,
-        pose: &mut [[f64; 6]],
+        pose: &mut [Twist],
     ) {
         let fd = surface::jacobian_step(self.grid);
         let push =
@@ -231,7 +232,7 @@ impl ParticleStage<'_> {
 }
 
 /// pose += g, body by body.
-fn add_pose(pose: &mut [[f64; 6]], g: Vec<[f64; 6]>) {
+fn add_pose(pose: &mut [Twist], g: Vec<Twist>) {
     for (p, g) in pose.iter_mut().zip(g) {
         for d in 0..6 {
             p[d] += g[d];
@@ -249,7 +250,7 @@ fn density_weight_pose(
     g: &DensityInputs<'_>,
     dual_faces: &[DualFaces],
     statics: &FaceWeights,
-    pose: &mut [[f64; 6]],
+    pose: &mut [Twist],
 ) {
     // A face the projection closed at a deep cell does not see the body.
     let weights = proj.weights(g);

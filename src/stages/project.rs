@@ -8,7 +8,7 @@ use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::DualFaces;
 use crate::geometry::grid::Mac;
 use crate::geometry::weights::FaceWeights;
-use crate::math::Vec3;
+use crate::math::{add_twist, Twist, TwistParts, Vec3};
 use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
 use crate::stages::contact::{hold_contact, ContactChange, ContactHold, ContactSettings};
@@ -23,12 +23,12 @@ pub struct Projection {
     /// The solve's statistics.
     pub stats: CgStats,
     /// Per coupled body: [v; ω] the solve started from (with the contact kick).
-    pub v_hat: Vec<[f64; 6]>,
+    pub v_hat: Vec<Twist>,
     /// Per coupled body: [v; ω] after the solve.
-    pub v_after: Vec<[f64; 6]>,
+    pub v_after: Vec<Twist>,
     /// Per coupled body: the pressure force and torque J·p (less the weight and momentum of
     /// the liquid a thin body carries).
-    pub forces: Vec<[f64; 6]>,
+    pub forces: Vec<Twist>,
     /// What holding contact took.
     pub hold: ContactHold,
 }
@@ -38,7 +38,7 @@ pub struct Projection {
 /// for the caller's own), the pressure and its statistics. The caller's, so that a solve
 /// can be recorded or replayed.
 pub type PressureSolve<'a> =
-    &'a mut dyn FnMut(&Mac, &[[f64; 6]], Option<Vec<f64>>) -> Result<(Vec<f64>, CgStats)>;
+    &'a mut dyn FnMut(&Mac, &[Twist], Option<Vec<f64>>) -> Result<(Vec<f64>, CgStats)>;
 
 /// Contact held inside the projection: the bodies as they are, rapier's settings, and the
 /// velocity change below which contact counts as done.
@@ -60,20 +60,20 @@ pub struct HeldContact<'a> {
 pub fn project(
     sys: &StepSystem,
     u_hat: Mac,
-    v_hat: &[[f64; 6]],
+    v_hat: &[Twist],
     dt: f64,
     contact: Option<HeldContact<'_>>,
     solve: PressureSolve<'_>,
 ) -> Result<(Projection, Mac)> {
     let mut last_p: Option<Vec<f64>> = None;
-    let one = |kick: &[[f64; 6]]| {
-        let vel: Vec<[f64; 6]> =
+    let one = |kick: &[Twist]| {
+        let vel: Vec<Twist> =
             v_hat.iter().zip(kick).map(|(v, k)| std::array::from_fn(|d| v[d] + k[d])).collect();
         // With the liquid the thin bodies carry (`vel` where they carry none).
         let vel_e = sys.entrained_velocities(&vel, &u_hat);
         let (p, stats) = solve(&u_hat, &vel_e, last_p.take())?;
-        let mut forces: Vec<[f64; 6]> = sys.couplings().iter().map(|c| c.force(&p)).collect();
-        let after: Vec<[f64; 6]> = sys
+        let mut forces: Vec<Twist> = sys.couplings().iter().map(|c| c.force(&p)).collect();
+        let after: Vec<Twist> = sys
             .couplings()
             .iter()
             .zip(&vel_e)
@@ -86,7 +86,7 @@ pub fn project(
         // A body carrying liquid feels M·(V' − V̂)/Δt of it: J·p less the weight and the
         // momentum of the liquid it carries.
         for (k, ent) in sys.entrained.iter().enumerate().filter(|(_, e)| !e.is_empty()) {
-            let dv: [f64; 6] = std::array::from_fn(|d| (after[k][d] - vel[k][d]) / dt);
+            let dv: Twist = std::array::from_fn(|d| (after[k][d] - vel[k][d]) / dt);
             forces[k] = std::array::from_fn(|r| (0..6).map(|c| ent.mass[r][c] * dv[c]).sum());
         }
         last_p = Some(p.clone());
@@ -100,7 +100,7 @@ pub fn project(
         };
         Ok((proj, after))
     };
-    let change = |after: &[[f64; 6]]| match contact {
+    let change = |after: &[Twist]| match contact {
         Some(c) => contact_change(c, &sys.coupled, after, dt),
         None => Vec::new(),
     };
@@ -120,15 +120,14 @@ pub fn project(
 fn contact_change(
     contact: HeldContact<'_>,
     coupled: &[usize],
-    after: &[[f64; 6]],
+    after: &[Twist],
     dt: f64,
-) -> Vec<[f64; 6]> {
+) -> Vec<Twist> {
     #[cfg(feature = "contact")]
     {
         let mut bodies = contact.bodies.to_vec();
         for (&i, v) in coupled.iter().zip(after) {
-            bodies[i].v = Vec3::new(v[0], v[1], v[2]);
-            bodies[i].w = Vec3::new(v[3], v[4], v[5]);
+            (bodies[i].v, bodies[i].w) = (v.linear(), v.angular());
         }
         let before = bodies.clone();
         crate::stages::contact::ContactWorld::new(contact.size, &bodies, contact.settings)
@@ -157,9 +156,9 @@ pub struct ProjectAdjointInputs<'a> {
     /// The step's pressure.
     pub p: &'a [f64],
     /// Per coupled body, [v; ω] the solve started from ([`Projection::v_hat`]).
-    pub v_hat: &'a [[f64; 6]],
+    pub v_hat: &'a [Twist],
     /// Per body, [v; ω] after the solve (the coupled ones' [`Projection::v_after`]).
-    pub v_after: &'a [[f64; 6]],
+    pub v_after: &'a [Twist],
     /// The predicted field û on the faces the bodies cover (at least).
     pub u_hat: &'a Mac,
     /// The static solids' weights.
@@ -197,12 +196,12 @@ pub struct ProjectAdjoint {
 pub fn project_adjoint(
     g: &ProjectAdjointInputs<'_>,
     mut ubar: Mac,
-    vbar: &mut [[f64; 6]],
+    vbar: &mut [Twist],
     mass: &mut [f64],
-    pose: &mut [[f64; 6]],
+    pose: &mut [Twist],
 ) -> Result<ProjectAdjoint> {
     let sys = g.sys;
-    let adj_v: Vec<[f64; 6]> = sys.coupled.iter().map(|&i| vbar[i]).collect();
+    let adj_v: Vec<Twist> = sys.coupled.iter().map(|&i| vbar[i]).collect();
     let phi = g.surface.then_some(sys.phi.as_slice());
     let solved = sys.pressure.projection_adjoint(
         &mut ubar,
@@ -276,14 +275,14 @@ pub fn project_adjoint(
                     g.u_hat,
                     g.density,
                 );
-                add6(&mut gr, &ge);
+                add_twist(&mut gr, &ge);
             }
-            add6(&mut pose[i], &gr);
+            add_twist(&mut pose[i], &gr);
         }
         // Kinematic bodies: J and the fractions move with the prescribed pose.
         for (i, bc, v) in &sys.kinematic {
             let gr = kinematic_pose_adjoint(&inputs, &g.bodies[*i], &coupling_faces[*i], bc, v);
-            add6(&mut pose[*i], &gr);
+            add_twist(&mut pose[*i], &gr);
         }
     }
     for (k, &i) in sys.coupled.iter().enumerate() {
@@ -295,11 +294,4 @@ pub fn project_adjoint(
         vbar[*i] = std::array::from_fn(|d| vbar[*i][d] - js[d]);
     }
     Ok(ProjectAdjoint { u_hat: uhat_bar, phi: phi_bar.take() })
-}
-
-/// a += b.
-fn add6(a: &mut [f64; 6], b: &[f64; 6]) {
-    for d in 0..6 {
-        a[d] += b[d];
-    }
 }

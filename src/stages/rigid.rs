@@ -8,7 +8,7 @@ use crate::geometry::body::{
     BodyState, Motion, RigidBody,
 };
 use crate::math::so3;
-use crate::math::{Rotation, Vec3};
+use crate::math::{twist, Rotation, Twist, TwistParts, Vec3};
 use crate::stages::contact::ContactSettings;
 
 /// The adjoint of one body's state: ∂L/∂x, ∂L/∂q (in the quaternion embedding), ∂L/∂v,
@@ -38,9 +38,9 @@ impl BodyAdjoint {
 
     /// Adds ∂L/∂[δx; δθ] of the body's pose at orientation `q` (θ the world-frame tangent,
     /// q → exp(θ)·q) to ∂L/∂x and ∂L/∂q.
-    pub fn add_pose(&mut self, q: Rotation, pose: &[f64; 6]) {
-        self.x += Vec3::new(pose[0], pose[1], pose[2]);
-        self.q = self.q + so3::from_tangent_gradient(q, Vec3::new(pose[3], pose[4], pose[5]));
+    pub fn add_pose(&mut self, q: Rotation, pose: &Twist) {
+        self.x += pose.linear();
+        self.q = self.q + so3::from_tangent_gradient(q, pose.angular());
     }
 }
 
@@ -110,23 +110,23 @@ pub fn integrate(
 pub fn integrate_adjoint(
     bodies: &[RigidBody],
     start: &[BodyState],
-    v_after: &[[f64; 6]],
+    v_after: &[Twist],
     after: &[BodyAdjoint],
     dt: f64,
-) -> (Vec<BodyAdjoint>, Vec<[f64; 6]>) {
+) -> (Vec<BodyAdjoint>, Vec<Twist>) {
     let mut out = vec![BodyAdjoint::zero(); bodies.len()];
-    let mut vbar = vec![[0.0; 6]; bodies.len()];
+    let mut vbar: Vec<Twist> = vec![[0.0; 6]; bodies.len()];
     for (i, b) in bodies.iter().enumerate() {
         let a = &after[i];
         out[i].x = a.x;
         out[i].q = a.q;
         if !b.motion.integrated_here() {
             // Held still, or moved by the caller: its pose after the step is its pose before.
-            vbar[i] = [a.v.x, a.v.y, a.v.z, a.w.x, a.w.y, a.w.z];
+            vbar[i] = twist(a.v, a.w);
             continue;
         }
         let va = v_after[i];
-        let (q0, w_after) = (start[i].q, Vec3::new(va[3], va[4], va[5]));
+        let (q0, w_after) = (start[i].q, va.angular());
         let q1 = quat_step(q0, w_after, dt);
         // A dynamic body carries its angular momentum to the new orientation.
         let (mut qbar1, mut w_carry, mut q0_carry) =
@@ -142,7 +142,7 @@ pub fn integrate_adjoint(
         out[i].q = qbar + q0_carry;
         let vb = a.v + dt * a.x;
         let wb = w_carry + wbar;
-        vbar[i] = [vb.x, vb.y, vb.z, wb.x, wb.y, wb.z];
+        vbar[i] = twist(vb, wb);
     }
     (out, vbar)
 }

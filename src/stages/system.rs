@@ -11,6 +11,7 @@ use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::seal::Seal;
 use crate::geometry::weights::FaceWeights;
 use crate::math::par::for_each_keyed_mut;
+use crate::math::{twist, Twist};
 use crate::stages::advect::{advect_into, needed_faces, FaceMask};
 use crate::stages::forces::add_gravity;
 use crate::stages::pressure::{
@@ -171,7 +172,7 @@ pub struct StepSystem {
     weak: Vec<BodyCoupling>,
     /// Kinematic bodies: index, J (its Δt·M⁻¹ unused) and the prescribed [v; ω], a moving
     /// boundary of the solve.
-    pub kinematic: Vec<(usize, BodyCoupling, [f64; 6])>,
+    pub kinematic: Vec<(usize, BodyCoupling, Twist)>,
 }
 
 impl StepSystem {
@@ -255,7 +256,7 @@ impl StepSystem {
     /// The coupled bodies' velocities `v` before the solve with the liquid they carry
     /// (`u`, the fluid's): [`Entrained::velocity`] where a body carries some, `v` itself
     /// where it carries none.
-    pub fn entrained_velocities(&self, v: &[[f64; 6]], u: &Mac) -> Vec<[f64; 6]> {
+    pub fn entrained_velocities(&self, v: &[Twist], u: &Mac) -> Vec<Twist> {
         v.iter()
             .zip(&self.entrained)
             .map(|(v, e)| if e.is_empty() { *v } else { e.velocity(v, u) })
@@ -273,7 +274,7 @@ impl StepSystem {
 
     /// The right-hand side for the fluid velocity `u` and the coupled bodies' velocities
     /// `v` (one per coupled body): minus the volume flux out of each liquid cell.
-    pub fn rhs(&self, u: &Mac, v: &[[f64; 6]]) -> Vec<f64> {
+    pub fn rhs(&self, u: &Mac, v: &[Twist]) -> Vec<f64> {
         let mut b = if self.weak.is_empty() {
             self.pressure.rhs(u, &self.geometry.weights, v)
         } else {
@@ -293,7 +294,7 @@ impl StepSystem {
 
     /// The volume flux out of each liquid cell after the projection: through the fluid
     /// faces of `u`, pushed by the coupled bodies at `v` and by the kinematic ones.
-    pub fn flux(&self, u: &Mac, v: &[[f64; 6]]) -> Vec<f64> {
+    pub fn flux(&self, u: &Mac, v: &[Twist]) -> Vec<f64> {
         let mut flux = self.pressure.fluid_flux(u, &self.geometry.weights);
         for (coupling, v) in self.couplings().iter().zip(v) {
             coupling.add_jt(v, &mut flux);
@@ -334,8 +335,8 @@ pub fn predicted_velocity(
 }
 
 /// `[v; ω]`.
-pub fn generalized_velocity(b: &RigidBody) -> [f64; 6] {
-    [b.v.x, b.v.y, b.v.z, b.w.x, b.w.y, b.w.z]
+pub fn generalized_velocity(b: &RigidBody) -> Twist {
+    twist(b.v, b.w)
 }
 
 /// Δt·M_S⁻¹ for a body: `diag(Δt/m·I, Δt·(R I Rᵀ)⁻¹)`.

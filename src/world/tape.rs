@@ -7,6 +7,7 @@ use crate::error::{Error, GradientError, Result};
 use crate::geometry::body::BodyState;
 use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::Mac;
+use crate::math::Twist;
 use crate::solvers::cg::CgStats;
 use crate::stages::extrapolate::AirBodyFaces;
 pub use crate::stages::particles::ParticleRecord;
@@ -23,9 +24,9 @@ pub struct StepRecord {
     /// the projection's right-hand side reads). One per body that [`RigidBody::moves`].
     ///
     /// [`RigidBody::moves`]: crate::geometry::body::RigidBody::moves
-    pub v_hat: Vec<[f64; 6]>,
+    pub v_hat: Vec<Twist>,
     /// Each body's [v; ω] after the pressure solve (the rigid integration's input).
-    pub v_after: Vec<[f64; 6]>,
+    pub v_after: Vec<Twist>,
     /// Pressure per liquid cell.
     pub p: Vec<f64>,
     /// Particle φ_L of the step (empty when the surface is frozen: the initial one).
@@ -35,7 +36,7 @@ pub struct StepRecord {
     pub body_faces: Vec<BodyFaces>,
     /// Each body's external force and torque in the step, [f; τ] (the `forces` stage reads
     /// them; a per-step action changes them from step to step).
-    pub loads: Vec<[f64; 6]>,
+    pub loads: Vec<Twist>,
     /// The fluid velocity the correction extrapolated onto the faces the bodies cover in part
     /// that the projection did not update, before it mixed in the bodies' part (see
     /// [`correct_with_bodies`]).

@@ -21,7 +21,7 @@ use crate::geometry::body::RigidBody;
 use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::seal::Seal;
 use crate::math::dual::Dual;
-use crate::math::{comp, unit, Vec3};
+use crate::math::{comp, unit, TwistParts, Vec3};
 
 use super::{ghost_theta, PressureParams};
 
@@ -233,8 +233,8 @@ impl Entrained {
         // The world inertia turns with the body: δI = [e]×·I − I·[e]×.
         let dv: [f64; 6] = std::array::from_fn(|d| v_hat[d] - v_new[d]);
         let i_w = body.world_inertia();
-        let wv = Vec3::new(dv[3], dv[4], dv[5]);
-        let yw = Vec3::new(y[3], y[4], y[5]);
+        let wv = dv.angular();
+        let yw = y.angular();
         for k in 3..6 {
             let e = unit(k - 3);
             let di = e.cross(i_w * wv) - i_w * e.cross(wv);

@@ -10,7 +10,8 @@ use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::fractions;
 use crate::geometry::grid::{Grid, Mac};
 use crate::math::par::MIN_LEN;
-use crate::math::{v3, Vec3};
+use crate::math::Twist;
+use crate::math::{v3, TwistParts, Vec3};
 use crate::stages::band::{self, Band, BandChange};
 use crate::stages::surface::{self, Bins};
 use rayon::prelude::*;
@@ -80,7 +81,7 @@ pub struct Simulation {
     world: u32,
     next_handle: u32,
     /// Per body, the pressure force and torque of the last step's solve.
-    fluid_forces: Vec<[f64; 6]>,
+    fluid_forces: Vec<Twist>,
     pressure: Vec<f64>,
     phi: Vec<f64>,
     /// φ_L of the initial particles, when the surface is frozen.
@@ -466,7 +467,7 @@ impl Simulation {
     /// engine this force and leave contact off here (its engine resolves it).
     pub fn fluid_force(&self, h: BodyHandle) -> Result<(Vec3, Vec3)> {
         let f = self.fluid_forces[self.index(h)?];
-        Ok((Vec3::new(f[0], f[1], f[2]), Vec3::new(f[3], f[4], f[5])))
+        Ok((f.linear(), f.angular()))
     }
 
     /// A copy to re-run steps from (a gradient's checkpoint snapshot): with the surface

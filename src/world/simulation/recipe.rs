@@ -7,7 +7,7 @@ use super::{volume_warning, BodyHandle, Simulation, EXTERNAL_REACH};
 use crate::error::{Error, Result};
 use crate::geometry::body::RigidBody;
 use crate::geometry::grid::Mac;
-use crate::math::{v3, Vec3};
+use crate::math::{v3, Twist, TwistParts};
 use crate::solvers::cg::CgStats;
 use crate::stages::band::Band;
 use crate::stages::contact::contact_possible;
@@ -94,7 +94,7 @@ impl Simulation {
         let u_hat = predicted_velocity(&self.u, &grid, dt, gravity, &sys.needed, out);
         timed.lap(Stage::AdvectVelocity);
 
-        let v_hat: Vec<[f64; 6]> =
+        let v_hat: Vec<Twist> =
             sys.coupled.iter().map(|&i| body_velocity(&self.bodies[i], v3(gravity), dt)).collect();
         timed.lap(Stage::Forces);
 
@@ -268,15 +268,14 @@ impl Simulation {
         &mut self,
         sys: &StepSystem,
         u_hat: Mac,
-        v_hat: &[[f64; 6]],
+        v_hat: &[Twist],
         dt: f64,
         pressures: &mut Pressures,
     ) -> Result<(Projection, Mac, bool)> {
         let contact = self.settings.contact.enabled && {
             let mut moving = self.bodies.clone();
             for (&i, v) in sys.coupled.iter().zip(v_hat) {
-                moving[i].v = Vec3::new(v[0], v[1], v[2]);
-                moving[i].w = Vec3::new(v[3], v[4], v[5]);
+                (moving[i].v, moving[i].w) = (v.linear(), v.angular());
             }
             contact_possible(&moving, self.grid.size(), dt)
         };
@@ -286,14 +285,13 @@ impl Simulation {
             settings: &self.settings.contact,
             tolerance: contact_tolerance(self.settings.fluid.gravity, dt),
         });
-        let mut solve = |u_hat: &Mac, vel_e: &[[f64; 6]], warm: Option<Vec<f64>>| {
+        let mut solve = |u_hat: &Mac, vel_e: &[Twist], warm: Option<Vec<f64>>| {
             self.solve_pressure(sys, u_hat, vel_e, warm, pressures)
         };
         let (proj, u) = project(sys, u_hat, v_hat, dt, held, &mut solve)?;
         for ((&i, v), f) in sys.coupled.iter().zip(&proj.v_after).zip(&proj.forces) {
             let b = &mut self.bodies[i];
-            b.v = Vec3::new(v[0], v[1], v[2]);
-            b.w = Vec3::new(v[3], v[4], v[5]);
+            (b.v, b.w) = (v.linear(), v.angular());
             self.fluid_forces[i] = *f;
         }
         // A kinematic body's force is what its motion costs: J·p.
@@ -309,7 +307,7 @@ impl Simulation {
         &self,
         sys: &StepSystem,
         u_hat: &Mac,
-        vel_e: &[[f64; 6]],
+        vel_e: &[Twist],
         warm: Option<Vec<f64>>,
         pressures: &mut Pressures,
     ) -> Result<(Vec<f64>, CgStats)> {

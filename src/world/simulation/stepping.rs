@@ -7,6 +7,7 @@ use super::Simulation;
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::math::pool::{run_spread, Spread, SERIAL_BELOW};
+use crate::math::Twist;
 use crate::math::{v3, Vec3};
 use crate::stages::band::Band;
 use crate::stages::density::DensityInputs;
@@ -28,7 +29,7 @@ pub(super) const LARGEST: f64 = 1e100;
 /// 24 bytes a particle and 21 a cell every step).
 struct BodyUndo {
     bodies: Vec<RigidBody>,
-    fluid_forces: Vec<[f64; 6]>,
+    fluid_forces: Vec<Twist>,
     step: usize,
     time: f64,
 }
@@ -71,7 +72,7 @@ struct Undo {
     band: Option<Arc<Band>>,
     phi: Vec<f64>,
     bodies: Vec<BodyState>,
-    fluid_forces: Vec<[f64; 6]>,
+    fluid_forces: Vec<Twist>,
     step: usize,
     time: f64,
 }
