@@ -5,6 +5,7 @@
 //! shape's local origin sits at `x − q·c` where `c` is the centre of mass in the shape frame.
 //! Mass and inertia come from parry's mass properties; the world inertia is `R·I·Rᵀ`.
 
+use crate::error::{Error, Result};
 use crate::geometry::fractions;
 use crate::geometry::grid::Grid;
 use crate::math::dual::Dual;
@@ -288,12 +289,12 @@ impl BodyBuilder {
         self
     }
 
-    /// The body. Errors ([`crate::Error::InvalidSettings`] naming the body): a density or
+    /// The body. Errors ([`Error::InvalidSettings`] naming the body): a density or
     /// mass that is not a positive finite number, or a shape whose mass properties are not
     /// finite and positive (an empty or enormous shape). Where the body may go is checked
-    /// when a simulation takes it ([`crate::Simulation::add_body`]).
-    pub fn build(self) -> crate::Result<RigidBody> {
-        let invalid = |message: String| crate::Error::InvalidSettings {
+    /// when a simulation takes it ([`crate::world::Simulation::add_body`]).
+    pub fn build(self) -> Result<RigidBody> {
+        let invalid = |message: String| Error::InvalidSettings {
             key: format!("body {:?}", self.name),
             message,
         };
