@@ -1,11 +1,23 @@
-//! What the library's test groups share: the repository's assets, the built-in scenes' text
-//! to edit into a test's own, and temporary folders that clean up after themselves.
+//! What the test groups share: the repository's assets, the built-in scenes' text to edit
+//! into a test's own, and temporary folders that clean up after themselves. The library's
+//! groups (`tests/*/main.rs`) and the command line's (`cli/tests/common`) both include this
+//! file.
 
 use std::path::{Path, PathBuf};
 
+/// The repository's root: the library's package folder, one above the command line's
+/// (`cli/`).
+fn root() -> PathBuf {
+    let package = Path::new(env!("CARGO_MANIFEST_DIR"));
+    match env!("CARGO_PKG_NAME") {
+        "diffluid-cli" => package.join(".."),
+        _ => package.to_path_buf(),
+    }
+}
+
 /// A file under the repository's `assets/`.
 pub fn asset(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("assets").join(rel)
+    root().join("assets").join(rel)
 }
 
 /// The TOML text of the built-in scene `name` (`assets/scenes/<name>.toml`).
@@ -29,6 +41,18 @@ impl TempDir {
             .tempdir()
             .expect("a temporary folder");
         TempDir(dir)
+    }
+
+    /// Writes `text` as `scene.toml` in the folder and returns its path.
+    pub fn scene(&self, text: &str) -> PathBuf {
+        let path = self.join("scene.toml");
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    /// Where runs are told to write their output.
+    pub fn out(&self) -> PathBuf {
+        self.join("out")
     }
 }
 
