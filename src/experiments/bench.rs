@@ -5,7 +5,7 @@
 //! Every scene is built here as TOML text, the way a user would write it, and timed in
 //! process with the wall clock: a row's `seconds` is the whole run of that configuration.
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::experiments::scene::Scene;
 use crate::geometry::body::Param;
 use crate::gradients::{central_difference, value_and_gradient, Coordinate, GradientSettings};
@@ -230,7 +230,7 @@ pub fn realtime(quick: bool) -> Result<Vec<RealtimeRow>> {
         for (threads, mode) in [(1, "1 thread"), (2, "2 threads"), (2, "2 threads, parallel")] {
             let pool =
                 rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|e| {
-                    crate::Error::InvalidSettings {
+                    Error::InvalidSettings {
                         key: "bench".into(),
                         message: format!("a pool of {threads} threads could not start: {e}"),
                     }

@@ -430,7 +430,7 @@ pub struct Output {
     /// in the ParaView frames with `--vtk`). Needs the `surface` feature. Default false.
     pub surface: bool,
     /// The surface's resolution: distance samples per cell along each axis, 1 to 8. Default
-    /// 2 (about a fifth of a step's time at dx 0.05 on the dam break).
+    /// 2 (what each costs: docs/performance.md, "Surface meshes").
     pub surface_samples: usize,
     /// The surface's file format. Default "ply" (binary, for Blender, ParaView, MeshLab).
     pub surface_format: MeshFormat,

@@ -5,11 +5,14 @@
 //! shape's local origin sits at `x − q·c` where `c` is the centre of mass in the shape frame.
 //! Mass and inertia come from parry's mass properties; the world inertia is `R·I·Rᵀ`.
 
+use crate::error::{Error, Result};
 use crate::geometry::fractions;
 use crate::geometry::grid::Grid;
 use crate::math::dual::Dual;
 use crate::math::{twist, Pose, Rotation, SharedShape, Twist, TwistParts, Vec3};
 use parry3d_f64::math::Matrix as Mat3;
+
+pub use crate::geometry::spin::Spin;
 
 /// Bodies thinner than this many cells everywhere seal the faces they cross
 /// ([`RigidBody::seals`]); static solids from 2 cells down
@@ -51,55 +54,6 @@ pub struct RigidBody {
     /// [`crate::geometry::shape::depth`]): a body less than half a cell deep (thinner than a cell
     /// everywhere) seals the faces its surface cuts ([`RigidBody::seals`]).
     pub depth: f64,
-}
-
-/// Which part of a body's rotation reaches the liquid (see [`RigidBody::spin`]).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Spin {
-    /// All of it.
-    Whole,
-    /// The part across this world axis (a capsule, cylinder or cone about its axis).
-    AcrossAxis(Vec3),
-    /// None (a ball about its centre).
-    None,
-}
-
-impl Spin {
-    /// The part of an angular vector (an angular velocity, or a torque arm r × e) that
-    /// couples: P·x with P = 1, 1 − a·aᵀ or 0. P is symmetric, so the same projection maps
-    /// a torque and an angular velocity.
-    #[inline]
-    pub fn project(&self, x: Vec3) -> Vec3 {
-        match *self {
-            Spin::Whole => x,
-            Spin::AcrossAxis(a) => x - a * a.dot(x),
-            Spin::None => Vec3::ZERO,
-        }
-    }
-
-    /// δ(P·x) for a world rotation δθ of the body: with δa = δθ × a,
-    /// −δa·(a·x) − a·(δa·x). Zero unless the spin is about an axis.
-    #[inline]
-    pub fn rotation_derivative(&self, x: Vec3, dtheta: Vec3) -> Vec3 {
-        match *self {
-            Spin::AcrossAxis(a) => {
-                let da = dtheta.cross(a);
-                -da * a.dot(x) - a * da.dot(x)
-            }
-            _ => Vec3::ZERO,
-        }
-    }
-
-    /// ∂(P·x)/∂θ as it acts on a world rotation δθ of the body, given back as the gradient
-    /// of `g·(P·x)`: with δa = δθ × a, δ(P·x) = −δa·(a·x) − a·(δa·x), and
-    /// g·δ(P·x) = δθ·(−(a·x)·(a × g) − (g·a)·(a × x)). Zero unless the spin is about an axis.
-    #[inline]
-    pub fn rotation_gradient(&self, x: Vec3, g: Vec3) -> Vec3 {
-        match *self {
-            Spin::AcrossAxis(a) => -(a.dot(x)) * a.cross(g) - g.dot(a) * a.cross(x),
-            _ => Vec3::ZERO,
-        }
-    }
 }
 
 /// Who moves a body.
@@ -335,12 +289,12 @@ impl BodyBuilder {
         self
     }
 
-    /// The body. Errors ([`crate::Error::InvalidSettings`] naming the body): a density or
+    /// The body. Errors ([`Error::InvalidSettings`] naming the body): a density or
     /// mass that is not a positive finite number, or a shape whose mass properties are not
     /// finite and positive (an empty or enormous shape). Where the body may go is checked
-    /// when a simulation takes it ([`crate::Simulation::add_body`]).
-    pub fn build(self) -> crate::Result<RigidBody> {
-        let invalid = |message: String| crate::Error::InvalidSettings {
+    /// when a simulation takes it ([`crate::world::Simulation::add_body`]).
+    pub fn build(self) -> Result<RigidBody> {
+        let invalid = |message: String| Error::InvalidSettings {
             key: format!("body {:?}", self.name),
             message,
         };

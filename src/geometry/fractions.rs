@@ -25,6 +25,7 @@
 
 use crate::geometry::grid::{Grid, Lattice};
 use crate::geometry::shape::Solid;
+use crate::geometry::spin::Spin;
 use crate::math::dual::{Dual, Scalar};
 use crate::math::Vec3;
 
@@ -675,13 +676,11 @@ pub fn body_faces_generic<T: Scalar + Send + Sync>(
 /// `(Jᵀ·[v; ω])_i` the volume flux the body's motion pushes out of cell i. Sorted by cell.
 /// The torque rows are projected by the body's [`Spin`] (`P·(r_f × e_f)`: what of its
 /// rotation reaches the liquid, see [`crate::geometry::body::RigidBody::spin`]).
-///
-/// [`Spin`]: crate::geometry::body::Spin
 pub fn body_jacobian(
     grid: &Grid,
     faces: &BodyFaces,
     com: crate::math::Vec3,
-    spin: crate::geometry::body::Spin,
+    spin: Spin,
 ) -> Vec<(usize, [f64; 6])> {
     let area = grid.dx * grid.dx;
     let mut acc: std::collections::BTreeMap<usize, [f64; 6]> = Default::default();

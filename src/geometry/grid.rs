@@ -299,8 +299,7 @@ impl Lattice {
     /// (the same bits: the three face lattices of a velocity share one division).
     #[inline(always)]
     pub fn sample_scaled(&self, field: &[f64], t: [f64; 3]) -> f64 {
-        // Written out: as an array map this was left as a call (`try_map`) once `place` grew,
-        // 2% of a large_tank step's profile.
+        // Written out: as an array map this was left as a call (`try_map`) once `place` grew.
         let at = |a: usize| self.locate_scaled(a, t[a]);
         trilinear(field, self.n, [at(0), at(1), at(2)])
     }
@@ -343,7 +342,7 @@ pub struct Mac {
 #[inline(always)]
 fn face_places<T: Copy>(grid: &Grid, t: [f64; 3], at: impl Fn(f64, usize) -> T) -> [[T; 3]; 3] {
     // Written out: array maps here were left as calls (`try_map`) by the compiler in some
-    // builds, which made a particle's velocity 2.5× slower.
+    // builds, a call per particle.
     let n = grid.n;
     let [f0, f1, f2] = [at(t[0], n[0] + 1), at(t[1], n[1] + 1), at(t[2], n[2] + 1)];
     let [c0, c1, c2] = [at(t[0] - 0.5, n[0]), at(t[1] - 0.5, n[1]), at(t[2] - 0.5, n[2])];
@@ -377,9 +376,8 @@ impl Mac {
     }
 
     /// Velocity at `x` and its Jacobian: row `a` is the gradient of component `a`. Always
-    /// inlined, each component's stencil used where it is made: as a call that returned the
-    /// three stencils (960 bytes) through memory, it and the stencils' reads were 4.5% of a
-    /// live-surface gradient's profile (the particles' adjoint now about 3% faster).
+    /// inlined, each component's stencil used where it is made: as a call it returned the
+    /// three stencils (960 bytes) through memory, to be read back.
     #[inline(always)]
     pub fn velocity_jacobian(&self, grid: &Grid, x: Vec3) -> (Vec3, [Vec3; 3]) {
         let places = face_stencil_places(grid, x);

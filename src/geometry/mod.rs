@@ -6,4 +6,5 @@ pub mod grid;
 pub mod mesh;
 pub mod seal;
 pub mod shape;
+pub mod spin;
 pub mod weights;

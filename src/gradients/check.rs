@@ -280,7 +280,7 @@ fn check_row(
 /// named `<body>.a<k>[<entry>]`) and every initial coordinate of every body that moves.
 pub fn gradcheck_controlled(
     sim: &Simulation,
-    schedule: &super::control::Schedule,
+    schedule: &super::schedule::Schedule,
     loss: &dyn super::control::TrajectoryLoss,
     s: &GradcheckSettings,
     samples: usize,
@@ -288,7 +288,7 @@ pub fn gradcheck_controlled(
     use super::control::{value_and_gradient_controlled, Trajectory};
     let run =
         value_and_gradient_controlled(sim, schedule, loss, &GradientSettings::from(s.options))?;
-    let value = |schedule: &super::control::Schedule, start: &Simulation| -> Result<f64> {
+    let value = |schedule: &super::schedule::Schedule, start: &Simulation| -> Result<f64> {
         let mut sim = start.clone();
         let mut states = Vec::with_capacity(schedule.steps() + 1);
         for t in 0..schedule.steps() {

@@ -1,5 +1,6 @@
 //! Losses on the final state, and the adjoint state they start the backward pass from.
 
+use crate::error::{Error, Result};
 use crate::geometry::body::Param;
 use crate::geometry::grid::Mac;
 use crate::math::{Rotation, Vec3};
@@ -59,9 +60,9 @@ pub struct BodyTargetLoss {
 impl BodyTargetLoss {
     /// A loss on body `h` of `sim` with no target yet (set `position`, `orientation` or
     /// `velocity`): the Rust API names a body by its handle (a scene file by its name).
-    /// Errors: [`crate::Error::UnknownBody`].
-    pub fn on(sim: &Simulation, h: BodyHandle) -> crate::Result<BodyTargetLoss> {
-        let body = sim.index_of(h).ok_or(crate::Error::UnknownBody { handle: h.id() })?;
+    /// Errors: [`Error::UnknownBody`].
+    pub fn on(sim: &Simulation, h: BodyHandle) -> Result<BodyTargetLoss> {
+        let body = sim.index_of(h).ok_or(Error::UnknownBody { handle: h.id() })?;
         Ok(BodyTargetLoss { body, position: None, orientation: None, velocity: None })
     }
 }
@@ -141,10 +142,10 @@ pub struct Gradient {
 
 impl Gradient {
     /// The part for body `h` of `sim`, the initial state the gradient was taken at.
-    /// Errors: [`crate::Error::UnknownBody`].
-    pub fn body(&self, sim: &Simulation, h: BodyHandle) -> crate::Result<&BodyGradient> {
+    /// Errors: [`Error::UnknownBody`].
+    pub fn body(&self, sim: &Simulation, h: BodyHandle) -> Result<&BodyGradient> {
         sim.index_of(h)
             .and_then(|i| self.bodies.get(i))
-            .ok_or(crate::Error::UnknownBody { handle: h.id() })
+            .ok_or(Error::UnknownBody { handle: h.id() })
     }
 }

@@ -6,8 +6,8 @@ use super::backward::{
     backward_adjoint_hooked, check_differentiable, check_settings, to_gradient, AdjointSeconds,
     GradientOptions,
 };
-use super::control::Schedule;
 use super::loss::{AdjointState, Gradient, Loss};
+use super::schedule::Schedule;
 use crate::error::Result;
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::math::pool::run_spread;

@@ -5,10 +5,10 @@
 //! A step's whole-grid arrays are freed and made again every step (most are kept by the
 //! step's pools, not all). glibc hands an array above its mmap threshold (at most 32 MiB)
 //! back to the kernel when it is freed, and the next one of the same size is page-faulted
-//! in again, a zeroed 4 KiB page at a time (at 256×128×256 cells most of a step's kernel
-//! time; docs/performance.md has the profile). And an array of
-//! tens of MB read at random places (a particle's cell, a stencil's neighbours) misses the
-//! TLB at nearly every read with 4 KiB pages, whose few thousand TLB entries reach a few MB.
+//! in again, a zeroed 4 KiB page at a time (docs/performance.md measures what that cost at
+//! 256×128×256 cells). And an array of tens of MB read at random places (a particle's cell,
+//! a stencil's neighbours) misses the TLB at nearly every read with 4 KiB pages, whose few
+//! thousand TLB entries reach a few MB.
 //!
 //! [`GridAllocator`] is the system allocator with two changes, for a binary to install as its
 //! `#[global_allocator]` and to [`GridAllocator::tune`] before its threads start:

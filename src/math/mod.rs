@@ -35,9 +35,9 @@ pub fn comp(v: Vec3, axis: usize) -> f64 {
 }
 
 /// ⌊x⌋ without a library call, for the per-particle hot paths: the baseline x86-64 target
-/// has no rounding instruction, so `f64::floor` is a call into libm (1.2% of a `large_tank`
-/// step in a profile). Truncate, then step down where truncation rounded a negative value
-/// up. The same value as `x.floor()` for |x| < 2⁶³, except −0 (gives +0); NaN gives 0.
+/// has no rounding instruction, so `f64::floor` is a call into libm. Truncate, then step
+/// down where truncation rounded a negative value up. The same value as `x.floor()` for
+/// |x| < 2⁶³, except −0 (gives +0); NaN gives 0.
 #[inline]
 pub fn floor(x: f64) -> f64 {
     let t = x as i64 as f64;

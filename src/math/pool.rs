@@ -52,9 +52,9 @@ fn serial_pool() -> Option<&'static rayon::ThreadPool> {
 
 /// Runs `f` on a thread of rayon's pool. A step makes dozens of short parallel loops; called
 /// from a thread outside the pool, each one would hand its work over and put the caller to
-/// sleep until it is done (a pair of context switches, tens of microseconds, per loop: on
-/// block_drop that was half the time of a step). Inside the pool, the caller takes part in
-/// its own loops. Cheap when already on the pool.
+/// sleep until it is done: a pair of context switches a loop, more than a small grid's loop
+/// takes (measured in docs/performance.md, "Why the hot paths are written as they are").
+/// Inside the pool, the caller takes part in its own loops. Cheap when already on the pool.
 pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| f())
 }

@@ -107,8 +107,9 @@ impl Schedule {
 /// Soundness rests on the schedule: every row is written by exactly one task (the one whose
 /// tile holds it), and a row is read only by that task after writing it, or by tasks of a
 /// later wave, which start after the wave that wrote it has joined (a rayon join orders the
-/// memory). Relaxed atomics would need no `unsafe`, but they cost 50% more time per solve
-/// (measured at 128³, one thread): the compiler may not reorder loads across them.
+/// memory). Relaxed atomics would need no `unsafe`, but the compiler may not reorder loads
+/// across them, and the solve is slower for it (docs/performance.md, "Why the hot paths are
+/// written as they are").
 struct Shared<'a> {
     ptr: *mut f64,
     len: usize,

@@ -576,8 +576,8 @@ mod tests {
         bodies[0].w = Vec3::new(0.4, 0.7, -0.5);
         bodies[1].v = Vec3::new(-0.1, 0.25, 0.2);
         bodies[1].w = Vec3::new(1.0, -2.0, 0.5);
-        assert_eq!(bodies[0].spin(), crate::geometry::body::Spin::Whole);
-        assert_eq!(bodies[1].spin(), crate::geometry::body::Spin::None);
+        assert_eq!(bodies[0].spin(), crate::geometry::spin::Spin::Whole);
+        assert_eq!(bodies[1].spin(), crate::geometry::spin::Spin::None);
         let faces: Vec<BodyFaces> = bodies.iter().map(|b| b.face_fractions(&grid)).collect();
         let mut w = crate::geometry::fractions::face_weights(&grid, &[]);
         for bf in &faces {

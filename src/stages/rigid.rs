@@ -40,7 +40,7 @@ impl BodyAdjoint {
     /// q → exp(θ)·q) to ∂L/∂x and ∂L/∂q.
     pub fn add_pose(&mut self, q: Rotation, pose: &Twist) {
         self.x += pose.linear();
-        self.q = self.q + so3::from_tangent_gradient(q, pose.angular());
+        self.q += so3::from_tangent_gradient(q, pose.angular());
     }
 }
 

@@ -141,9 +141,9 @@ pub struct SolverSettings {
     pub freeze_surface: bool,
     /// Keep the pool's other workers spinning through a step (and a backward pass), taking
     /// the step's parallel work as soon as it is split off, instead of sleeping between its
-    /// loops and being woken for each (a step of `large_tank` runs about 375 loops; each
-    /// wake is tens of microseconds). It makes a two-thread `large_tank` step 3–4% faster,
-    /// and the other workers then spend their idle moments spinning, not sleeping. Default:
+    /// loops and being woken for each (a step of `large_tank` runs about 375 loops, each
+    /// wake a context switch; docs/performance.md, "Spinning workers", has the gain). The
+    /// other workers then spend their idle moments spinning, not sleeping. Default:
     /// none given, so on for grids of 262,144 cells (64³) and more, where a step is long
     /// enough for it to pay; off below. The results are the same bits either way.
     pub spin_workers: Option<bool>,
@@ -280,10 +280,9 @@ impl NarrowBand {
     pub const AUTO_WIDTH: usize = 3;
 
     /// The share of the liquid's cells that must be deep for `auto` to take a band. A band
-    /// costs its update every step and saves the deep cells' particles; measured on the
-    /// shipped scenes (CPU time of 30 steps, docs/performance.md, "Defaults chosen from the
-    /// scene"), it saves nothing measurable up to a third of the cells deep and a quarter to a
-    /// third of the step from half of them on.
+    /// costs its update every step and saves the deep cells' particles; on the shipped scenes
+    /// it paid for itself from about half of the cells deep, and not below a third
+    /// (docs/performance.md, "Defaults chosen from the scene", has the CPU times).
     pub const AUTO_DEEP_SHARE: f64 = 0.5;
 
     /// The width in cells, with `auto` read as the band it would be

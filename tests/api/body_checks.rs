@@ -12,32 +12,20 @@
 //!   2 cm/s (measured 0.96 cm/s).
 //! - Bad input: every malformed body is rejected with a message naming it.
 
-use crate::common::asset;
+use crate::common::{asset, tank_toml, TempDir};
 use diffluid::math::Vec3;
 use diffluid::Scene;
 
 fn tank(body: &str, steps: usize, contact: bool) -> String {
-    format!(
-        r#"
-name = "bodies"
-[domain]
-size = [0.8, 0.8, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = {steps}
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.4, 0.8] }}
-{body}
+    tank_toml("bodies", [0.8, 0.8, 0.8], 0.05, 0.4, steps)
+        + &format!(
+            r#"{body}
 [contact]
 enabled = {contact}
 [output]
 particles = false
 "#
-    )
+        )
 }
 
 fn trajectory(shape: &str) -> Vec<(Vec3, diffluid::math::Rotation)> {
@@ -155,8 +143,7 @@ fn bad_bodies_are_rejected_with_a_clear_message() {
     let mut lines: Vec<&str> = cube.lines().collect();
     let last_face = lines.iter().rposition(|l| l.starts_with("f ")).unwrap();
     lines.remove(last_face);
-    let dir = std::env::temp_dir().join(format!("diffluid-open-mesh-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = TempDir::new("open-mesh");
     let path = dir.join("open.obj");
     std::fs::write(&path, lines.join("\n")).unwrap();
     rejected(
@@ -179,7 +166,6 @@ fn bad_bodies_are_rejected_with_a_clear_message() {
         "{:?}",
         sim.warnings()
     );
-    std::fs::remove_dir_all(dir).ok();
 }
 
 #[test]

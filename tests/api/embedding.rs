@@ -11,6 +11,7 @@
 //!   contact off (nothing would keep them apart), and it warns at once about a body thinner
 //!   than its face fractions are sampled at.
 
+use crate::common::TempDir;
 use diffluid::math::Rotation;
 use diffluid::prelude::*;
 
@@ -127,8 +128,7 @@ fn a_mesh_scaled_past_f64_is_refused_at_load() {
 
 #[test]
 fn an_open_mesh_error_names_the_ways_out() {
-    let dir = std::env::temp_dir().join(format!("diffluid-embedding-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = TempDir::new("embedding");
     let path = dir.join("open.obj");
     // A square sheet: two triangles, four boundary edges.
     std::fs::write(&path, "v 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\nf 1 3 2\nf 1 4 3\n").unwrap();
@@ -137,7 +137,6 @@ fn an_open_mesh_error_names_the_ways_out() {
         assert!(err.contains(way), "{way} missing from: {err}");
     }
     assert!(load_obj_or_shell(&path, 0.1, 0.002).is_ok());
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]

@@ -1,11 +1,23 @@
-//! What the library's test groups share: the repository's assets, the built-in scenes' text
-//! to edit into a test's own, and temporary folders that clean up after themselves.
+//! What the test groups share: the repository's assets, the built-in scenes' text to edit
+//! into a test's own, the head of a scene file with a tank of still water, and temporary
+//! folders that clean up after themselves. The library's groups (`tests/*/main.rs`) and the
+//! command line's (`cli/tests/common`) both include this file.
 
 use std::path::{Path, PathBuf};
 
+/// The repository's root: the library's package folder, one above the command line's
+/// (`cli/`).
+fn root() -> PathBuf {
+    let package = Path::new(env!("CARGO_MANIFEST_DIR"));
+    match env!("CARGO_PKG_NAME") {
+        "diffluid-cli" => package.join(".."),
+        _ => package.to_path_buf(),
+    }
+}
+
 /// A file under the repository's `assets/`.
 pub fn asset(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("assets").join(rel)
+    root().join("assets").join(rel)
 }
 
 /// The TOML text of the built-in scene `name` (`assets/scenes/<name>.toml`).
@@ -15,6 +27,28 @@ pub fn builtin_text(name: &str) -> &'static str {
         .find(|(n, _)| *n == name)
         .unwrap_or_else(|| panic!("no built-in scene {name:?}"))
         .1
+}
+
+/// The head of a scene file: `name`, a closed tank of `size` (m) in cells of `dx`, `steps`
+/// steps of 0.01 s, and water under gravity at rest in it up to `depth`. A test appends its
+/// bodies and settings (`[[body]]`, `[solver]`, ...).
+pub fn tank_toml(name: &str, size: [f64; 3], dx: f64, depth: f64, steps: usize) -> String {
+    let [x, y, z] = size;
+    format!(
+        r#"name = "{name}"
+[domain]
+size = [{x:?}, {y:?}, {z:?}]
+dx = {dx:?}
+[time]
+dt = 0.01
+steps = {steps}
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [{x:?}, {depth:?}, {z:?}] }}
+"#
+    )
 }
 
 /// A fresh, empty folder under the system temp directory (its name starts with
@@ -29,6 +63,18 @@ impl TempDir {
             .tempdir()
             .expect("a temporary folder");
         TempDir(dir)
+    }
+
+    /// Writes `text` as `scene.toml` in the folder and returns its path.
+    pub fn scene(&self, text: &str) -> PathBuf {
+        let path = self.join("scene.toml");
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    /// Where runs are told to write their output.
+    pub fn out(&self) -> PathBuf {
+        self.join("out")
     }
 }
 

@@ -5,6 +5,7 @@
 //! marker particles differentiated), and the backward pass must reproduce its derivative:
 //! ⟨∇L, d⟩ = (L(x + εd) − L(x − εd)) / 2ε.
 
+use crate::common::tank_toml;
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::backward::SurfaceGradient;
 use diffluid::gradients::{
@@ -22,26 +23,14 @@ fn small_tank(body: &str, steps: usize) -> Scene {
 
 /// The tank with the surface held fixed (`frozen`) or moving.
 fn tank_with_surface(body: &str, steps: usize, frozen: bool) -> Scene {
-    let text = format!(
-        r#"
-name = "grad"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = {steps}
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.3, 0.8] }}
-{body}
+    let text = tank_toml("grad", [0.8, 0.6, 0.8], 0.05, 0.3, steps)
+        + &format!(
+            r#"{body}
 [solver]
 tolerance = 1e-12
 freeze_surface = {frozen}
 "#
-    );
+        );
     Scene::from_toml(&text, "<test>").unwrap()
 }
 
@@ -166,9 +155,8 @@ fn check_with(name: &str, scene: &Scene, rtol: f64) -> diffluid::gradients::Grad
     report
 }
 
-#[test]
-fn floating_box_gradient_matches_central_differences() {
-    let body = r#"
+/// A tilted box at about its floating depth, moving and turning.
+const FLOATING_BOX: &str = r#"
 [[body]]
 shape = { kind = "cuboid", half_extents = [0.15, 0.075, 0.12] }
 density = 500.0
@@ -177,7 +165,10 @@ axis_angle = { axis = [0.3, 1.0, 0.2], degrees = 20 }
 velocity = [0.2, -0.3, 0.1]
 angular_velocity = [0.5, -0.3, 0.8]
 "#;
-    check("floating box", &small_tank(body, 20));
+
+#[test]
+fn floating_box_gradient_matches_central_differences() {
+    check("floating box", &small_tank(FLOATING_BOX, 20));
 }
 
 /// A tilted capsule: the liquid does not turn it about its axis ([`RigidBody::spin`]), and
@@ -205,16 +196,7 @@ angular_velocity = [0.5, -0.3, 0.8]
 /// which drops the particles' dependence, is off by more than 1% somewhere on the same map.
 #[test]
 fn live_surface_floating_box_gradient_matches_central_differences() {
-    let body = r#"
-[[body]]
-shape = { kind = "cuboid", half_extents = [0.15, 0.075, 0.12] }
-density = 500.0
-position = [0.41, 0.31, 0.38]
-axis_angle = { axis = [0.3, 1.0, 0.2], degrees = 20 }
-velocity = [0.2, -0.3, 0.1]
-angular_velocity = [0.5, -0.3, 0.8]
-"#;
-    let scene = tank_with_surface(body, 20, false);
+    let scene = tank_with_surface(FLOATING_BOX, 20, false);
     let report = check_with("live floating box", &scene, 1e-3);
     let options = GradientOptions { surface: SurfaceGradient::Frozen, ..Default::default() };
     let sim = scene.build().unwrap();
@@ -247,19 +229,8 @@ angular_velocity = [0.0, 0.4, 0.0]
 #[test]
 fn ball_in_closed_tank_gradient_matches_central_differences() {
     // A full tank: no air, the pressure's constant null space is projected out.
-    let text = r#"
-name = "closed"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 20
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = { kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.6, 0.8] }
+    let text = tank_toml("closed", [0.8, 0.6, 0.8], 0.05, 0.6, 20)
+        + r#"
 [[body]]
 shape = { kind = "ball", radius = 0.12 }
 density = 1500.0
@@ -270,7 +241,7 @@ angular_velocity = [0.2, 0.0, 0.5]
 tolerance = 1e-10
 freeze_surface = true
 "#;
-    check("closed tank", &Scene::from_toml(text, "<test>").unwrap());
+    check("closed tank", &Scene::from_toml(&text, "<test>").unwrap());
 }
 
 /// Checkpointing re-runs segments of the forward map in the backward pass, taking the
@@ -347,21 +318,9 @@ enabled = true
 fn a_kink_is_reported_as_one_and_the_adjoint_is_one_of_its_slopes() {
     use diffluid::gradients::{gradcheck, GradcheckSettings};
     let scene = |x: f64| {
-        Scene::from_toml(
-            &format!(
+        let text = tank_toml("kink", [0.6, 0.4, 0.4], 0.05, 0.2, 1)
+            + &format!(
                 r#"
-name = "kink"
-[domain]
-size = [0.6, 0.4, 0.4]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 1
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.6, 0.2, 0.4] }}
 [[body]]
 name = "b"
 shape = {{ kind = "cuboid", half_extents = [0.0523, 0.0417, 0.0631] }}
@@ -372,10 +331,8 @@ angular_velocity = [0.3, 0.2, -0.4]
 tolerance = 1e-12
 freeze_surface = true
 "#
-            ),
-            "<test>",
-        )
-        .unwrap()
+            );
+        Scene::from_toml(&text, "<test>").unwrap()
     };
     let loss = BodyTargetLoss {
         body: 0,

@@ -9,7 +9,7 @@
 //!    cancel the odd terms).
 //! 3. Bad settings are refused with the key named.
 
-use crate::common::builtin_text;
+use crate::common::{builtin_text, tank_toml};
 use diffluid::gradients::{
     value_and_gradient, value_and_smoothed_gradient, BodyTargetLoss, Coordinate, GradientSettings,
     Smoothing, SmoothingScale,
@@ -21,19 +21,8 @@ use diffluid::{Scene, Simulation};
 /// at the scales below (a box's is not: its fractions' slopes jump where its faces tie at a
 /// sample point, and the mean of slopes around such a point is not the slope on either side).
 fn scene() -> (Simulation, BodyTargetLoss, usize) {
-    let text = r#"
-name = "smooth"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 8
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = { kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.3, 0.8] }
+    let text = tank_toml("smooth", [0.8, 0.6, 0.8], 0.05, 0.3, 8)
+        + r#"
 [[body]]
 name = "ball"
 shape = { kind = "ball", radius = 0.1 }
@@ -45,7 +34,7 @@ angular_velocity = [0.5, -0.3, 0.8]
 tolerance = 1e-12
 freeze_surface = true
 "#;
-    let sim = Scene::from_toml(text, "<smooth>").unwrap().build().unwrap();
+    let sim = Scene::from_toml(&text, "<smooth>").unwrap().build().unwrap();
     let loss = BodyTargetLoss {
         body: 0,
         position: Some((Vec3::new(0.35, 0.2, 0.45), 1.0)),

@@ -13,25 +13,15 @@
 //! maps is within 1.2e-5 of the adjoint (1e-8's round-off) and at 1e-7 within 2.3e-6, except
 //! live x₁, whose event lies within 1e-7 (a kink: the adjoint is a one-sided slope). So the
 //! disagreement at 1e-6 is the map's, not a missing term of the adjoint.
+use crate::common::tank_toml;
 use diffluid::gradients::{gradcheck, BodyTargetLoss, GradcheckSettings};
 use diffluid::math::{Rotation, Vec3};
 use diffluid::Scene;
 
 fn plate_scene(frozen: bool, steps: usize) -> Scene {
-    let text = format!(
-        r#"
-name = "thin_grad"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = {steps}
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.3, 0.8] }}
+    let text = tank_toml("thin_grad", [0.8, 0.6, 0.8], 0.05, 0.3, steps)
+        + &format!(
+            r#"
 [[body]]
 shape = {{ kind = "cuboid", half_extents = [0.15, 0.00625, 0.12] }}
 density = 1500.0
@@ -43,7 +33,7 @@ angular_velocity = [0.5, -0.3, 0.8]
 tolerance = 1e-12
 freeze_surface = {frozen}
 "#
-    );
+        );
     Scene::from_toml(&text, "<test>").unwrap()
 }
 

@@ -11,6 +11,7 @@
 
 #![allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 
+use crate::common::tank_toml;
 use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::Grid;
 use diffluid::geometry::weights::FaceWeights;
@@ -209,19 +210,8 @@ fn very_light_body_stays_stable() {
 /// water moves.
 #[test]
 fn a_paddle_moves_and_the_solve_sees_it() {
-    let text = r#"
-name = "paddle"
-[domain]
-size = [0.8, 0.6, 0.6]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 10
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = { kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.6, 0.6] }
+    let text = tank_toml("paddle", [0.8, 0.6, 0.6], 0.05, 0.6, 10)
+        + r#"
 [[body]]
 name = "paddle"
 shape = { kind = "cuboid", half_extents = [0.05, 0.15, 0.15] }
@@ -233,7 +223,7 @@ dynamic = false
 tolerance = 1e-10
 density_correction = false
 "#;
-    let mut sim = Scene::from_toml(text, "<test>").unwrap().build().unwrap();
+    let mut sim = Scene::from_toml(&text, "<test>").unwrap().build().unwrap();
     let x0 = sim.bodies()[0].x;
     let mut last = None;
     for _ in 0..10 {

@@ -16,25 +16,15 @@
 //! from 0.001 J to 55 J in 1.6 s. Now nothing moves: the energy available is what separates
 //! the exact equilibrium from the discrete one, about 1e-11 J.
 
+use crate::common::tank_toml;
 use diffluid::Scene;
 
 /// A ball of radius 0.12 m and density 500 whose centre sits on the still surface (half of
 /// it under water: its Archimedes height), off the grid's symmetry planes.
 fn ball_scene(steps: usize, extra: &str) -> Scene {
-    let text = format!(
-        r#"
-name = "ball_at_rest"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.04
-[time]
-dt = 0.01
-steps = {steps}
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.32, 0.8] }}
+    let text = tank_toml("ball_at_rest", [0.8, 0.6, 0.8], 0.04, 0.32, steps)
+        + &format!(
+            r#"
 [[body]]
 name = "ball"
 shape = {{ kind = "ball", radius = 0.12 }}
@@ -42,7 +32,7 @@ density = 500.0
 position = [0.413, 0.32, 0.387]
 {extra}
 "#
-    );
+        );
     Scene::from_toml(&text, "<ball>").unwrap()
 }
 
@@ -111,20 +101,9 @@ fn a_capsule_and_a_hull_at_rest_stay_nearly_still() {
             0.04,
         ),
     ] {
-        let text = format!(
-            r#"
-name = "{name}_at_rest"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.04
-[time]
-dt = 0.01
-steps = 300
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.32, 0.8] }}
+        let text = tank_toml(&format!("{name}_at_rest"), [0.8, 0.6, 0.8], 0.04, 0.32, 300)
+            + &format!(
+                r#"
 [[body]]
 name = "{name}"
 shape = {shape}
@@ -132,7 +111,7 @@ density = 500.0
 position = [0.413, {y}, 0.387]
 quaternion = {q}
 "#
-        );
+            );
         let mut sim = Scene::from_toml(&text, name).unwrap().build().unwrap();
         let mut energy = 0.0f64;
         for _ in 0..300 {

@@ -2,6 +2,7 @@
 //! full-volume liquid: still water, the dam break's volume, Archimedes, and the live-surface
 //! gradient.
 
+use crate::common::tank_toml;
 use diffluid::gradients::{gradcheck, GradcheckSettings};
 use diffluid::stages::surface::per_axis;
 use diffluid::{Scene, Simulation};
@@ -124,20 +125,9 @@ fn live_gradient_with_a_band_matches_central_differences() {
 #[test]
 fn a_ball_sinking_through_the_deep_cells_sinks_as_without_a_band() {
     let text = |band: usize| {
-        format!(
-            r#"
-name = "sink"
-[domain]
-size = [0.8, 0.8, 0.8]
-dx = 0.04
-[time]
-dt = 0.01
-steps = 40
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.7, 0.8] }}
+        tank_toml("sink", [0.8, 0.8, 0.8], 0.04, 0.7, 40)
+            + &format!(
+                r#"
 [[body]]
 name = "ball"
 shape = {{ kind = "ball", radius = 0.08 }}
@@ -146,7 +136,7 @@ position = [0.41, 0.5, 0.39]
 [solver]
 narrow_band = {band}
 "#
-        )
+            )
     };
     let mut band = Scene::from_toml(&text(2), "<test>").unwrap().build().unwrap();
     let mut full = Scene::from_toml(&text(0), "<test>").unwrap().build().unwrap();

@@ -9,6 +9,7 @@
 //! correspondingly small. (2) fails if the velocity update and the operator disagree on a
 //! single face weight, θ or sign.
 
+use crate::common::tank_toml;
 use diffluid::experiments::shapes::{AxisAngle, Placed, ShapeSpec};
 use diffluid::geometry::fractions::face_weights;
 use diffluid::geometry::grid::{dot, Grid, Mac};
@@ -82,19 +83,8 @@ fn projection_leaves_divergence_at_solver_tolerance() {
 /// the obstacle ball, so that some faces are cut by both.
 #[test]
 fn a_steps_weights_are_the_dense_weights() {
-    let text = r#"
-name = "weights"
-[domain]
-size = [1.6, 0.8, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 4
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = { kind = "box", min = [0.0, 0.0, 0.0], max = [1.6, 0.45, 0.8] }
+    let text = tank_toml("weights", [1.6, 0.8, 0.8], 0.05, 0.45, 4)
+        + r#"
 [[obstacle]]
 shape = { kind = "ball", radius = 0.13 }
 position = [1.2, 0.1, 0.4]
@@ -115,7 +105,7 @@ position = [0.79, 0.43, 0.4]
 axis_angle = { axis = [1.0, 0.3, 0.0], degrees = 12.0 }
 "#;
     let mut sim =
-        diffluid::Scene::from_toml(text, "weights").expect("scene").build().expect("build");
+        diffluid::Scene::from_toml(&text, "weights").expect("scene").build().expect("build");
     let grid = *sim.grid();
     let statics = sim.statics().weights.to_dense();
     let cut = |w: &[Vec<f64>; 3]| w.iter().flatten().filter(|w| **w > 0.0 && **w < 1.0).count();

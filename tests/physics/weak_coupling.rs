@@ -9,26 +9,16 @@
 //! agrees with the monolithic solve for a heavy body, and blows up for a light one where the
 //! monolithic solve stays bounded.
 
+use crate::common::tank_toml;
 use diffluid::stages::pressure::Coupling;
 use diffluid::Scene;
 
 /// A 0.2 m cube of the given density, submerged at rest in a closed-top 0.6 m tank of still
 /// water 0.5 m deep, at 0.05 m cells.
 fn submerged_cube(density: f64, coupling: Coupling, steps: usize) -> Scene {
-    let text = format!(
-        r#"
-name = "submerged_cube"
-[domain]
-size = [0.6, 0.6, 0.6]
-dx = 0.05
-[time]
-dt = 0.01
-steps = {steps}
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.6, 0.5, 0.6] }}
+    let text = tank_toml("submerged_cube", [0.6, 0.6, 0.6], 0.05, 0.5, steps)
+        + &format!(
+            r#"
 [[body]]
 shape = {{ kind = "cuboid", half_extents = [0.1, 0.1, 0.1] }}
 density = {density}
@@ -36,7 +26,7 @@ position = [0.3, 0.25, 0.3]
 [solver]
 density_correction = false
 "#
-    );
+        );
     let mut scene = Scene::from_toml(&text, "<test>").unwrap();
     scene.solver.coupling = coupling;
     scene

@@ -7,12 +7,13 @@
 //! keeps today's rules: the key changes nothing. A shell thinner than a cell seals the
 //! liquid as it moves (its depth is half its thickness).
 
+use crate::common::{tank_toml, TempDir};
 use diffluid::Scene;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// An n × n grid of squares (two triangles each) on the surface `at(u, v)`, u, v in [0, 1],
-/// written as an OBJ file; open along its four edges.
-fn sheet(name: &str, n: usize, at: impl Fn(f64, f64) -> [f64; 3]) -> PathBuf {
+/// written as the OBJ file `name` in `dir`; open along its four edges.
+fn sheet(dir: &Path, name: &str, n: usize, at: impl Fn(f64, f64) -> [f64; 3]) -> PathBuf {
     let mut text = String::new();
     for j in 0..=n {
         for i in 0..=n {
@@ -27,28 +28,15 @@ fn sheet(name: &str, n: usize, at: impl Fn(f64, f64) -> [f64; 3]) -> PathBuf {
             text += &format!("f {} {} {}\n", id(i, j), id(i + 1, j + 1), id(i, j + 1));
         }
     }
-    let dir = std::env::temp_dir().join(format!("diffluid-shells-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join(name);
     std::fs::write(&path, text).unwrap();
     path
 }
 
 fn scene(obj: &str, shell: &str) -> String {
-    format!(
-        r#"
-name = "shell"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 5
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.3, 0.8] }}
+    tank_toml("shell", [0.8, 0.6, 0.8], 0.05, 0.3, 5)
+        + &format!(
+            r#"
 [[body]]
 name = "sail"
 shape = {{ kind = "mesh", obj = "{obj}" }}
@@ -56,12 +44,13 @@ density = 1000.0
 position = [0.41, 0.2, 0.38]
 {shell}
 "#
-    )
+        )
 }
 
 #[test]
 fn an_open_mesh_without_a_thickness_names_the_key() {
-    let flat = sheet("flat.obj", 4, |u, v| [0.3 * u - 0.15, 0.0, 0.3 * v - 0.15]);
+    let dir = TempDir::new("shells");
+    let flat = sheet(&dir, "flat.obj", 4, |u, v| [0.3 * u - 0.15, 0.0, 0.3 * v - 0.15]);
     let err = Scene::from_toml(&scene(flat.to_str().unwrap(), ""), "<test>")
         .and_then(|s| s.build())
         .map(drop)
@@ -74,7 +63,8 @@ fn an_open_mesh_without_a_thickness_names_the_key() {
 fn open_meshes_load_as_shells_of_their_thickness() {
     let t = 0.0125;
     // A flat 0.3 m square: volume exactly t × area.
-    let flat = sheet("flat.obj", 4, |u, v| [0.3 * u - 0.15, 0.0, 0.3 * v - 0.15]);
+    let dir = TempDir::new("shells");
+    let flat = sheet(&dir, "flat.obj", 4, |u, v| [0.3 * u - 0.15, 0.0, 0.3 * v - 0.15]);
     let text = scene(flat.to_str().unwrap(), &format!("shell_thickness = {t}"));
     let mut sim = Scene::from_toml(&text, "<test>").unwrap().build().unwrap();
     let b = &sim.bodies()[0];
@@ -87,7 +77,7 @@ fn open_meshes_load_as_shells_of_their_thickness() {
         assert!(r.bodies[0].volume_error < 1e-9, "volume error {}", r.bodies[0].volume_error);
     }
     // A sail bent on a cylinder of radius 0.3 m through 60°: area 0.3 × 0.3·π/3.
-    let bent = sheet("bent.obj", 12, |u, v| {
+    let bent = sheet(&dir, "bent.obj", 12, |u, v| {
         let a = (u - 0.5) * std::f64::consts::FRAC_PI_3;
         [0.3 * a.sin(), 0.3 * (1.0 - a.cos()), 0.3 * v - 0.15]
     });

@@ -10,7 +10,7 @@
 //! whose derivative is the effort's 4e-6 alone; 8.7e-5 with it moving), and so must the
 //! ball's mass gradient (measured 2.9e-9 frozen, 1.2e-8 moving).
 
-use crate::common::{builtin_text, EXE};
+use crate::common::{builtin_text, tank_toml, EXE};
 use diffluid::geometry::body::Motion;
 use diffluid::gradients::{
     value_and_gradient_controlled, FinalTarget, GradientOptions, GradientSettings, Schedule,
@@ -20,20 +20,9 @@ use diffluid::math::Vec3;
 use diffluid::{Scene, Simulation};
 
 fn scene(frozen: bool) -> Simulation {
-    let text = format!(
-        r#"
-name = "control"
-[domain]
-size = [0.8, 0.6, 0.8]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 20
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [0.8, 0.3, 0.8] }}
+    let text = tank_toml("control", [0.8, 0.6, 0.8], 0.05, 0.3, 20)
+        + &format!(
+            r#"
 [[body]]
 name = "paddle"
 shape = {{ kind = "cuboid", half_extents = [0.06, 0.12, 0.16] }}
@@ -50,7 +39,7 @@ position = [0.47, 0.31, 0.38]
 tolerance = 1e-12
 freeze_surface = {frozen}
 "#
-    );
+        );
     let mut sim = Scene::from_toml(&text, "<control>").unwrap().build().unwrap();
     // A paddle at rest is a kinematic body the actions set in motion.
     sim.set_motion(sim.handles()[0], Motion::Kinematic).unwrap();

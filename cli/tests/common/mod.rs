@@ -1,62 +1,11 @@
-//! What the command line's test groups share: the binary, the repository's assets, the
-//! built-in scenes' text to edit into a test's own, and temporary folders that clean up after
-//! themselves.
+//! What the command line's test groups share: the library's test helpers (the repository's
+//! assets, the built-in scenes' text, temporary folders; `tests/common/mod.rs`) and the
+//! binary.
 
-use std::path::{Path, PathBuf};
+#[path = "../../../tests/common/mod.rs"]
+mod shared;
+
+pub use shared::*;
 
 /// The `diffluid` binary this package builds.
 pub const EXE: &str = env!("CARGO_BIN_EXE_diffluid");
-
-/// A file under the repository's `assets/` (this package is `cli/`, one level down).
-pub fn asset(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets").join(rel)
-}
-
-/// The TOML text of the built-in scene `name` (`assets/scenes/<name>.toml`).
-pub fn builtin_text(name: &str) -> &'static str {
-    diffluid::experiments::scene::BUILTIN_SCENES
-        .iter()
-        .find(|(n, _)| *n == name)
-        .unwrap_or_else(|| panic!("no built-in scene {name:?}"))
-        .1
-}
-
-/// A fresh, empty folder under the system temp directory (its name starts with
-/// `diffluid-<tag>-`), removed when dropped.
-pub struct TempDir(tempfile::TempDir);
-
-impl TempDir {
-    /// A new folder; `tag` names the test in the folder's name.
-    pub fn new(tag: &str) -> TempDir {
-        let dir = tempfile::Builder::new()
-            .prefix(&format!("diffluid-{tag}-"))
-            .tempdir()
-            .expect("a temporary folder");
-        TempDir(dir)
-    }
-
-    /// Writes `text` as `scene.toml` in the folder and returns its path.
-    pub fn scene(&self, text: &str) -> PathBuf {
-        let path = self.join("scene.toml");
-        std::fs::write(&path, text).unwrap();
-        path
-    }
-
-    /// Where runs are told to write their output.
-    pub fn out(&self) -> PathBuf {
-        self.join("out")
-    }
-}
-
-impl std::ops::Deref for TempDir {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        self.0.path()
-    }
-}
-
-impl AsRef<Path> for TempDir {
-    fn as_ref(&self) -> &Path {
-        self
-    }
-}

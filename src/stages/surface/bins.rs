@@ -134,8 +134,7 @@ impl SlabBuckets {
 #[inline]
 pub fn cell_of(grid: &Grid, x: Vec3) -> usize {
     // Truncation is the floor here: a negative coordinate saturates to cell 0 either way.
-    // Written out: as an array map this was left as a call (`try_map`) in some builds, 2.4%
-    // of a step's instructions.
+    // Written out: as an array map this was left as a call (`try_map`) in some builds.
     let at = |a: f64, d: usize| floor_index(a / grid.dx).min(grid.n[d] - 1);
     grid.cell(at(x.x, 0), at(x.y, 1), at(x.z, 2))
 }

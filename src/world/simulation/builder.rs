@@ -88,7 +88,7 @@ impl SimulationBuilder {
     /// denser than the liquid.
     ///
     /// Why off by default: the gradients do not pass through contact (a taped run in which
-    /// it acted is [`crate::GradientError::ThroughContact`]), and a world built in code gives
+    /// it acted is [`crate::error::GradientError::ThroughContact`]), and a world built in code gives
     /// the same numbers as the scene file that describes it. A program that only steps
     /// forward (a game loop) wants it on.
     pub fn contact(mut self, contact: crate::world::settings::ContactSettings) -> Self {
