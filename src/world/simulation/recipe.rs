@@ -2,7 +2,7 @@
 //! `stages/` (where its adjoint sits beside it). The backward pass
 //! (`gradients/backward.rs`) runs the same stages' adjoints in the reverse order.
 
-use super::stepping::{Pressures, LARGEST};
+use super::stepping::{largest_magnitude, Pressures, LARGEST};
 use super::{volume_warning, BodyHandle, Simulation, EXTERNAL_REACH};
 use crate::error::{Error, Result};
 use crate::geometry::body::RigidBody;
@@ -28,19 +28,6 @@ use rayon::prelude::*;
 /// taken as none.
 fn contact_tolerance(gravity: [f64; 3], dt: f64) -> f64 {
     1e-3 * v3(gravity).length().max(1.0) * dt
-}
-
-/// The largest |u| over every face, NaN if one is NaN: one parallel pass for both checks.
-pub(super) fn largest_magnitude(u: &Mac) -> f64 {
-    let most = |a: f64, b: f64| if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) };
-    u.c.iter()
-        .map(|c| {
-            c.par_iter()
-                .with_min_len(crate::math::par::MIN_LEN)
-                .map(|x| x.abs())
-                .reduce(|| 0.0, most)
-        })
-        .fold(0.0, most)
 }
 
 /// The stages' timings of one step.

@@ -2,10 +2,10 @@
 //! checks before a step changes anything, and what a failed step puts back. The step itself
 //! is the recipe of `recipe.rs`, its stages [`crate::stages::Stage::ALL`].
 
-use super::recipe::largest_magnitude;
 use super::Simulation;
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
+use crate::geometry::grid::Mac;
 use crate::math::pool::{run_spread, Spread, SERIAL_BELOW};
 use crate::math::Twist;
 use crate::math::{v3, Vec3};
@@ -15,6 +15,7 @@ use crate::stages::pressure::PressureParams;
 use crate::stages::surface::SurfaceModel;
 use crate::world::step::{Geometry, StepParams, StepReport};
 use crate::world::tape::{Replay, Solves, Tape};
+use rayon::prelude::*;
 use std::ops::ControlFlow;
 use std::sync::Arc;
 
@@ -22,6 +23,19 @@ use std::sync::Arc;
 /// taken as blown up. Far above anything physical, and far enough below f64's range that the
 /// solve's sums of squares over a grid of 512³ cells cannot overflow (1e100² · 1.3e8 < 1e308).
 pub(super) const LARGEST: f64 = 1e100;
+
+/// The largest |u| over every face, NaN if one is NaN: one parallel pass for both checks.
+pub(super) fn largest_magnitude(u: &Mac) -> f64 {
+    let most = |a: f64, b: f64| if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) };
+    u.c.iter()
+        .map(|c| {
+            c.par_iter()
+                .with_min_len(crate::math::par::MIN_LEN)
+                .map(|x| x.abs())
+                .reduce(|| 0.0, most)
+        })
+        .fold(0.0, most)
+}
 
 /// What every failed step puts back (see [`Simulation::step_inner`]), rollback or not: the
 /// bodies, their fluid forces, the step count and the time. The marker particles and the
