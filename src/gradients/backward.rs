@@ -29,7 +29,7 @@ use crate::stages::pressure::Coupling;
 use crate::stages::project::{project_adjoint, ProjectAdjointInputs};
 use crate::stages::rigid::integrate_adjoint;
 use crate::stages::surface;
-use crate::stages::system::predicted_velocity;
+use crate::stages::system::{predicted_velocity, volume_source_derivative};
 use crate::stages::{Stage, StageClock, StageSeconds};
 use crate::world::{Simulation, StepRecord, StepSystem, Tape};
 
@@ -418,6 +418,20 @@ fn step_adjoint(
             pbar = vec![Vec3::ZERO; replayed.end.len()];
         }
         surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, &phi_bar, &mut pbar);
+        // Volume control: the solve's sources read the particles' density here.
+        if rec.volume_control {
+            let rate = settings.solver.volume_rate();
+            let cell = grid.dx.powi(3);
+            let base = band.as_ref().map(|b| b.density.as_slice());
+            let ppc = settings.solver.particles_per_cell;
+            let density = surface::particle_density(&replayed.end, &grid, ppc, base);
+            let mut density_bar = vec![0.0; density.len()];
+            for (&c, s) in sys.pressure.cell_of_row.iter().zip(&projected.rhs) {
+                let c = c as usize;
+                density_bar[c] = s * volume_source_derivative(rate, density[c], cell, dt);
+            }
+            surface::particle_density_adjoint(&replayed.end, &grid, ppc, &density_bar, &mut pbar);
+        }
         clock.lap(Stage::Surface, times);
         let statics = &initial.statics().weights;
         stage.settle_adjoint(replayed, &mut pbar, &mut pose, &dual_faces, statics)?;

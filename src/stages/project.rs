@@ -186,6 +186,10 @@ pub struct ProjectAdjoint {
     pub u_hat: Mac,
     /// ∂L/∂φ_L per cell, of φ_L extended into the solids (with the surface moving).
     pub phi: Option<Vec<f64>>,
+    /// ∂L/∂b, the solve's right-hand side, per row: the adjoint solve's solution (what a
+    /// source added to a row's right-hand side, [`StepSystem::volume_source`], is
+    /// differentiated by).
+    pub rhs: Vec<f64>,
 }
 
 /// Adjoint of [`project`] without contact (the gradient takes contact as free flight): from
@@ -293,5 +297,5 @@ pub fn project_adjoint(
         let js = c.force(&s);
         vbar[*i] = std::array::from_fn(|d| vbar[*i][d] - js[d]);
     }
-    Ok(ProjectAdjoint { u_hat: uhat_bar, phi: phi_bar.take() })
+    Ok(ProjectAdjoint { u_hat: uhat_bar, phi: phi_bar.take(), rhs: s })
 }

@@ -173,6 +173,40 @@ pub struct StepSystem {
     /// Kinematic bodies: index, J (its Δt·M⁻¹ unused) and the prescribed [v; ω], a moving
     /// boundary of the solve.
     pub kinematic: Vec<(usize, BodyCoupling, Twist)>,
+    /// Per row, the volume flux out of its liquid cell the solve asks for, m³/s (empty but
+    /// with volume control, see [`volume_source`]).
+    pub volume_source: Vec<f64>,
+}
+
+/// How far over a full cell (in cells) volume control's ramp takes to reach its full slope
+/// (see [`volume_source`]).
+pub const VOLUME_RAMP: f64 = 0.1;
+
+/// Volume control: the volume flux out of a liquid cell, m³/s, that spreads in a step of
+/// `dt` the fraction `rate` of what its marker particles hold over a full cell (`density`,
+/// in cells), for a cell of volume `cell`. Particles that bunch are how a marker-particle
+/// liquid loses volume; this pushes them apart through the velocity. The excess is taken
+/// through a ramp that is continuously differentiable (nothing at or below a full cell,
+/// (d − 1)²/(2·[`VOLUME_RAMP`]) up to it, then d − 1 − [`VOLUME_RAMP`]/2): a cell of
+/// particles at rest holds exactly one full cell, so a kink there would sit under every
+/// cell of still liquid.
+pub fn volume_source(rate: f64, density: f64, cell: f64, dt: f64) -> f64 {
+    let x = density - 1.0;
+    let ramp = if x <= 0.0 {
+        0.0
+    } else if x < VOLUME_RAMP {
+        x * x / (2.0 * VOLUME_RAMP)
+    } else {
+        x - 0.5 * VOLUME_RAMP
+    };
+    rate * cell * ramp / dt
+}
+
+/// ∂[`volume_source`]/∂density.
+pub fn volume_source_derivative(rate: f64, density: f64, cell: f64, dt: f64) -> f64 {
+    let x = density - 1.0;
+    let slope = if x <= 0.0 { 0.0 } else { (x / VOLUME_RAMP).min(1.0) };
+    rate * cell * slope / dt
 }
 
 impl StepSystem {
@@ -250,6 +284,7 @@ impl StepSystem {
             entrained,
             weak,
             kinematic,
+            volume_source: Vec::new(),
         }
     }
 
@@ -288,6 +323,10 @@ impl StepSystem {
         // Kinematic bodies push their volume flux at their prescribed velocity.
         for (_, c, v) in &self.kinematic {
             c.add_jt(&v.map(|x| -x), &mut b);
+        }
+        // Volume control: the flux out of every liquid cell the solve leaves.
+        for (x, q) in b.iter_mut().zip(&self.volume_source) {
+            *x += q;
         }
         b
     }

@@ -48,6 +48,8 @@ pub struct StepRecord {
     pub contact: bool,
     /// The marker particles' stage (None when the surface is frozen).
     pub particles: Option<ParticleRecord>,
+    /// Whether the step's solve had volume control's sources (see `solver.volume_control`).
+    pub volume_control: bool,
 }
 
 /// The recorded forward pass.

@@ -261,16 +261,16 @@ impl SimulationBuilder {
         let mut particles = surface::seed(&grid, &self.liquid, ppc, &node_sdf, deep);
         let margin = 1e-3 * grid.dx;
         particles.retain(|x| self.bodies.iter().all(|b| b.sdf(*x) > margin));
-        let (frozen_phi, frozen_volume) = if settings.solver.freeze_surface {
-            let bins = Bins::new(&particles, &grid);
+        let start_volume = {
             let base = band.as_ref().map(|b| b.density.as_slice());
-            let vol = surface::liquid_volume(&particles, &grid, ppc, base);
+            surface::liquid_volume(&particles, &grid, ppc, base)
+        };
+        let frozen_phi = settings.solver.freeze_surface.then(|| {
+            let bins = Bins::new(&particles, &grid);
             let surface = SurfaceModel { radius, sparse_cells: settings.solver.sparse_cells };
             let deep = band.as_ref().map(Band::deep);
-            (Some(Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &surface, deep))), vol)
-        } else {
-            (None, 0.0)
-        };
+            Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &surface, deep))
+        });
         let n = self.bodies.len();
         let mut warnings = self.notes.clone();
         warnings.extend(self.bodies.iter().filter_map(|b| thin_body_warning(b, grid.dx)));
@@ -279,7 +279,7 @@ impl SimulationBuilder {
         let mut sim = Simulation {
             band,
             frozen_phi,
-            frozen_volume,
+            start_volume,
             handles: (0..n as u32).map(|id| BodyHandle { world, id }).collect(),
             world,
             next_handle: n as u32,

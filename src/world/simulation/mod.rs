@@ -86,8 +86,8 @@ pub struct Simulation {
     phi: Vec<f64>,
     /// φ_L of the initial particles, when the surface is frozen.
     frozen_phi: Option<Arc<Vec<f64>>>,
-    /// Liquid volume of the frozen particles.
-    frozen_volume: f64,
+    /// The liquid volume the particles held at the start ([`Simulation::start_volume`]).
+    start_volume: f64,
     step: usize,
     time: f64,
     /// What the builder chose from the scene where a setting was left to it, in words.
@@ -202,7 +202,7 @@ impl Simulation {
     /// Liquid volume of the current particles, m³.
     pub fn liquid_volume(&self) -> f64 {
         if self.frozen_phi.is_some() {
-            return self.frozen_volume;
+            return self.start_volume;
         }
         let base = self.band.as_ref().map(|b| b.density.as_slice());
         surface::liquid_volume(
@@ -318,7 +318,14 @@ impl Simulation {
             });
         }
         self.particles = particles;
+        self.start_volume = self.liquid_volume();
         Ok(())
+    }
+
+    /// The liquid volume the particles held at the start (or when last set), m³: what
+    /// `solver.volume_control` keeps.
+    pub fn start_volume(&self) -> f64 {
+        self.start_volume
     }
 
     /// Each body's handle, in the order of [`Simulation::bodies`].

@@ -18,7 +18,9 @@ use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
 use crate::stages::project::{project, HeldContact, Projection};
 use crate::stages::rigid::{integrate, Tank};
 use crate::stages::surface::{self, Bins};
-use crate::stages::system::{generalized_velocity, predicted_velocity, Geometry, StepSystem};
+use crate::stages::system::{
+    generalized_velocity, predicted_velocity, volume_source, Geometry, StepSystem,
+};
 use crate::stages::{Stage, StageClock, StageSeconds};
 use crate::world::step::{kinetic_energy, BodyForce, Energy, StepParams, StepReport};
 use crate::world::tape::{StepRecord, Tape};
@@ -68,13 +70,21 @@ impl Simulation {
 
         let phi = self.surface(record.as_mut());
         let taped_phi = if taped && self.frozen_phi.is_none() { phi.clone() } else { Vec::new() };
+        let crowding = self.controlled_density();
         timed.lap(Stage::Surface);
 
         // A replayed step is given its pressures: its system needs no operator.
         let solves = !matches!(pressures, Pressures::Replay(_));
         let params = StepParams { solves, ..self.step_params(dt) };
         let memory = self.spare.systems().take();
-        let sys = StepSystem::assemble(&grid, &self.bodies, geometry, phi, params, memory);
+        let mut sys = StepSystem::assemble(&grid, &self.bodies, geometry, phi, params, memory);
+        if let (Some(d), true) = (&crowding, sys.pressure.has_air) {
+            let rate = self.settings.solver.volume_rate();
+            let cell = grid.dx.powi(3);
+            let rows = &sys.pressure.cell_of_row;
+            sys.volume_source =
+                rows.iter().map(|&c| volume_source(rate, d[c as usize], cell, dt)).collect();
+        }
         timed.lap(Stage::Assemble);
 
         let out = self.spare.velocity(&grid);
@@ -121,6 +131,7 @@ impl Simulation {
                 air_body_faces,
                 contact: contact || contact_moves,
                 particles: record,
+                volume_control: !sys.volume_source.is_empty(),
             });
         }
         let tank = Tank { size: grid.size(), external_reach: EXTERNAL_REACH * grid.dx };
@@ -247,6 +258,18 @@ impl Simulation {
         }
     }
 
+    /// With volume control (`solver.volume_control`) and the surface moving, the marker
+    /// particles' density per cell (in cells) where the particle stages left them (the
+    /// [`Stage::Surface`] stage measures it); None otherwise.
+    fn controlled_density(&self) -> Option<Vec<f64>> {
+        let on = self.settings.solver.volume_rate() > 0.0 && self.frozen_phi.is_none();
+        on.then(|| {
+            let base = self.band.as_ref().map(|b| b.density.as_slice());
+            let ppc = self.settings.solver.particles_per_cell;
+            surface::particle_density(&self.particles, &self.grid, ppc, base)
+        })
+    }
+
     /// [`Stage::Pressure`]: the projection, with contact held inside it when contact is
     /// possible for the bodies moving at their velocities `v_hat` before the pressure acts;
     /// sets the coupled bodies' velocities and fluid forces. Returns the projection, the
@@ -349,7 +372,11 @@ impl Simulation {
         if !report {
             return (f64::NAN, f64::NAN);
         }
-        let flux = sys.flux(u, &proj.v_after);
+        let mut flux = sys.flux(u, &proj.v_after);
+        // The divergence volume control asked for is not an error of the solve.
+        for (f, q) in flux.iter_mut().zip(&sys.volume_source) {
+            *f -= q;
+        }
         let rho = self.settings.fluid.density;
         let dx3 = self.grid.dx.powi(3);
         (
