@@ -55,7 +55,7 @@ use serde::{Deserialize, Serialize};
 pub enum Preconditioner {
     /// Modified incomplete Cholesky, level 0 (Bridson's τ = 0.97, σ = 0.25).
     Mic0,
-    /// One multigrid V-cycle (MGPCG, see `multigrid.rs`).
+    /// One multigrid V-cycle (MGPCG, see [`multigrid`]).
     Multigrid,
     /// Plain conjugate gradients (for comparison).
     None,
