@@ -242,9 +242,11 @@ def value_and_grad(
     mode: str = "full",
     checkpoint_every: Optional[int] = None,
     through_contact: bool = False,
+    smoothing: Optional[dict[str, Any]] = None,
 ) -> Tuple[float, dict[str, Any]]:
     """(loss, {param: gradient}): v, w, x, q (tangent) as (3,) arrays; mass as a float; u
-    as a tuple of three face arrays."""
+    as a tuple of three face arrays. With smoothing ({samples, sigma: {v, w, x, q}, seed}),
+    the smoothed loss and gradient, and grads["standard_error"] per param."""
 
 def optimize(scene: Scene, *, epochs: Optional[int] = None) -> dict[str, Any]:
     """Ctrl-C after an epoch raises KeyboardInterrupt with the result so far as .result."""

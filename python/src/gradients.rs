@@ -14,8 +14,9 @@ use diffluid::experiments::optimize::{Optimization, Outcome};
 use diffluid::geometry::body::{BodyState, Motion, Param};
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::{
-    value_and_gradient, AdjointState, BodyAdjoint, BodyTargetLoss as RLoss, GradientOptions,
-    GradientSettings, Rollout as RRollout,
+    value_and_gradient, value_and_smoothed_gradient, AdjointState, BodyAdjoint,
+    BodyTargetLoss as RLoss, GradientOptions, GradientSettings, Rollout as RRollout, Smoothing,
+    SmoothingScale,
 };
 use diffluid::math::{so3, Rotation, Vec3};
 use diffluid::Simulation as RSim;
@@ -110,11 +111,20 @@ fn wrt(name: &str) -> PyResult<Wrt> {
 /// Returns ``(loss, grads)``: grads maps each param to a float64 array: (3,) for v, w, x; for
 /// q the gradient in the world-frame tangent space q → exp(θ)·q, (3,); for mass a float,
 /// ∂L/∂m in 1/kg (0 for a body that is not dynamic); for u a tuple of the three face arrays.
+/// `smoothing` (a dict: ``samples`` (even, at least 2; default 8), ``sigma`` (a dict of
+/// ``v``, ``w``, ``x``, ``q``: the perturbation's σ per kind, m/s, rad/s, m, rad) and ``seed``
+/// (default 0)) asks instead for the gradient of the loss smoothed over a Gaussian
+/// perturbation of the bodies' initial state: the mean of the exact gradients of
+/// `samples` runs at antithetic perturbations, for long horizons where the map jumps (see
+/// docs/gradients.md, "A smoothed gradient for long horizons"). The loss is then the
+/// runs' mean, and grads also holds ``standard_error``: each param's standard error of
+/// the mean (not for "u", which smoothing leaves out).
 /// The GIL is released for the whole forward and backward pass.
 #[pyfunction]
 #[pyo3(signature = (
     scene, loss = None, params = None, *, steps = None, state = None, body = None,
-    surface = "live", mode = "full", checkpoint_every = None, through_contact = false
+    surface = "live", mode = "full", checkpoint_every = None, through_contact = false,
+    smoothing = None
 ))]
 #[allow(clippy::too_many_arguments)]
 pub fn value_and_grad<'py>(
@@ -129,8 +139,10 @@ pub fn value_and_grad<'py>(
     mode: &str,
     checkpoint_every: Option<usize>,
     through_contact: bool,
+    smoothing: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<(f64, Bound<'py, PyDict>)> {
     let opts = options(surface, mode, through_contact)?;
+    let smoothing = smoothing.map(smoothing_from).transpose()?;
     let (mut sim, loss, steps) = start(py, scene, loss, steps)?;
     let params: Vec<Wrt> = match params {
         None => Param::ALL.map(Wrt::Body).to_vec(),
@@ -160,9 +172,34 @@ pub fn value_and_grad<'py>(
         return Err(value_error("checkpoint_every: must be at least 1"));
     }
     let settings = GradientSettings { options: opts, checkpoint_every, re_solve: false };
-    let out = run(py, || value_and_gradient(&sim, steps, &loss, &settings))?;
-    let g = &out.gradient;
+    let (value, g, errors) = match &smoothing {
+        None => {
+            let out = run(py, || value_and_gradient(&sim, steps, &loss, &settings))?;
+            (out.loss, out.gradient, None)
+        }
+        Some(how) => {
+            if params.iter().any(|p| matches!(p, Wrt::U)) {
+                return Err(value_error(
+                    "params: \"u\" has no smoothed gradient (smoothing perturbs the bodies)",
+                ));
+            }
+            let out = run(py, || value_and_smoothed_gradient(&sim, steps, &loss, &settings, how))?;
+            (out.loss, out.gradient, Some(out.standard_error))
+        }
+    };
     let grads = PyDict::new(py);
+    if let Some(errors) = &errors {
+        let se = PyDict::new(py);
+        let b = errors[which];
+        for p in &params {
+            match *p {
+                Wrt::Body(part) => se.set_item(part.name(), row(py, b.get(part).to_array())?)?,
+                Wrt::Mass => se.set_item("mass", b.mass)?,
+                Wrt::U => {}
+            }
+        }
+        grads.set_item("standard_error", se)?;
+    }
     for p in &params {
         let b = g.bodies[which];
         match *p {
@@ -179,7 +216,48 @@ pub fn value_and_grad<'py>(
             }
         }
     }
-    Ok((out.loss, grads))
+    Ok((value, grads))
+}
+
+/// A `smoothing` dict as [`Smoothing`]: samples (default 8), sigma {v, w, x, q} (each
+/// default 0), seed (default 0); an unknown key or a bad value is a ValueError naming it.
+fn smoothing_from(d: &Bound<'_, PyDict>) -> PyResult<Smoothing> {
+    let mut out =
+        Smoothing { samples: 8, sigma: SmoothingScale { v: 0.0, w: 0.0, x: 0.0, q: 0.0 }, seed: 0 };
+    for (k, v) in d.iter() {
+        let key: String = k.extract()?;
+        match key.as_str() {
+            "samples" => out.samples = v.extract()?,
+            "seed" => out.seed = v.extract()?,
+            "sigma" => {
+                let sigma = v
+                    .cast::<PyDict>()
+                    .map_err(|_| value_error("smoothing.sigma: must be a dict of v, w, x, q"))?;
+                for (k, v) in sigma.iter() {
+                    let name: String = k.extract()?;
+                    let x: f64 = v.extract()?;
+                    match name.as_str() {
+                        "v" => out.sigma.v = x,
+                        "w" => out.sigma.w = x,
+                        "x" => out.sigma.x = x,
+                        "q" => out.sigma.q = x,
+                        other => {
+                            return Err(value_error(format!(
+                                "smoothing.sigma: unknown key {other:?} (v, w, x, q)"
+                            )))
+                        }
+                    }
+                }
+            }
+            other => {
+                return Err(value_error(format!(
+                    "smoothing: unknown key {other:?} (samples, sigma, seed)"
+                )))
+            }
+        }
+    }
+    out.validate().map_err(to_py)?;
+    Ok(out)
 }
 
 /// Runs the scene's `[optimize]` section with diffluid's own optimiser (gradient descent,
