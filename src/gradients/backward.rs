@@ -17,9 +17,10 @@ use super::loss::{AdjointState, BodyGradient, Gradient};
 use crate::error::{GradientError, Result};
 use crate::geometry::body::{Motion, RigidBody};
 use crate::geometry::fractions::DualFaces;
+use crate::geometry::grid::Mac;
 use crate::math::pool::run_spread;
 use crate::math::so3;
-use crate::math::{TwistParts, Vec3};
+use crate::math::{add_twist, Twist, TwistParts, Vec3};
 use crate::stages::advect::{advect_adjoint_into, needed_faces};
 use crate::stages::band::Band;
 use crate::stages::extrapolate::correct_with_bodies_adjoint;
@@ -31,6 +32,7 @@ use crate::stages::rigid::integrate_adjoint;
 use crate::stages::surface;
 use crate::stages::system::{predicted_velocity, volume_source_derivative};
 use crate::stages::{Stage, StageClock, StageSeconds};
+use crate::world::tape::ParticleRecord;
 use crate::world::{Simulation, StepRecord, StepSystem, Tape};
 
 /// Which gradient to compute.
@@ -308,39 +310,11 @@ fn step_adjoint(
     clock.lap(Stage::Rigid, times);
 
     let mut ubar = adj.u;
-    let mut after = bodies.clone();
-    for (b, va) in after.iter_mut().zip(&rec.v_after) {
-        (b.v, b.w) = (va.linear(), va.angular());
-    }
+    let dual = full.then_some(dual_faces.as_slice());
     let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
-    let bva = correct_with_bodies_adjoint(
-        &mut ubar,
-        u_corr,
-        &rec.air_body_faces,
-        &sys.projected_mask(),
-        &after,
-        &sys.geometry.body_faces,
-        &sys.geometry.weights,
-        &initial.statics().weights,
-        &grid,
-        settings.solver.extrapolation_layers,
+    correct_velocity_adjoint(
+        initial, rec, &sys, &bodies, dual, u_corr, &mut ubar, &mut vbar, &mut pose,
     );
-    for (i, r) in bva.iter().enumerate() {
-        // A fixed body's pose and velocity are constants; a kinematic one's are the
-        // prescribed motion's (a control's).
-        if !(bodies[i].moves() || bodies[i].motion == Motion::Kinematic) {
-            continue;
-        }
-        for d in 0..6 {
-            vbar[i][d] += r.vel[d];
-        }
-        if full {
-            let g = r.pose(&dual_faces[i]);
-            for d in 0..6 {
-                pose[i][d] += g[d];
-            }
-        }
-    }
     clock.lap(Stage::CorrectVelocity, times);
 
     let live_surface = options.surface == SurfaceGradient::Live && rec.particles.is_some();
@@ -352,7 +326,7 @@ fn step_adjoint(
         v_after: &rec.v_after,
         u_hat: &u_hat,
         static_weights: &initial.statics().weights,
-        dual_faces: full.then_some(dual_faces.as_slice()),
+        dual_faces: dual,
         surface: live_surface,
         how: settings.solver.linear(),
         density: settings.fluid.density,
@@ -394,56 +368,12 @@ fn step_adjoint(
 
     let mut particles = Vec::new();
     if let (Some(pr), Some(phi_bar)) = (rec.particles.as_ref(), phi_bar) {
-        // The density projection read the band of its own step.
-        let band = pr.deep.as_ref().map(|deep| {
-            let m = surface::per_axis(settings.solver.particles_per_cell);
-            Band::with_deep(&grid, deep.clone(), initial.surface_model().radius, m)
-        });
-        let stage = ParticleStage {
-            grid: &grid,
-            dt,
-            u: &rec.u,
-            bodies: &bodies,
-            node_sdf: &initial.statics().node_sdf,
-            margin: initial.push_margin(),
-            density: initial.density_inputs(&sys.geometry).map(|mut g| {
-                g.band = band.as_ref();
-                g
-            }),
-            step,
-        };
-        let replayed = stage.replay(pr)?;
-        let mut pbar = adj.particles;
-        if pbar.is_empty() {
-            pbar = vec![Vec3::ZERO; replayed.end.len()];
-        }
-        surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, &phi_bar, &mut pbar);
-        // Volume control: the solve's sources read the particles' density here.
-        if rec.volume_control {
-            let rate = settings.solver.volume_rate();
-            let cell = grid.dx.powi(3);
-            let base = band.as_ref().map(|b| b.density.as_slice());
-            let ppc = settings.solver.particles_per_cell;
-            let density = surface::particle_density(&replayed.end, &grid, ppc, base);
-            let mut density_bar = vec![0.0; density.len()];
-            for (&c, s) in sys.pressure.cell_of_row.iter().zip(&projected.rhs) {
-                let c = c as usize;
-                density_bar[c] = s * volume_source_derivative(rate, density[c], cell, dt);
-            }
-            surface::particle_density_adjoint(&replayed.end, &grid, ppc, &density_bar, &mut pbar);
-        }
-        clock.lap(Stage::Surface, times);
-        let statics = &initial.statics().weights;
-        stage.settle_adjoint(replayed, &mut pbar, &mut pose, &dual_faces, statics)?;
-        clock.lap(Stage::Density, times);
-        stage.advect_adjoint(pr, &mut pbar, &mut u0, &mut pose);
-        clock.lap(Stage::AdvectParticles, times);
-        // The band's update before the advection: back to the particles' old indices.
-        particles = match &pr.change {
-            Some(change) => change.adjoint(&pbar),
-            None => pbar,
-        };
-        clock.lap(Stage::Band, times);
+        let pieces =
+            ParticlePieces { pr, phi_bar: &phi_bar, rhs: &projected.rhs, dual_faces: &dual_faces };
+        let after = adj.particles;
+        particles = particles_adjoint(
+            initial, rec, &sys, &bodies, pieces, after, &mut u0, &mut pose, &mut clock, times, step,
+        )?;
     }
 
     // The step's pose derivatives, of every stage, to the poses it started from.
@@ -456,6 +386,135 @@ fn step_adjoint(
     initial.spare().keep_velocity(uhat_bar);
     initial.spare().keep_system(sys.geometry, sys.pressure);
     Ok(AdjointState { u: u0, bodies: out, particles, mass })
+}
+
+/// The adjoint of [`Stage::CorrectVelocity`]: `ubar` (∂L/∂u after the step) becomes ∂L/∂u
+/// after the projection (`u_corr` gives that field where it is read); the bodies' ∂L/∂[v; ω]
+/// after the solve are added to `vbar`, and with `dual` (each body's dual fractions, the full
+/// gradient) their ∂L/∂[δx; δθ] to `pose`.
+#[allow(clippy::too_many_arguments)]
+fn correct_velocity_adjoint(
+    initial: &Simulation,
+    rec: &StepRecord,
+    sys: &StepSystem,
+    bodies: &[RigidBody],
+    dual: Option<&[DualFaces]>,
+    u_corr: impl Fn(usize, usize) -> f64,
+    ubar: &mut Mac,
+    vbar: &mut [Twist],
+    pose: &mut [Twist],
+) {
+    let mut after = bodies.to_vec();
+    for (b, va) in after.iter_mut().zip(&rec.v_after) {
+        (b.v, b.w) = (va.linear(), va.angular());
+    }
+    let grid = initial.grid();
+    let bva = correct_with_bodies_adjoint(
+        ubar,
+        u_corr,
+        &rec.air_body_faces,
+        &sys.projected_mask(),
+        &after,
+        &sys.geometry.body_faces,
+        &sys.geometry.weights,
+        &initial.statics().weights,
+        grid,
+        initial.settings().solver.extrapolation_layers,
+    );
+    for (i, r) in bva.iter().enumerate() {
+        // A fixed body's pose and velocity are constants; a kinematic one's are the
+        // prescribed motion's (a control's).
+        if !(bodies[i].moves() || bodies[i].motion == Motion::Kinematic) {
+            continue;
+        }
+        add_twist(&mut vbar[i], &r.vel);
+        if let Some(dual) = dual {
+            add_twist(&mut pose[i], &r.pose(&dual[i]));
+        }
+    }
+}
+
+/// What the particle stages' adjoints read of the step besides the record.
+struct ParticlePieces<'a> {
+    pr: &'a ParticleRecord,
+    /// ∂L/∂φ_L of the step, carried back out of the solids.
+    phi_bar: &'a [f64],
+    /// ∂L/∂(the solve's right-hand side) per row (volume control's sources read it).
+    rhs: &'a [f64],
+    dual_faces: &'a [DualFaces],
+}
+
+/// The adjoints of [`Stage::Surface`], [`Stage::Density`], [`Stage::AdvectParticles`] and
+/// [`Stage::Band`], in that order, timed: from ∂L/∂(particles after the step) (`after`, empty
+/// for zero), ∂L/∂(particles at its start); ∂L/∂u of the start velocity is added to `ubar` and
+/// the bodies' ∂L/∂[δx; δθ] to `pose`.
+#[allow(clippy::too_many_arguments)]
+fn particles_adjoint(
+    initial: &Simulation,
+    rec: &StepRecord,
+    sys: &StepSystem,
+    bodies: &[RigidBody],
+    pieces: ParticlePieces<'_>,
+    after: Vec<Vec3>,
+    ubar: &mut Mac,
+    pose: &mut [Twist],
+    clock: &mut StageClock,
+    times: &mut AdjointSeconds,
+    step: usize,
+) -> Result<Vec<Vec3>> {
+    let ParticlePieces { pr, phi_bar, rhs, dual_faces } = pieces;
+    let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
+    // The density projection read the band of its own step.
+    let band = pr.deep.as_ref().map(|deep| {
+        let m = surface::per_axis(settings.solver.particles_per_cell);
+        Band::with_deep(&grid, deep.clone(), initial.surface_model().radius, m)
+    });
+    let stage = ParticleStage {
+        grid: &grid,
+        dt,
+        u: &rec.u,
+        bodies,
+        node_sdf: &initial.statics().node_sdf,
+        margin: initial.push_margin(),
+        density: initial.density_inputs(&sys.geometry).map(|mut g| {
+            g.band = band.as_ref();
+            g
+        }),
+        step,
+    };
+    let replayed = stage.replay(pr)?;
+    let mut pbar = after;
+    if pbar.is_empty() {
+        pbar = vec![Vec3::ZERO; replayed.end.len()];
+    }
+    surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, phi_bar, &mut pbar);
+    // Volume control: the solve's sources read the particles' density here.
+    if rec.volume_control {
+        let rate = settings.solver.volume_rate();
+        let cell = grid.dx.powi(3);
+        let base = band.as_ref().map(|b| b.density.as_slice());
+        let ppc = settings.solver.particles_per_cell;
+        let density = surface::particle_density(&replayed.end, &grid, ppc, base);
+        let mut density_bar = vec![0.0; density.len()];
+        for (&c, s) in sys.pressure.cell_of_row.iter().zip(rhs) {
+            let c = c as usize;
+            density_bar[c] = s * volume_source_derivative(rate, density[c], cell, dt);
+        }
+        surface::particle_density_adjoint(&replayed.end, &grid, ppc, &density_bar, &mut pbar);
+    }
+    clock.lap(Stage::Surface, times);
+    let statics = &initial.statics().weights;
+    stage.settle_adjoint(replayed, &mut pbar, pose, dual_faces, statics)?;
+    clock.lap(Stage::Density, times);
+    stage.advect_adjoint(pr, &mut pbar, ubar, pose);
+    clock.lap(Stage::AdvectParticles, times);
+    // The band's update before the advection: back to the particles' old indices.
+    let start = match &pr.change {
+        Some(change) => change.adjoint(&pbar),
+        None => pbar,
+    };
+    clock.lap(Stage::Band, times);
+    Ok(start)
 }
 
 #[cfg(test)]

@@ -5,14 +5,14 @@
 use super::stepping::{largest_magnitude, Pressures, LARGEST};
 use super::{volume_warning, BodyHandle, Simulation, EXTERNAL_REACH};
 use crate::error::{Error, Result};
-use crate::geometry::body::RigidBody;
+use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::grid::Mac;
 use crate::math::{v3, Twist, TwistParts};
 use crate::solvers::cg::CgStats;
 use crate::stages::band::Band;
 use crate::stages::contact::contact_possible;
 use crate::stages::density::DensityStats;
-use crate::stages::extrapolate::correct_with_bodies;
+use crate::stages::extrapolate::{correct_with_bodies, AirBodyFaces};
 use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
 use crate::stages::project::{project, HeldContact, Projection};
@@ -75,16 +75,7 @@ impl Simulation {
 
         // A replayed step is given its pressures: its system needs no operator.
         let solves = !matches!(pressures, Pressures::Replay(_));
-        let params = StepParams { solves, ..self.step_params(dt) };
-        let memory = self.spare.systems().take();
-        let mut sys = StepSystem::assemble(&grid, &self.bodies, geometry, phi, params, memory);
-        if let (Some(d), true) = (&crowding, sys.pressure.has_air) {
-            let rate = self.settings.solver.volume_rate();
-            let cell = grid.dx.powi(3);
-            let rows = &sys.pressure.cell_of_row;
-            sys.volume_source =
-                rows.iter().map(|&c| volume_source(rate, d[c as usize], cell, dt)).collect();
-        }
+        let sys = self.assemble(geometry, phi, crowding.as_deref(), dt, solves);
         timed.lap(Stage::Assemble);
 
         let out = self.spare.velocity(&grid);
@@ -95,22 +86,13 @@ impl Simulation {
             sys.coupled.iter().map(|&i| body_velocity(&self.bodies[i], v3(gravity), dt)).collect();
         timed.lap(Stage::Forces);
 
-        let (proj, u, contact) = self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures)?;
+        let (proj, mut u, contact) =
+            self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures)?;
         let report = report && solves;
         let (max_divergence, kinetic_energy) = self.projected_measures(&sys, &u, &proj, report);
         timed.lap(Stage::Pressure);
 
-        let mut u = u;
-        let air_body_faces = correct_with_bodies(
-            &mut u,
-            &sys.projected_mask(),
-            &self.bodies,
-            &sys.geometry.body_faces,
-            &sys.geometry.weights,
-            &self.statics.weights,
-            &grid,
-            self.settings.solver.extrapolation_layers,
-        );
+        let air_body_faces = self.correct_velocity(&sys, &mut u);
         timed.lap(Stage::CorrectVelocity);
 
         // Whether rapier integrates the bodies: contact possible at their new velocities.
@@ -118,30 +100,88 @@ impl Simulation {
         if let Pressures::Record(solves) = &mut pressures {
             solves.contact |= contact || contact_moves;
         }
-        if let (Some(t), Some((u0, bodies))) = (tape, start) {
-            t.steps.push(StepRecord {
-                u: u0,
-                bodies,
-                v_hat: proj.v_hat.clone(),
-                v_after: self.bodies.iter().map(generalized_velocity).collect(),
-                p: proj.p.clone(),
-                phi: taped_phi,
-                body_faces: sys.geometry.body_faces.clone(),
-                loads: self.bodies.iter().map(RigidBody::load).collect(),
-                air_body_faces,
-                contact: contact || contact_moves,
-                particles: record,
-                volume_control: !sys.volume_source.is_empty(),
-            });
+        if let (Some(t), Some(start)) = (tape, start) {
+            let taped = Taped { phi: taped_phi, air_body_faces, particles: record };
+            t.steps.push(self.record(start, &proj, &sys, taped, contact || contact_moves));
         }
-        let tank = Tank { size: grid.size(), external_reach: EXTERNAL_REACH * grid.dx };
-        let contact = contact_moves.then_some(&self.settings.contact);
-        integrate(&mut self.bodies, dt, tank, contact, self.step + 1)?;
+        self.rigid(dt, contact_moves)?;
         timed.lap(Stage::Rigid);
 
         let measured =
             Measured { volume_errors, warnings, density, max_divergence, kinetic_energy };
         self.finish(dt, u, sys, proj, measured, timed.times, report)
+    }
+
+    /// [`Stage::Assemble`]: the step's system from the solids where they are and φ_L; with
+    /// volume control (the particles' density per cell, `crowding`) its sources.
+    fn assemble(
+        &self,
+        geometry: Geometry,
+        phi: Vec<f64>,
+        crowding: Option<&[f64]>,
+        dt: f64,
+        solves: bool,
+    ) -> StepSystem {
+        let grid = self.grid;
+        let params = StepParams { solves, ..self.step_params(dt) };
+        let memory = self.spare.systems().take();
+        let mut sys = StepSystem::assemble(&grid, &self.bodies, geometry, phi, params, memory);
+        if let (Some(d), true) = (crowding, sys.pressure.has_air) {
+            let rate = self.settings.solver.volume_rate();
+            let cell = grid.dx.powi(3);
+            let rows = &sys.pressure.cell_of_row;
+            sys.volume_source =
+                rows.iter().map(|&c| volume_source(rate, d[c as usize], cell, dt)).collect();
+        }
+        sys
+    }
+
+    /// [`Stage::CorrectVelocity`] on `u`; returns what the backward pass needs of it.
+    fn correct_velocity(&self, sys: &StepSystem, u: &mut Mac) -> AirBodyFaces {
+        correct_with_bodies(
+            u,
+            &sys.projected_mask(),
+            &self.bodies,
+            &sys.geometry.body_faces,
+            &sys.geometry.weights,
+            &self.statics.weights,
+            &self.grid,
+            self.settings.solver.extrapolation_layers,
+        )
+    }
+
+    /// The step's record for the backward pass, from its start (`start`: the fluid velocity
+    /// and the bodies' states), taken before [`Stage::Rigid`].
+    fn record(
+        &self,
+        (u, bodies): (Mac, Vec<BodyState>),
+        proj: &Projection,
+        sys: &StepSystem,
+        taped: Taped,
+        contact: bool,
+    ) -> StepRecord {
+        StepRecord {
+            u,
+            bodies,
+            v_hat: proj.v_hat.clone(),
+            v_after: self.bodies.iter().map(generalized_velocity).collect(),
+            p: proj.p.clone(),
+            phi: taped.phi,
+            body_faces: sys.geometry.body_faces.clone(),
+            loads: self.bodies.iter().map(RigidBody::load).collect(),
+            air_body_faces: taped.air_body_faces,
+            contact,
+            particles: taped.particles,
+            volume_control: !sys.volume_source.is_empty(),
+        }
+    }
+
+    /// [`Stage::Rigid`]: the bodies integrated, through rapier when `contact`.
+    fn rigid(&mut self, dt: f64, contact: bool) -> Result<()> {
+        let grid = self.grid;
+        let tank = Tank { size: grid.size(), external_reach: EXTERNAL_REACH * grid.dx };
+        let contact = contact.then_some(&self.settings.contact);
+        integrate(&mut self.bodies, dt, tank, contact, self.step + 1)
     }
 
     /// Whether rapier contact is on and could act this step (see [`contact_possible`]).
@@ -460,6 +500,13 @@ impl Simulation {
             warnings: measured.warnings,
         })
     }
+}
+
+/// What the stages before [`Stage::Rigid`] leave for a taped step's record.
+struct Taped {
+    phi: Vec<f64>,
+    air_body_faces: AirBodyFaces,
+    particles: Option<ParticleRecord>,
 }
 
 /// What a step measured along the way for its report.
