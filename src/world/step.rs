@@ -413,6 +413,25 @@ pub struct StageSeconds {
     pub rigid: f64,
 }
 
+impl StageSeconds {
+    /// Each stage's name (as in `summary.json`) and seconds, in the order the step runs them.
+    pub fn named(&self) -> [(&'static str, f64); 11] {
+        [
+            ("geometry", self.geometry),
+            ("band", self.band),
+            ("advect_particles", self.advect_particles),
+            ("density", self.density),
+            ("surface", self.surface),
+            ("assemble", self.assemble),
+            ("advect_velocity", self.advect_velocity),
+            ("forces", self.forces),
+            ("pressure", self.pressure),
+            ("correct_velocity", self.correct_velocity),
+            ("rigid", self.rigid),
+        ]
+    }
+}
+
 /// Pressure force and torque on one body in one step, as written to `summary.json`.
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct BodyForce {
