@@ -305,6 +305,7 @@ impl SimulationBuilder {
             warned: Vec::new(),
             spare: Arc::default(),
             rollback: true,
+            measures: true,
         };
         // The particles the band does not need go before the first step.
         let geometry = sim.geometry();

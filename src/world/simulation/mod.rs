@@ -99,6 +99,8 @@ pub struct Simulation {
     spare: Arc<Spare>,
     /// Whether a step that fails is rolled back ([`Simulation::set_rollback`]).
     rollback: bool,
+    /// Whether a step's report measures the liquid ([`Simulation::set_report_measures`]).
+    measures: bool,
 }
 
 /// How far (in cells) an [`Motion::External`](crate::geometry::body::Motion::External)
@@ -534,6 +536,25 @@ impl Simulation {
     /// idle beside others.
     pub fn release_spare(&mut self) {
         self.spare = Arc::default();
+    }
+
+    /// Whether [`Simulation::step`] and [`Simulation::advance`] measure the liquid for their
+    /// reports (on unless [`Simulation::set_report_measures`] turned it off).
+    pub fn report_measures(&self) -> bool {
+        self.measures
+    }
+
+    /// Whether the reports of [`Simulation::step`] and [`Simulation::advance`] measure the
+    /// liquid: its mechanical energy ([`Simulation::energy`], a velocity sample at every
+    /// marker particle), its volume ([`Simulation::liquid_volume`], a deposit of every
+    /// particle), its fastest speed, its face-weighted kinetic energy and its largest
+    /// divergence. On by default: a run's summary and the physics checks read them. Off,
+    /// those fields are NaN (the energy zero) and the step is otherwise the same, bit for
+    /// bit: for a game or control loop that reads none of them (on the 64×32×64 pool of
+    /// `examples/realtime_pool.rs`, a sixth of a frame). [`Simulation::energy`] and
+    /// [`Simulation::liquid_volume`] still measure when called.
+    pub fn set_report_measures(&mut self, on: bool) {
+        self.measures = on;
     }
 
     /// The mechanical energy of the liquid and the bodies now: the liquid's as the marker
