@@ -306,6 +306,7 @@ impl SimulationBuilder {
             spare: Arc::default(),
             rollback: true,
             measures: true,
+            surface_bins: Default::default(),
         };
         // The particles the band does not need go before the first step.
         let geometry = sim.geometry();
