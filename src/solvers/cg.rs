@@ -127,6 +127,9 @@ where
     let mut d = vec![0.0; n];
     let mut q = vec![0.0; n];
     let mut it = 0;
+    // Whether r holds the true residual of x (b − A·x, the constant removed) as the loop
+    // leaves it: then the final check below would only compute it again.
+    let mut confirmed = false;
     'restart: loop {
         let z = &mut q;
         precondition(&r, z);
@@ -153,6 +156,7 @@ where
                     remove_mean(&mut r);
                 }
                 if dot(&r, &r).sqrt() <= target {
+                    confirmed = true;
                     break 'restart;
                 }
                 continue 'restart;
@@ -169,17 +173,21 @@ where
         }
         break;
     }
+    // The true residual at the end, unless the convergence check just computed it for the x
+    // returned (with the constant removed from x, x changes: computed again).
     if s.project_constant {
         remove_mean(x);
     }
-    apply(x, &mut q);
     let res = &mut r;
-    res.par_iter_mut()
-        .zip(b.par_iter().zip(q.par_iter()))
-        .with_min_len(crate::math::par::MIN_LEN)
-        .for_each(|(ri, (bi, qi))| *ri = bi - qi);
-    if s.project_constant {
-        remove_mean(res);
+    if !confirmed || s.project_constant {
+        apply(x, &mut q);
+        res.par_iter_mut()
+            .zip(b.par_iter().zip(q.par_iter()))
+            .with_min_len(crate::math::par::MIN_LEN)
+            .for_each(|(ri, (bi, qi))| *ri = bi - qi);
+        if s.project_constant {
+            remove_mean(res);
+        }
     }
     let rel = dot(res, res).sqrt() / bnorm;
     CgStats { iterations: it, relative_residual: rel, converged: rel <= s.tolerance }

@@ -218,11 +218,12 @@ pub fn deep_cells(grid: &Grid, outside: &[bool], width: usize, was: Option<&[boo
 /// band's width in cells for this step. The cells that left the deep set get their `m³`
 /// sub-lattice sites, particles in cells that turned deep are taken out, and each deep cell
 /// trades particles with the band as the grid's flux through its faces says (see
-/// [`Band::owed`]). New particles sit where `admit` accepts them (outside the solids). See
-/// the module doc.
+/// [`Band::owed`]). New particles sit where `admit` accepts them (outside the solids). The
+/// particles' `bins`, when the caller has them, are not made again. See the module doc.
 #[allow(clippy::too_many_arguments)]
 pub fn update(
     particles: &mut Vec<Vec3>,
+    bins: Option<surface::Bins>,
     band: &mut Band,
     outside: &[bool],
     width: usize,
@@ -233,7 +234,7 @@ pub fn update(
     admit: impl Fn(Vec3) -> bool + Sync,
 ) -> BandChange {
     let deep = deep_cells(grid, outside, width, Some(&band.deep));
-    let bins = surface::Bins::new(particles, grid);
+    let bins = bins.unwrap_or_else(|| surface::Bins::new(particles, grid));
     let off = surface::sub_offsets(m);
     let dx = grid.dx;
     let unit = dx.powi(3) / (m * m * m) as f64;
@@ -259,8 +260,10 @@ pub fn update(
         .collect();
     // Deletions: everything in a deep cell, and what the deep cells take in, in cell order
     // (a particle two cells would take goes to the first; the other keeps its debt).
-    let mut gone: Vec<bool> =
-        particles.par_iter().map(|x| deep[surface::cell_of(grid, *x)]).collect();
+    let mut gone = vec![false; particles.len()];
+    for c in (0..deep.len()).filter(|&c| deep[c]) {
+        bins.cell(c).iter().for_each(|&p| gone[p as usize] = true);
+    }
     let before = particles.len();
     let mut added = 0;
     let mut seeded = Vec::new();
@@ -503,20 +506,26 @@ mod tests {
 
     /// Still liquid: the update takes out the deep particles, and a second update changes
     /// nothing; with the grid's deposit the density is the full liquid's; the adjoint puts
-    /// each kept particle's gradient at its old index.
+    /// each kept particle's gradient at its old index. Given the particles' bins, the update
+    /// is the same.
     #[test]
     fn update_takes_out_the_deep_particles_and_then_rests() {
         let (g, mut pos, outside) = pool();
         let all = pos.clone();
         let mut band = Band::empty(&g, 0.0631, 2);
         let still = Mac::zeros(&g);
-        let change = update(&mut pos, &mut band, &outside, 2, &still, 0.01, &g, 2, |_| true);
+        let (mut binned, mut band_binned) = (pos.clone(), band.clone());
+        let bins = Some(surface::Bins::new(&binned, &g));
+        let given =
+            update(&mut binned, bins, &mut band_binned, &outside, 2, &still, 0.01, &g, 2, |_| true);
+        let change = update(&mut pos, None, &mut band, &outside, 2, &still, 0.01, &g, 2, |_| true);
+        assert_eq!((&given, &binned, &band_binned), (&change, &pos, &band));
         // Rows 0..=3 are 4 or more cells from the air at row 7 (more than width + 1).
         let row = 12 * 8;
         assert_eq!(band.deep_cells(), 4 * row);
         assert_eq!(pos.len(), all.len() - 8 * 4 * row);
         assert_eq!(change.added, 0);
-        let again = update(&mut pos, &mut band, &outside, 2, &still, 0.01, &g, 2, |_| true);
+        let again = update(&mut pos, None, &mut band, &outside, 2, &still, 0.01, &g, 2, |_| true);
         assert_eq!((again.added, again.kept.len()), (0, pos.len()));
         let mixed = surface::particle_density(&pos, &g, 8, Some(&band.density));
         let real = surface::particle_density(&all, &g, 8, None);
@@ -541,31 +550,31 @@ mod tests {
         let mut band = Band::empty(&g, 0.0631, 2);
         let dt = 0.01;
         let mut flow = Mac::zeros(&g);
-        update(&mut pos, &mut band, &outside, 2, &flow, dt, &g, 2, |_| true);
+        update(&mut pos, None, &mut band, &outside, 2, &flow, dt, &g, 2, |_| true);
         let row = 12 * 8;
         let n0 = pos.len();
         // Up: a unit of volume (dx³/8) through each top deep cell's upper face per step.
         flow.c[1].iter_mut().for_each(|v| *v = g.dx / (8.0 * dt));
-        let change = update(&mut pos, &mut band, &outside, 2, &flow, dt, &g, 2, |_| true);
+        let change = update(&mut pos, None, &mut band, &outside, 2, &flow, dt, &g, 2, |_| true);
         assert_eq!(change.added, row);
         assert_eq!(pos.len(), n0 + row);
         let sent = &pos[n0..];
         assert!(sent.iter().all(|x| (x.y - 0.425).abs() < 1e-12), "in row 4's first layer");
         // Down: each top deep cell takes one particle of row 4 back, the nearest.
         flow.c[1].iter_mut().for_each(|v| *v = -g.dx / (8.0 * dt));
-        let change = update(&mut pos, &mut band, &outside, 2, &flow, dt, &g, 2, |_| true);
+        let change = update(&mut pos, None, &mut band, &outside, 2, &flow, dt, &g, 2, |_| true);
         assert_eq!((change.added, pos.len()), (0, n0));
         assert!(band.owed.iter().all(|o| o.abs() < 1e-15));
         // A particle that flowed into a deep cell is taken out, and sent back when still.
         let still = Mac::zeros(&g);
         pos[0].y = 0.35;
-        let change = update(&mut pos, &mut band, &outside, 2, &still, dt, &g, 2, |_| true);
+        let change = update(&mut pos, None, &mut band, &outside, 2, &still, dt, &g, 2, |_| true);
         assert!(!change.kept.contains(&0));
         assert_eq!((change.added, pos.len()), (1, n0));
         // The air comes down to row 4: rows 2 and 3 (within the width of it) leave the deep
         // set and are seeded; rows 0 and 1 stay.
         let lower: Vec<bool> = (0..g.num_cells()).map(|c| g.cells().ijk(c)[1] >= 4).collect();
-        let change = update(&mut pos, &mut band, &lower, 2, &still, dt, &g, 2, |_| true);
+        let change = update(&mut pos, None, &mut band, &lower, 2, &still, dt, &g, 2, |_| true);
         assert_eq!(band.deep_cells(), 2 * row);
         assert_eq!(change.added, 8 * 2 * row);
     }

@@ -223,14 +223,15 @@ impl DensityProjection {
         });
         let weights = closed.as_ref().unwrap_or(g.weights);
         let mut sys = PressureSystem::build_in(memory, grid, &phi, weights, params);
-        if closed.is_some() && !excess_reaches_air(&sys, weights, &phi, &dens, g) {
+        let mut interior = interior_cells(&sys, g);
+        if closed.is_some() && !excess_reaches_air(&sys, weights, &phi, &dens, &interior, g) {
             // Some excess has no way to the air but through the deep cells: the whole liquid's
             // operator, as without a band.
             closed = None;
             sys = PressureSystem::build_in(sys.into_memory(), grid, &phi, g.weights, params);
+            interior = interior_cells(&sys, g);
         }
         let vol = grid.dx.powi(3);
-        let interior = interior_cells(&sys, g);
         let b: Vec<f64> = sys
             .cell_of_row
             .par_iter()
@@ -488,18 +489,19 @@ fn close_where<T: Copy>(out: &mut [T], a: &[bool], b: Option<&[bool]>, shut: T) 
     }
 }
 
-/// Whether every over-full cell of `sys` (built with `weights`) can send its excess to the
-/// air: it is an unknown (when it has an open face in the inputs' weights), and its
-/// unknown reaches one next to air through the operator. Otherwise the system closed at the
-/// deep cells is singular where the excess is, or misses it.
+/// Whether every over-full cell of `sys` (built with `weights`; its [`interior_cells`]
+/// `interior`) can send its excess to the air: it is an unknown (when it has an open face in
+/// the inputs' weights), and its unknown reaches one next to air through the operator.
+/// Otherwise the system closed at the deep cells is singular where the excess is, or misses
+/// it.
 fn excess_reaches_air(
     sys: &PressureSystem,
     weights: &FaceWeights,
     phi: &[f64],
     dens: &[f64],
+    interior: &[bool],
     g: &DensityInputs<'_>,
 ) -> bool {
-    let interior = interior_cells(sys, g);
     let excess = |c: usize| excess(dens[c], interior[c]) != 0.0 && g.counts_excess(c);
     let reached = sys.rows_reaching_air(weights);
     let rows_reach =

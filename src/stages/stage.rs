@@ -112,6 +112,11 @@ impl StageSeconds {
         *copy.get_mut(stage)
     }
 
+    /// Each stage's name and seconds, in the order of [`Stage::ALL`].
+    pub fn named(&self) -> [(&'static str, f64); 11] {
+        Stage::ALL.map(|s| (s.name(), self.get(s)))
+    }
+
     /// The sum over the stages.
     pub fn total(&self) -> f64 {
         Stage::ALL.iter().map(|&s| self.get(s)).sum()

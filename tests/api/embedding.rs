@@ -10,6 +10,8 @@
 //!   velocity (named as such), a handle from another simulation, bodies that overlap with
 //!   contact off (nothing would keep them apart), and it warns at once about a body thinner
 //!   than its face fractions are sampled at.
+//! - A game loop that reads none of the step report's measures of the liquid turns them off
+//!   ([`Simulation::set_report_measures`]); its steps are the same bits as with them on.
 
 use crate::common::TempDir;
 use diffluid::math::Rotation;
@@ -237,4 +239,27 @@ fn particles_of_a_narrow_band_cannot_be_replaced() {
     let p = sim.particles().to_vec();
     let err = sim.set_particles(p).unwrap_err().to_string();
     assert!(err.contains("solver.narrow_band"), "{err}");
+}
+
+#[test]
+fn steps_without_the_report_measures_are_the_same_steps() {
+    let run = |measures: bool| {
+        let mut sim = pool();
+        sim.add_body(cube("crate", 0.06, Vec3::new(0.3, 0.2, 0.2))).unwrap();
+        sim.set_report_measures(measures);
+        assert_eq!(sim.report_measures(), measures);
+        let reports: Vec<_> = (0..3).flat_map(|_| sim.advance(1.0 / 60.0).unwrap()).collect();
+        (sim, reports)
+    };
+    let (on, with) = run(true);
+    let (off, without) = run(false);
+    assert_eq!(on.particles(), off.particles());
+    assert_eq!(on.velocity_field(), off.velocity_field());
+    assert_eq!(on.bodies()[0].state(), off.bodies()[0].state());
+    for (a, b) in with.iter().zip(&without) {
+        assert_eq!(a.cg_iterations, b.cg_iterations);
+        assert!(a.liquid_volume > 0.0 && a.energy.total() != 0.0 && a.max_speed.is_finite());
+        assert!(b.liquid_volume.is_nan() && b.max_speed.is_nan() && b.max_divergence.is_nan());
+        assert_eq!(b.energy.total(), 0.0);
+    }
 }

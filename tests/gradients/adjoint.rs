@@ -209,8 +209,7 @@ fn live_surface_floating_box_gradient_matches_central_differences() {
     assert!(worst > 1e-2, "the surface's motion should matter here");
 }
 
-/// The live-surface gradient without the density projection, with volume control (its
-/// default then): the solve's sources read the particles' density, and the gradient follows
+/// The live-surface gradient without the density projection, with volume control: the solve's sources read the particles' density, and the gradient follows
 /// them: every parameter within 1e-5 (measured 5.3e-7 at worst) but x₀, which sits at a kink
 /// here and takes one of its one-sided slopes. Without the sources' adjoint the errors were
 /// 4e-5 to 1e-3 over 5 steps.
@@ -222,6 +221,7 @@ fn volume_control_gradient_matches_central_differences() {
 [solver]
 tolerance = 1e-12
 density_correction = false
+volume_control = 4.0
 "#;
     let scene = Scene::from_toml(&text, "<test>").unwrap();
     assert!(scene.solver.volume_rate() > 0.0);

@@ -159,9 +159,10 @@ impl PressureSystem {
             operator,
         };
         let [mut fx, mut fy, mut fz] = faces;
-        sys.projected_faces(0, weights, phi, &mut fx);
-        sys.projected_faces(1, weights, phi, &mut fy);
-        sys.projected_faces(2, weights, phi, &mut fz);
+        let busy = sys.rows_with_unknowns();
+        sys.projected_faces(0, weights, phi, &busy, &mut fx);
+        sys.projected_faces(1, weights, phi, &busy, &mut fy);
+        sys.projected_faces(2, weights, phi, &busy, &mut fz);
         sys.faces = [fx, fy, fz];
         sys
     }
@@ -214,27 +215,48 @@ impl PressureSystem {
         }
     }
 
+    /// Per row of cells along x (index j + n₁·k), whether it holds an unknown.
+    fn rows_with_unknowns(&self) -> Vec<bool> {
+        let n = self.grid.n;
+        let mut busy = vec![false; n[1] * n[2]];
+        for &c in &self.cell_of_row {
+            busy[c as usize / n[0]] = true;
+        }
+        busy
+    }
+
     /// The faces of `axis` next to a liquid cell that the velocity update acts on, each once,
     /// sorted, into `out`: those where [`PressureSystem::face_gradient`] gives a gradient. In
     /// two parallel passes over the slabs of the face lattice (count, then fill each slab's
-    /// share of `out`), so nothing but `out` is allocated.
+    /// share of `out`), so nothing but `out` is allocated. A row of faces between rows of
+    /// cells without unknowns (`busy`, see [`PressureSystem::rows_with_unknowns`]) has none
+    /// and is skipped: the air above a pool, and a band's deep cells below its surface.
     fn projected_faces(
         &self,
         axis: usize,
         weights: &FaceWeights,
         phi: &[f64],
+        busy: &[bool],
         out: &mut Vec<ProjectedFace>,
     ) {
         let lat = self.grid.faces(axis);
         let nz = lat.n[2];
         let rows = &self.row_of_cell;
+        let [_, n1, _] = self.grid.n;
+        // The rows of cells on either side of the faces (j, k) of `axis`: the same row along
+        // x, the rows at j − 1 and j (k − 1 and k) along y (z).
+        let live = |j: usize, k: usize| match axis {
+            0 => busy[j + n1 * k],
+            1 => busy[j - 1 + n1 * k] || busy[j + n1 * k],
+            _ => busy[j + n1 * (k - 1)] || busy[j + n1 * k],
+        };
         // A face has a gradient when a cell on either side is an unknown: counted without
         // computing it.
         let counts: Vec<usize> = (0..nz)
             .into_par_iter()
             .map(|k| {
                 let mut count = 0;
-                open_faces(&self.grid, axis, k, weights, |_, m, pl| {
+                open_faces(&self.grid, axis, k, weights, live, |_, m, pl| {
                     count += usize::from(rows[m] != NONE || rows[pl] != NONE);
                 });
                 count
@@ -251,7 +273,7 @@ impl PressureSystem {
         }
         slabs.into_par_iter().enumerate().for_each(|(k, part)| {
             let mut next = part.iter_mut();
-            open_faces(&self.grid, axis, k, weights, |f, m, pl| {
+            open_faces(&self.grid, axis, k, weights, live, |f, m, pl| {
                 if let Some(gradient) = self.gradient_between(m, pl, phi) {
                     *next.next().expect("counted") = ProjectedFace { face: f as u32, gradient };
                 }

@@ -160,14 +160,16 @@ pub fn ghost_theta(phi_liquid: f64, phi_air: f64, theta_min: f64) -> f64 {
 }
 
 /// Calls `visit(face, − cell, + cell)` for the open faces (weight > 0) of `axis` in slab k of
-/// its face lattice that have a cell on both sides, in face order, without a division per
-/// face: f runs over the face lattice, c over the cell on each face's + side.
+/// its face lattice that have a cell on both sides, in the rows (j, k) of faces that `live`
+/// accepts, in face order, without a division per face: f runs over the face lattice, c over
+/// the cell on each face's + side.
 #[inline]
 fn open_faces(
     grid: &Grid,
     axis: usize,
     k: usize,
     weights: &FaceWeights,
+    live: impl Fn(usize, usize) -> bool,
     mut visit: impl FnMut(usize, usize, usize),
 ) {
     let [nx, ny, _] = grid.faces(axis).n;
@@ -179,7 +181,7 @@ fn open_faces(
         return;
     }
     for j in 0..ny {
-        if axis == 1 && (j == 0 || j == n[1]) {
+        if axis == 1 && (j == 0 || j == n[1]) || !live(j, k) {
             continue;
         }
         let (f0, c0) = (nx * (j + ny * k), n[0] * (j + n[1] * k));

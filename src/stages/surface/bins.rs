@@ -139,11 +139,51 @@ pub fn cell_of(grid: &Grid, x: Vec3) -> usize {
     grid.cell(at(x.x, 0), at(x.y, 1), at(x.z, 2))
 }
 
+/// Calls `f`, in lattice order, for the cells of [`for_neighbour_cells`] exactly `ring` cells
+/// (L∞) from (i, j, k): its cells less those within `ring − 1`.
+#[inline(always)]
+pub(super) fn for_ring_cells(grid: &Grid, ijk: [usize; 3], ring: usize, mut f: impl FnMut(usize)) {
+    let lo = ijk.map(|x| x.saturating_sub(ring));
+    let hi = [0, 1, 2].map(|d| (ijk[d] + ring).min(grid.n[d] - 1));
+    let prune = ring >= 2;
+    let [i, n0] = [ijk[0], grid.n[0]];
+    // Along x, in a row `ring` away along y or z: all of the cube's cells, or (pruned) those
+    // less than `ring` away.
+    let across = if prune {
+        (i.saturating_sub(ring - 1), (i + ring - 1).min(hi[0]))
+    } else {
+        (lo[0], hi[0])
+    };
+    for k in lo[2]..=hi[2] {
+        for j in lo[1]..=hi[1] {
+            let at =
+                usize::from(k.abs_diff(ijk[2]) == ring) + usize::from(j.abs_diff(ijk[1]) == ring);
+            match at {
+                // Only the two cells `ring` away along x.
+                0 => {
+                    if i >= ring {
+                        f(grid.cell(i - ring, j, k));
+                    }
+                    if i + ring < n0 {
+                        f(grid.cell(i + ring, j, k));
+                    }
+                }
+                2 if prune => continue,
+                _ => {
+                    for x in across.0..=across.1 {
+                        f(grid.cell(x, j, k));
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Calls `f`, in lattice order, for every cell within `reach` cells of (i, j, k) that can
 /// hold a point within `reach·dx` of its centre: the cube of side 2·reach + 1, less, from
 /// reach 2 on, the cells `reach` away along two or three axes (their nearest point is
 /// √2·(reach − ½)·dx > reach·dx away: 44 of the 125 cells at reach 2).
-#[inline(always)]
+#[cfg(test)]
 pub(super) fn for_neighbour_cells(
     grid: &Grid,
     ijk: [usize; 3],

@@ -154,31 +154,37 @@ fn liquid_sdf_with(
             return (2.0 * dx - radius, NONE);
         }
         let x = cells.position(i, j, k);
-        let nearest = |reach: usize| {
-            let mut best = (f64::MAX, NONE);
-            for_neighbour_cells(grid, [i, j, k], reach, |c| {
-                for &p in bins.cell(c) {
-                    let d = (pos[p as usize] - x).length_squared();
-                    if d < best.0 {
-                        best = (d, p);
-                    }
+        let own = grid.cell(i, j, k);
+        // The nearest particle so far: its squared distance, its cell and its index. Of
+        // particles as near, the one in the cell first in lattice order, and the first in
+        // that cell's bin, as a scan of the whole block in lattice order would find.
+        let mut best = (f64::MAX, usize::MAX, NONE);
+        let scan = |c: usize, best: &mut (f64, usize, u32)| {
+            for &p in bins.cell(c) {
+                let d = (pos[p as usize] - x).length_squared();
+                if d < best.0 || (d == best.0 && c < best.1) {
+                    *best = (d, c, p);
                 }
-            });
-            (best.0.sqrt(), best.1)
+            }
         };
         // A particle outside the cell is at least dx/2 from its centre, so one nearer inside
         // it is the nearest (deep in the liquid, most cells: 8 distances instead of 216). A
         // particle outside the 3³ block is at least dx away, so a nearer one found inside it
-        // is the true nearest; otherwise look one ring further (exact up to 2·dx).
-        let mut d = nearest(0);
-        if d.0 >= 0.5 * dx {
-            d = nearest(1);
+        // is the true nearest; otherwise look one ring further (exact up to 2·dx). Each ring
+        // is searched once, and none that `reach` says is empty.
+        let r = reach[own];
+        if r == 0 {
+            scan(own, &mut best);
         }
-        if d.0 > dx {
-            d = nearest(2);
-            if d.0 > 2.0 * dx {
-                d = (2.0 * dx, NONE);
-            }
+        if best.0.sqrt() >= 0.5 * dx && r <= 1 {
+            for_ring_cells(grid, [i, j, k], 1, |c| scan(c, &mut best));
+        }
+        if best.0.sqrt() > dx {
+            for_ring_cells(grid, [i, j, k], 2, |c| scan(c, &mut best));
+        }
+        let mut d = (best.0.sqrt(), best.2);
+        if d.0 > 2.0 * dx {
+            d = (2.0 * dx, NONE);
         }
         let value = d.0 - radius;
         if model.sparse_cells && value >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {

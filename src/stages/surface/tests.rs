@@ -56,6 +56,96 @@ mod forward {
         assert!(rings.iter().all(|&r| r >= 10), "{rings:?}");
     }
 
+    /// The rings the search scans one after the other are the cells of the block it used
+    /// to scan whole (the cell, then the 3³ block, then the 5³ block less its 44 far cells),
+    /// each ring in lattice order.
+    #[test]
+    fn rings_partition_the_neighbour_block_in_lattice_order() {
+        let grid = Grid { n: [7, 6, 5], dx: 0.1 };
+        for c in 0..grid.num_cells() {
+            let ijk = grid.cells().ijk(c);
+            for reach in 1..=2 {
+                let mut block = Vec::new();
+                for_neighbour_cells(&grid, ijk, reach, |n| block.push(n));
+                let mut rings = vec![c];
+                for r in 1..=reach {
+                    let mut ring = Vec::new();
+                    for_ring_cells(&grid, ijk, r, |n| ring.push(n));
+                    assert!(ring.windows(2).all(|w| w[0] < w[1]), "ring {r} of cell {c}");
+                    rings.extend(ring);
+                }
+                rings.sort_unstable();
+                assert_eq!(rings, block, "reach {reach} of cell {c}");
+            }
+        }
+    }
+
+    /// On particles exactly on the seeding lattice (ties everywhere: a cell's centre is as
+    /// far from several of them), with holes and a splash above, φ and the particle it is the
+    /// distance to are those of the whole-block scan the ring search replaced: the first
+    /// nearest particle in lattice order, then in its cell's bin.
+    #[test]
+    fn ring_search_ties_as_the_block_scan_did() {
+        let grid = Grid { n: [10, 9, 8], dx: 0.1 };
+        let node_sdf = NodeSdf::new(&grid, &[]);
+        let pool = Solid::aabb(Vec3::ZERO, Vec3::new(1.0, 0.4, 0.8));
+        let mut pos = seed(&grid, &[pool], 8, &node_sdf, None);
+        pos.retain(|x| (x.x * 40.0) as usize % 7 != 3 || x.y > 0.2);
+        pos.extend([Vec3::new(0.55, 0.65, 0.35), Vec3::new(0.125, 0.775, 0.625)]);
+        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
+        let bins = Bins::new(&pos, &grid);
+        let cells = grid.cells();
+        let block_scan = |c: usize| {
+            let ijk = cells.ijk(c);
+            let x = cells.position(ijk[0], ijk[1], ijk[2]);
+            let nearest = |reach: usize| {
+                let mut best = (f64::MAX, crate::geometry::grid::NONE);
+                for_neighbour_cells(&grid, ijk, reach, |n| {
+                    for &p in bins.cell(n) {
+                        let d = (pos[p as usize] - x).length_squared();
+                        if d < best.0 {
+                            best = (d, p);
+                        }
+                    }
+                });
+                (best.0.sqrt(), best.1)
+            };
+            let mut d = nearest(0);
+            if d.0 >= 0.5 * grid.dx {
+                d = nearest(1);
+            }
+            if d.0 > grid.dx {
+                d = nearest(2);
+                if d.0 > 2.0 * grid.dx {
+                    d = (2.0 * grid.dx, crate::geometry::grid::NONE);
+                }
+            }
+            let value = d.0 - model.radius;
+            if value >= 0.0 && !bins.cell(c).is_empty() {
+                (-1e-3 * grid.dx, crate::geometry::grid::NONE)
+            } else {
+                (value, d.1)
+            }
+        };
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
+        let plain = liquid_sdf(&pos, &bins, &grid, &model, None);
+        let mut tied = 0;
+        for c in 0..grid.num_cells() {
+            let (value, p) = block_scan(c);
+            assert_eq!((phi[c].to_bits(), who[c]), (value.to_bits(), p), "cell {c}");
+            assert_eq!(plain[c].to_bits(), value.to_bits(), "cell {c}");
+            if p != crate::geometry::grid::NONE {
+                let [i, j, k] = cells.ijk(c);
+                let d = (pos[p as usize] - cells.position(i, j, k)).length();
+                tied += usize::from(
+                    pos.iter().filter(|y| (**y - cells.position(i, j, k)).length() == d).count()
+                        > 1,
+                );
+            }
+        }
+        assert!(tied > 100, "ties tested: {tied}");
+    }
+
     #[test]
     fn bins_list_each_cells_particles_in_order_with_any_thread_count() {
         let grid = Grid { n: [7, 5, 9], dx: 0.1 };

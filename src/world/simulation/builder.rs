@@ -305,6 +305,8 @@ impl SimulationBuilder {
             warned: Vec::new(),
             spare: Arc::default(),
             rollback: true,
+            measures: true,
+            surface_bins: Default::default(),
         };
         // The particles the band does not need go before the first step.
         let geometry = sim.geometry();

@@ -15,7 +15,6 @@ use crate::stages::pressure::PressureParams;
 use crate::stages::surface::SurfaceModel;
 use crate::world::step::{Geometry, StepParams, StepReport};
 use crate::world::tape::{Replay, Solves, Tape};
-use rayon::prelude::*;
 use std::ops::ControlFlow;
 use std::sync::Arc;
 
@@ -26,15 +25,7 @@ pub(super) const LARGEST: f64 = 1e100;
 
 /// The largest |u| over every face, NaN if one is NaN: one parallel pass for both checks.
 pub(super) fn largest_magnitude(u: &Mac) -> f64 {
-    let most = |a: f64, b: f64| if a.is_nan() || b.is_nan() { f64::NAN } else { a.max(b) };
-    u.c.iter()
-        .map(|c| {
-            c.par_iter()
-                .with_min_len(crate::math::par::MIN_LEN)
-                .map(|x| x.abs())
-                .reduce(|| 0.0, most)
-        })
-        .fold(0.0, most)
+    u.max_abs_or_nan()
 }
 
 /// What every failed step puts back (see [`Simulation::step_inner`]), rollback or not: the
@@ -237,7 +228,7 @@ impl Simulation {
     /// A step of `dt` that [`Simulation::rollback`] rolls back if it fails.
     fn step_undoable(&mut self, dt: f64) -> Result<StepReport> {
         let undo = self.rollback.then(|| Undo::take(self));
-        let report = self.step_inner(dt, None, Pressures::Solve, true);
+        let report = self.step_inner(dt, None, Pressures::Solve, self.measures);
         if let (Err(_), Some(undo)) = (&report, undo) {
             undo.restore(self);
         }
