@@ -328,12 +328,17 @@ fn animation_gif_at(
 /// A labelled series of (x, y) points for the bench charts.
 pub type Series = (String, Vec<(f64, f64)>);
 
-const PALETTE: [RGBColor; 5] = [
+const PALETTE: [RGBColor; 10] = [
     RGBColor(31, 119, 180),
     RGBColor(214, 39, 40),
     RGBColor(44, 160, 44),
     RGBColor(148, 103, 189),
     RGBColor(255, 127, 14),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+    RGBColor(188, 189, 34),
+    RGBColor(23, 190, 207),
 ];
 
 fn span(v: impl Iterator<Item = f64>, log: bool) -> (f64, f64) {

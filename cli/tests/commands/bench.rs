@@ -56,7 +56,12 @@ fn quick_bench_writes_its_tables_and_charts_and_maps_stability() {
             assert!(!stable, "weak coupling stable for the lightest body at CFL {}", r[2]);
         }
     }
-    for f in ["smoothness.csv", "smoothness_spread.png", "smoothness_adjoint.png"] {
+    for f in [
+        "smoothness.csv",
+        "smoothness_surge_ball_spread.png",
+        "smoothness_surge_ball_adjoint.png",
+        "smoothness_gradient.png",
+    ] {
         let p = out.join(f);
         assert!(std::fs::metadata(&p).map(|m| m.len() > 100).unwrap_or(false), "{p:?}");
     }

@@ -361,31 +361,53 @@ fn write_energy(out: &Path, quick: bool, progress: &mut impl FnMut(&str)) -> Res
     Ok(lines)
 }
 
-/// The smoothness study's two charts: the spread of the central differences over ε
-/// (`smoothness_spread.png`) and the adjoint's error against the smallest ε
-/// (`smoothness_adjoint.png`), per settings and parameter, against the horizon.
+/// The smoothness study's charts against the horizon: per scene, the spread of the central
+/// differences over ε (`smoothness_<scene>_spread.png`) and the adjoint's error against the
+/// smallest ε (`smoothness_<scene>_adjoint.png`), per settings and parameter; and the
+/// gradient norm |∂L/∂v₀| per scene and settings (`smoothness_gradient.png`).
 pub fn smoothness_charts(out: &Path, rows: &[bench::SmoothnessRow]) -> Result<()> {
     let h = |r: &bench::SmoothnessRow| r.horizon as f64;
-    let spread = series(
-        rows.iter().map(|r| (format!("{} {}", r.settings, r.param), (h(r), r.spread.max(1e-12)))),
-    );
-    plot::line_chart(
-        &out.join("smoothness_spread.png"),
-        "surge: spread of the central differences over eps = 1e-3 ... 1e-6",
-        ("horizon, steps", "(max - min) / |fd(1e-6)|"),
-        (false, true),
-        &spread,
-    )?;
-    let adjoint = series(
+    let mut scenes: Vec<&str> = Vec::new();
+    for r in rows {
+        if !scenes.contains(&r.scene.as_str()) {
+            scenes.push(&r.scene);
+        }
+    }
+    for scene in scenes {
+        let of = || rows.iter().filter(move |r| r.scene == scene);
+        let label = |r: &bench::SmoothnessRow| format!("{} {}", r.settings, r.param);
+        let spread = series(of().map(|r| (label(r), (h(r), r.spread.max(1e-12)))));
+        plot::line_chart(
+            &out.join(format!("smoothness_{scene}_spread.png")),
+            &format!("{scene}: |fd(1e-4) - fd(1e-6)| / |fd(1e-6)|"),
+            ("horizon, steps", "spread of the central differences"),
+            (false, true),
+            &spread,
+        )?;
+        let adjoint = series(of().map(|r| (label(r), (h(r), r.adjoint_error.max(1e-12)))));
+        plot::line_chart(
+            &out.join(format!("smoothness_{scene}_adjoint.png")),
+            &format!("{scene}: live-surface adjoint against fd(1e-6)"),
+            ("horizon, steps", "relative error (floored at 1e-12)"),
+            (false, true),
+            &adjoint,
+        )?;
+    }
+    // One point per (scene, settings, horizon): every parameter's row holds the same norm.
+    let first = |r: &bench::SmoothnessRow| {
+        rows.iter().find(|q| q.scene == r.scene).is_some_and(|q| q.param == r.param)
+    };
+    let norm = series(
         rows.iter()
-            .map(|r| (format!("{} {}", r.settings, r.param), (h(r), r.adjoint_error.max(1e-12)))),
+            .filter(|r| first(r))
+            .map(|r| (format!("{} {}", r.scene, r.settings), (h(r), r.grad_norm_v.max(1e-12)))),
     );
     plot::line_chart(
-        &out.join("smoothness_adjoint.png"),
-        "surge: live-surface adjoint against fd(1e-6)",
-        ("horizon, steps", "relative error (floored at 1e-12)"),
+        &out.join("smoothness_gradient.png"),
+        "gradient norm |dL/dv0| against the horizon",
+        ("horizon, steps", "|dL/dv0|"),
         (false, true),
-        &adjoint,
+        &norm,
     )
 }
 
