@@ -8,12 +8,12 @@ use crate::geometry::body::RigidBody;
 use crate::geometry::fractions::DualFaces;
 use crate::geometry::grid::Mac;
 use crate::geometry::weights::FaceWeights;
-use crate::math::{add_twist, Twist, TwistParts, Vec3};
+use crate::math::{add_twist, Twist, Vec3};
 use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
 use crate::stages::contact::{hold_contact, ContactChange, ContactHold, ContactSettings};
 use crate::stages::pressure::{kinematic_pose_adjoint, projection_pose_adjoint, PoseAdjointInputs};
-use crate::stages::system::{generalized_velocity, StepSystem};
+use crate::stages::system::StepSystem;
 
 /// What the projection leaves.
 #[derive(Debug)]
@@ -125,6 +125,8 @@ fn contact_change(
 ) -> Vec<Twist> {
     #[cfg(feature = "contact")]
     {
+        use crate::math::TwistParts;
+        use crate::stages::system::generalized_velocity;
         let mut bodies = contact.bodies.to_vec();
         for (&i, v) in coupled.iter().zip(after) {
             (bodies[i].v, bodies[i].w) = (v.linear(), v.angular());

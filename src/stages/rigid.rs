@@ -4,8 +4,7 @@
 
 use crate::error::{Error, Result};
 use crate::geometry::body::{
-    carry_angular_momentum, carry_angular_momentum_adjoint, quat_step, quat_step_adjoint,
-    BodyState, Motion, RigidBody,
+    carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, BodyState, Motion, RigidBody,
 };
 use crate::math::so3;
 use crate::math::{twist, Rotation, Twist, TwistParts, Vec3};
@@ -73,7 +72,8 @@ pub fn integrate(
         // dynamic bodies' angular momentum to their new orientation, as our integrator does.
         for (b, q0) in bodies.iter_mut().zip(&before) {
             if b.motion == Motion::Dynamic {
-                b.w = carry_angular_momentum(&b.local_inertia, *q0, b.q, b.w);
+                b.w =
+                    crate::geometry::body::carry_angular_momentum(&b.local_inertia, *q0, b.q, b.w);
             }
         }
         // rapier holds kinematic bodies fixed at their pose; they move along their own

@@ -212,7 +212,7 @@ pub fn volume_source_derivative(rate: f64, density: f64, cell: f64, dt: f64) -> 
 impl StepSystem {
     /// Assembles the step's system from the geometry and the particles' φ_L (before its
     /// extension into the solids). The pressure system is built into `memory` (see
-    /// [`Spare`]).
+    /// `world::step::Spare`).
     pub fn assemble(
         grid: &Grid,
         bodies: &[RigidBody],

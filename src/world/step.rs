@@ -73,8 +73,9 @@ pub struct BodyForce {
     pub force: [f64; 3],
     /// Pressure torque about the centre of mass, N·m.
     pub torque: [f64; 3],
-    /// |Σβ·dx³ − V| / V of its face fractions (see [`BodyFaces::volume_error`]): zero
-    /// unless the body is too small or thin for the grid.
+    /// |Σβ·dx³ − V| / V of its face fractions (see
+    /// [`crate::geometry::fractions::BodyFaces::volume_error`]): zero unless the body is too
+    /// small or thin for the grid.
     pub volume_error: f64,
 }
 

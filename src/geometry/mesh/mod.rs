@@ -26,6 +26,7 @@ mod surface;
 #[cfg(test)]
 mod tests;
 
+#[cfg(feature = "surface")]
 pub(crate) use check::link_fans;
 pub use load::{load_obj, load_obj_hull, load_obj_or_shell};
 pub use surface::{placed_surface, surface_mesh, TriangleMesh};
