@@ -272,8 +272,8 @@ pub fn animation_gif(
 }
 
 /// The GIF encoder's palette sampling: 1 (every pixel, slowest) to 30 (every 30th). These
-/// pictures are flat fills and lines in a few dozen colours, which every rate finds, so the
-/// fastest loses nothing.
+/// pictures are flat fills and lines in a few dozen colours, which every rate finds. Only
+/// the first frame's palette is found; the others share it (see `animation_gif_at`).
 const GIF_SPEED: i32 = 30;
 
 fn animation_gif_at(
@@ -299,21 +299,33 @@ fn animation_gif_at(
     let mut gif =
         gif::Encoder::new(std::io::BufWriter::new(file), gw, gh, &[]).map_err(|e| err(path, e))?;
     gif.set_repeat(gif::Repeat::Infinite).map_err(|e| err(path, e))?;
-    // Drawn and reduced to a palette a few frames at a time on every thread, written in
+    let draw = |f: &Frame| -> Result<Vec<u8>> {
+        let mut rgb = vec![0u8; 3 * w as usize * h as usize];
+        {
+            let root = BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area();
+            draw_frame(&root, domain, f, view, path)?;
+            root.present().map_err(|e| err(path, e))?;
+        }
+        Ok(rgb)
+    };
+    let delay = u16::try_from(delay_ms.div_ceil(10)).unwrap_or(u16::MAX);
+    // The first frame finds the palette (NeuQuant, when it has more than 256 colours) that
+    // the others share: they hold the same liquid, bodies, axes and text, and each colour of
+    // theirs takes its nearest entry (a palette a frame was most of the GIF's time).
+    let mut first = gif::Frame::from_rgb_speed(gw, gh, &draw(&frames[0])?, GIF_SPEED);
+    first.delay = delay;
+    let palette = first.palette.clone().unwrap_or_default();
+    gif.write_frame(&first).map_err(|e| err(path, e))?;
+    // Drawn and mapped to the palette a few frames at a time on every thread, written in
     // order: at most a chunk of frames is held.
     let chunk = 2 * rayon::current_num_threads();
-    for part in frames.chunks(chunk) {
+    for part in frames[1..].chunks(chunk) {
         let encoded: Vec<gif::Frame<'static>> = part
             .par_iter()
             .map(|f| -> Result<gif::Frame<'static>> {
-                let mut rgb = vec![0u8; 3 * w as usize * h as usize];
-                {
-                    let root = BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area();
-                    draw_frame(&root, domain, f, view, path)?;
-                    root.present().map_err(|e| err(path, e))?;
-                }
-                let mut frame = gif::Frame::from_rgb_speed(gw, gh, &rgb, GIF_SPEED);
-                frame.delay = u16::try_from(delay_ms.div_ceil(10)).unwrap_or(u16::MAX);
+                let indices = palette_indices(&draw(f)?, &palette);
+                let mut frame = gif::Frame::from_palette_pixels(gw, gh, &indices, &palette, None);
+                frame.delay = delay;
                 Ok(frame)
             })
             .collect::<Result<_>>()?;
@@ -323,6 +335,34 @@ fn animation_gif_at(
     }
     let file = gif.into_inner().map_err(|e| err(path, e))?;
     file.into_inner().map_err(|e| err(path, e.error()))?.sync_all().map_err(|e| err(path, e))
+}
+
+/// Per pixel of `rgb`, the index of its colour's nearest entry of `palette` (RGB triples;
+/// squared distance, the first of equals), found once for each colour.
+fn palette_indices(rgb: &[u8], palette: &[u8]) -> Vec<u8> {
+    let entries: Vec<[i32; 3]> =
+        palette.chunks_exact(3).map(|c| [c[0], c[1], c[2]].map(i32::from)).collect();
+    let nearest = |c: [u8; 3]| -> u8 {
+        let d = |e: &[i32; 3]| (0..3).map(|k| (e[k] - i32::from(c[k])).pow(2)).sum::<i32>();
+        let best = (0..entries.len()).min_by_key(|&i| (d(&entries[i]), i)).unwrap_or(0);
+        u8::try_from(best).unwrap_or(u8::MAX)
+    };
+    let mut known: std::collections::HashMap<[u8; 3], u8> = std::collections::HashMap::new();
+    // Runs of one colour (most of a picture) are looked up once.
+    let mut last: Option<([u8; 3], u8)> = None;
+    rgb.chunks_exact(3)
+        .map(|p| {
+            let c = [p[0], p[1], p[2]];
+            match last {
+                Some((l, i)) if l == c => i,
+                _ => {
+                    let i = *known.entry(c).or_insert_with(|| nearest(c));
+                    last = Some((c, i));
+                    i
+                }
+            }
+        })
+        .collect()
 }
 
 /// A labelled series of (x, y) points for the bench charts.

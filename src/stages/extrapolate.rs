@@ -64,10 +64,21 @@ impl Layers {
             .with_min_len(MIN_LEN)
             .map(|&v| if v != 0 { 0 } else { NEVER })
             .collect();
-        let mut fronts = Vec::with_capacity(layers);
+        let mut fronts: Vec<Vec<usize>> = Vec::with_capacity(layers);
         for l in 0..layers {
-            let front = next_to(&level, lat, |_, v| v == l as u8, |v| v == NEVER);
-            for_each_keyed_mut(&mut level, &front, |&m| m, |_, _, x| *x = l as u8 + 1);
+            // The first front by a pass over the lattice; each next one among the neighbours
+            // of the last (the faces of level l), which is all it can be next to.
+            let front = match fronts.last() {
+                None => {
+                    let front = next_to(&level, lat, |_, v| v == l as u8, |v| v == NEVER);
+                    for_each_keyed_mut(&mut level, &front, |&m| m, |_, _, x| *x = l as u8 + 1);
+                    front
+                }
+                Some(last) => {
+                    mark_neighbours(last, lat, &mut level, NEVER, l as u8 + 1);
+                    equal_to(&level, l as u8 + 1)
+                }
+            };
             fronts.push(front);
         }
         Layers { level, fronts }
@@ -76,16 +87,21 @@ impl Layers {
     /// Per layer l, the faces known before it next to a face it set, in increasing index
     /// order: those of level l itself with a neighbour of level l + 1 (a face of level
     /// v < l has none, as the fronts grow one face a layer: its neighbours of higher level
-    /// were set in layer v, and are of level v + 1), all layers found by one pass.
+    /// were set in layer v, and are of level v + 1), found among the neighbours of the
+    /// layer's front.
     fn targets(&self, lat: &Lattice) -> Vec<Vec<usize>> {
-        let layers = self.fronts.len();
-        let all =
-            next_to(&self.level, lat, |own, v| v == own.wrapping_add(1), |v| (v as usize) < layers);
-        let mut out = vec![Vec::new(); layers];
-        for m in all {
-            out[self.level[m] as usize].push(m);
-        }
-        out
+        // Marked in a copy of the levels (no level is NEVER − 1, see `Layers::new`): a target
+        // of layer l goes from l to the mark while it is found, and back.
+        const MARK: u8 = NEVER - 1;
+        let mut marks = self.level.clone();
+        (0..self.fronts.len())
+            .map(|l| {
+                mark_neighbours(&self.fronts[l], lat, &mut marks, l as u8, MARK);
+                let found = equal_to(&marks, MARK);
+                found.iter().for_each(|&m| marks[m] = l as u8);
+                found
+            })
+            .collect()
     }
 
     /// Valid before layer `l`.
@@ -111,7 +127,7 @@ fn next_to(
     level
         .par_chunks(slab)
         .enumerate()
-        .flat_map_iter(|(k, lv)| {
+        .map(|(k, lv)| {
             let mut hit = vec![false; slab];
             for j in 0..n1 {
                 let (row, h) = (&lv[j * n0..][..n0], &mut hit[j * n0..][..n0]);
@@ -130,10 +146,48 @@ fn next_to(
             if k + 1 < n2 {
                 mark(&mut hit, lv, &level[(k + 1) * slab..][..slab]);
             }
-            let own = &own;
-            (0..slab).filter(move |&i| hit[i] && own(lv[i])).map(move |i| k * slab + i)
+            // A plain loop: as an iterator chain flattened across the slabs, the hand-over of
+            // each sample cost more than its test.
+            let mut found = Vec::new();
+            for (i, (&h, &v)) in hit.iter().zip(lv).enumerate() {
+                if h && own(v) {
+                    found.push(k * slab + i);
+                }
+            }
+            found
         })
-        .collect()
+        .collect::<Vec<Vec<usize>>>()
+        .concat()
+}
+
+/// Sets `level` to `to` at the lattice neighbours of the samples `of` whose level is `from`:
+/// the faces of a front and their neighbours only, not a pass over the lattice.
+fn mark_neighbours(of: &[usize], lat: &Lattice, level: &mut [u8], from: u8, to: u8) {
+    for &idx in of {
+        let mut nb = [0usize; 6];
+        let n = neighbours(lat, idx, |m| level[m] == from, &mut nb);
+        for &m in &nb[..n] {
+            level[m] = to;
+        }
+    }
+}
+
+/// The samples whose level is `v`, in increasing index order, in parallel over fixed chunks.
+fn equal_to(level: &[u8], v: u8) -> Vec<usize> {
+    level
+        .par_chunks(MIN_LEN)
+        .enumerate()
+        .map(|(c, part)| {
+            let mut found = Vec::new();
+            for (i, &x) in part.iter().enumerate() {
+                if x == v {
+                    found.push(c * MIN_LEN + i);
+                }
+            }
+            found
+        })
+        .collect::<Vec<Vec<usize>>>()
+        .concat()
 }
 
 /// Extrapolates one component over `layers` layers and zeroes what stays invalid.
@@ -645,7 +699,8 @@ mod tests {
         assert!(bva[1].vel[3..].iter().all(|&g| g == 0.0));
     }
 
-    /// Each layer's front is every never-set face with a lattice neighbour known just before
+    /// Each layer's front (the first by a pass over the lattice, the others among the last
+    /// front's neighbours) is every never-set face with a lattice neighbour known just before
     /// it, found by brute force over the lattice's (i, j, k), on lattices with a side of 1.
     #[test]
     fn fronts_are_the_faces_next_to_the_last_layer() {
@@ -675,9 +730,9 @@ mod tests {
         }
     }
 
-    /// The adjoint's targets of each layer, found in one pass, are the faces known before
-    /// the layer with a neighbour it set, found by brute force (and thus the faces of
-    /// that layer's own level).
+    /// The adjoint's targets of each layer, found among the neighbours of its front, are the
+    /// faces known before the layer with a neighbour it set, found by brute force (and thus
+    /// the faces of that layer's own level).
     #[test]
     fn targets_are_the_known_faces_next_to_each_layer() {
         for n in [[7, 5, 4], [1, 6, 3], [5, 1, 1], [3, 4, 1], [9, 8, 7]] {

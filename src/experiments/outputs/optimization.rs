@@ -156,6 +156,8 @@ fn pictures(
     let name = &problem.scene.name;
     let record = |p: &BodyState, frames: bool| -> Result<Recording> {
         let mut sim = problem.simulation(p);
+        // The pictures read the bodies and the particles, none of the reports' measures.
+        sim.set_report_measures(false);
         let mut path = vec![sim.bodies()[body].x];
         let mut gif = Vec::new();
         let every = (steps / 25).max(1);
