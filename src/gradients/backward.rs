@@ -487,6 +487,15 @@ fn particles_adjoint(
     if pbar.is_empty() {
         pbar = vec![Vec3::ZERO; replayed.end.len()];
     }
+    let closed;
+    let phi_bar = if pr.pockets.is_empty() {
+        phi_bar
+    } else {
+        let mut bar = phi_bar.to_vec();
+        pr.pockets.adjoint(&mut bar);
+        closed = bar;
+        &closed
+    };
     surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, phi_bar, &mut pbar);
     // Volume control: the solve's sources read the particles' density here.
     if rec.volume_control {

@@ -13,7 +13,7 @@ use crate::math::Twist;
 use crate::math::Vec3;
 use crate::stages::band::BandChange;
 use crate::stages::density::{self, DensityInputs, DensityProjection, DensityStats, Displacement};
-use crate::stages::surface;
+use crate::stages::surface::{self, Pockets};
 
 /// What the particle stages leave for the backward pass: the positions they started from
 /// and after advection, the sub-steps and the density projection's potential; the rest (the
@@ -33,6 +33,9 @@ pub struct ParticleRecord {
     /// Per cell, the particle (at the end of the step) whose distance the step's φ_L is
     /// (`NONE` where φ does not move with a particle).
     pub nearest: Vec<u32>,
+    /// The cells the closing of air pockets changed in the step's φ_L (empty when it is
+    /// off).
+    pub pockets: Pockets,
     /// What the narrow band's update before the advection did to the particle list
     /// (`start` is the list after it); None without a band.
     pub change: Option<BandChange>,

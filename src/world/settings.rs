@@ -112,6 +112,12 @@ pub struct SolverSettings {
     /// 0 to 8. Not for a tank the liquid nearly fills: the excess, taken one-sided, has
     /// little air to go to there, and a closed, nearly full tank blew up with it.
     pub volume_control: Option<f64>,
+    /// Close the air pockets of φ_L (see `stages/surface/pockets.rs`): air that reaches no
+    /// point `close_pockets`·dx from the particles through air (a gap in the particles
+    /// inside the liquid) is liquid, by a continuous function of φ_L. Such a pocket is a
+    /// zero-pressure sink inside the liquid, and as it opens and closes the step jumps.
+    /// Default: off (none given); 0 to 0.6 cells.
+    pub close_pockets: Option<f64>,
     /// The density projection's CG stops when ‖r‖₂ ≤ density_tolerance·‖b‖₂ (b: the excess
     /// volume of the over-full cells). What is left is that fraction of the volume the
     /// projection moves, and the next step's projection takes it with what advection bunches
@@ -182,6 +188,7 @@ impl Default for SolverSettings {
             theta_min: 0.01,
             density_correction: true,
             volume_control: None,
+            close_pockets: None,
             density_tolerance: 1e-6,
             sparse_cells: true,
             particle_substeps: 0,
@@ -264,6 +271,14 @@ impl SolverSettings {
                 return Err(SettingError::new(
                     "solver.volume_control",
                     format!("must be in [0, 8] (the share of a cell's excess spread in a step), got {k}"),
+                ));
+            }
+        }
+        if let Some(k) = self.close_pockets {
+            if !(k.is_finite() && (0.0..=0.6).contains(&k)) {
+                return Err(SettingError::new(
+                    "solver.close_pockets",
+                    format!("must be in [0, 0.6] (cells), got {k}"),
                 ));
             }
         }

@@ -13,6 +13,7 @@ mod advection;
 mod bins;
 mod deposit;
 mod distance;
+mod pockets;
 mod push;
 mod seeding;
 #[cfg(test)]
@@ -22,5 +23,6 @@ pub use advection::*;
 pub use bins::*;
 pub use deposit::*;
 pub use distance::*;
+pub use pockets::*;
 pub use push::*;
 pub use seeding::*;

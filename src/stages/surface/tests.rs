@@ -447,3 +447,151 @@ mod adjoint {
         }
     }
 }
+
+/// The closing of air pockets (`pockets.rs`).
+mod pockets {
+    use super::*;
+    use crate::geometry::weights::FaceWeights;
+
+    /// Every face open but those across the plane x = 4·dx between i = 3 and 4 below j = 6
+    /// (a wall standing in the liquid), on a 9 × 9 × 6 grid.
+    fn walled(grid: &Grid) -> FaceWeights {
+        FaceWeights::new(&[0, 1, 2].map(|a| {
+            let lat = grid.faces(a);
+            (0..lat.len())
+                .map(|f| {
+                    let [i, j, _] = lat.ijk(f);
+                    if a == 0 && i == 4 && j < 6 {
+                        0.0
+                    } else {
+                        1.0
+                    }
+                })
+                .collect()
+        }))
+    }
+
+    /// Liquid below y = 5·dx (φ a signed distance to it), with: a one-cell gap in the
+    /// particles at (2, 2, 2), φ 0.2·dx; a two-cell gap at (6, 1, 3)–(6, 2, 3), φ 0.3·dx;
+    /// a bubble wider than a cell at (2, 2, 4), φ 0.9·dx.
+    fn liquid(grid: &Grid) -> Vec<f64> {
+        let cells = grid.cells();
+        let dx = grid.dx;
+        let mut phi: Vec<f64> =
+            (0..cells.len()).map(|c| (cells.ijk(c)[1] as f64 + 0.5) * dx - 5.0 * dx).collect();
+        phi[grid.cell(2, 2, 2)] = 0.2 * dx;
+        phi[grid.cell(6, 1, 3)] = 0.3 * dx;
+        phi[grid.cell(6, 2, 3)] = 0.3 * dx;
+        phi[grid.cell(2, 2, 4)] = 0.9 * dx;
+        phi
+    }
+
+    #[test]
+    fn gaps_in_the_liquid_close_and_the_surface_and_bubbles_stay() {
+        let grid = Grid { n: [9, 9, 6], dx: 0.1 };
+        let weights = walled(&grid);
+        let before = liquid(&grid);
+        let mut phi = before.clone();
+        let pockets = close_pockets(&mut phi, &grid, &weights, 0.5);
+        // The gaps are liquid now, the bubble is air still (lowered by σ: 3·0.9 − 2).
+        assert!(phi[grid.cell(2, 2, 2)] < 0.0);
+        assert!(phi[grid.cell(6, 1, 3)] < 0.0 && phi[grid.cell(6, 2, 3)] < 0.0);
+        assert!((phi[grid.cell(2, 2, 4)] - 0.7 * grid.dx).abs() < 1e-12);
+        // Nothing else moved: the surface's cells, the air above, the liquid.
+        let moved: Vec<usize> = (0..phi.len()).filter(|&c| phi[c] != before[c]).collect();
+        let mut expected =
+            vec![grid.cell(2, 2, 2), grid.cell(6, 1, 3), grid.cell(6, 2, 3), grid.cell(2, 2, 4)];
+        expected.sort();
+        assert_eq!(moved, expected);
+        assert_eq!(pockets.len(), 4);
+    }
+
+    #[test]
+    fn a_closed_face_does_not_connect_air() {
+        // Two columns of air side by side in the liquid, at i = 3 and i = 4: the one at
+        // i = 4 open to the air above, the one at i = 3 closed above by liquid, beside it
+        // through the faces the wall closes.
+        let grid = Grid { n: [9, 9, 6], dx: 0.1 };
+        let dx = grid.dx;
+        let mut before = liquid(&grid);
+        for j in 0..5 {
+            before[grid.cell(3, j, 1)] = 0.25 * dx;
+            before[grid.cell(4, j, 1)] = 0.25 * dx;
+        }
+        before[grid.cell(3, 4, 1)] = -0.1 * dx;
+        let open = FaceWeights::new(&[0, 1, 2].map(|a| vec![1.0; grid.faces(a).len()]));
+        for (weights, closes) in [(open, false), (walled(&grid), true)] {
+            let mut phi = before.clone();
+            close_pockets(&mut phi, &grid, &weights, 0.5);
+            for j in 0..4 {
+                assert_eq!(phi[grid.cell(3, j, 1)] < 0.0, closes, "j = {j}");
+                assert_eq!(phi[grid.cell(4, j, 1)], 0.25 * dx, "j = {j}");
+            }
+        }
+    }
+
+    /// A deterministic field of air and liquid values with no two alike (no ties).
+    fn rough(grid: &Grid) -> Vec<f64> {
+        let cells = grid.cells();
+        (0..cells.len())
+            .map(|c| {
+                let [_, j, _] = cells.ijk(c);
+                let r = ((c * 7919 + 104_729) % 10_007) as f64 / 10_007.0;
+                (j as f64 - 3.0) * 0.4 * grid.dx + (r - 0.5) * 1.2 * grid.dx
+            })
+            .collect()
+    }
+
+    #[test]
+    fn closing_is_continuous_and_moves_no_cell_further_than_three_times_the_change() {
+        let grid = Grid { n: [8, 8, 8], dx: 0.1 };
+        let weights = walled(&grid);
+        let base = rough(&grid);
+        let mut closed = base.clone();
+        let pockets = close_pockets(&mut closed, &grid, &weights, 0.5);
+        assert!(pockets.len() > 20, "the field should have pockets: {}", pockets.len());
+        for k in 1..40 {
+            let h = 1e-3 * grid.dx * k as f64;
+            let moved: Vec<f64> = base
+                .iter()
+                .enumerate()
+                .map(|(c, p)| p + h * (((c * 31 + k) % 7) as f64 / 3.0 - 1.0))
+                .collect();
+            let mut other = moved.clone();
+            close_pockets(&mut other, &grid, &weights, 0.5);
+            let input = base.iter().zip(&moved).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            let output = closed.iter().zip(&other).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(output <= 3.0 * input + 1e-15, "{output} > 3·{input}");
+        }
+    }
+
+    #[test]
+    fn adjoint_matches_central_differences() {
+        let grid = Grid { n: [8, 8, 8], dx: 0.1 };
+        let weights = walled(&grid);
+        let base = rough(&grid);
+        let w: Vec<f64> = (0..base.len()).map(|c| ((c * 13) % 17) as f64 / 17.0 - 0.4).collect();
+        let loss = |phi: &[f64]| -> f64 {
+            let mut phi = phi.to_vec();
+            close_pockets(&mut phi, &grid, &weights, 0.5);
+            phi.iter().zip(&w).map(|(a, b)| a * b).sum()
+        };
+        let mut closed = base.clone();
+        let pockets = close_pockets(&mut closed, &grid, &weights, 0.5);
+        // σ's three pieces and origins other than the cell itself are all exercised.
+        assert!(pockets.changed.iter().any(|&(c, o, _)| c != o));
+        assert!(pockets.changed.iter().any(|&(_, _, s)| s == -1.0));
+        assert!(pockets.changed.iter().any(|&(_, _, s)| s == 3.0));
+        let mut bar = w.clone();
+        pockets.adjoint(&mut bar);
+        let eps = 1e-9;
+        for c in 0..base.len() {
+            let mut p = base.clone();
+            p[c] += eps;
+            let up = loss(&p);
+            p[c] -= 2.0 * eps;
+            let fd = (up - loss(&p)) / (2.0 * eps);
+            assert!((fd - bar[c]).abs() < 1e-6, "cell {c}: fd {fd}, adjoint {}", bar[c]);
+        }
+    }
+}

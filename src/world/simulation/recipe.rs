@@ -7,6 +7,7 @@ use super::{volume_warning, BodyHandle, Simulation, EXTERNAL_REACH};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::grid::Mac;
+use crate::geometry::weights::FaceWeights;
 use crate::math::{v3, Twist, TwistParts};
 use crate::solvers::cg::CgStats;
 use crate::stages::band::Band;
@@ -17,7 +18,7 @@ use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
 use crate::stages::project::{project, HeldContact, Projection};
 use crate::stages::rigid::{integrate, Tank};
-use crate::stages::surface::{self, Bins};
+use crate::stages::surface::{self, Bins, Pockets};
 use crate::stages::system::{
     generalized_velocity, predicted_velocity, volume_source, Geometry, StepSystem,
 };
@@ -68,7 +69,7 @@ impl Simulation {
         let (mut record, density) =
             self.move_particles(&geometry, dt, taped, &mut pressures, &mut timed)?;
 
-        let phi = self.surface(record.as_mut());
+        let phi = self.surface(record.as_mut(), &geometry.weights);
         let taped_phi = if taped && self.frozen_phi.is_none() { phi.clone() } else { Vec::new() };
         let crowding = self.controlled_density();
         timed.lap(Stage::Surface);
@@ -267,6 +268,7 @@ impl Simulation {
             moved,
             density: settled.q,
             nearest: Vec::new(),
+            pockets: Pockets::default(),
             change,
             deep: self.band.as_ref().map(|b| b.deep.clone()),
         });
@@ -276,15 +278,19 @@ impl Simulation {
     /// [`Stage::Surface`]: φ_L where the particles are now (with a frozen surface: where it
     /// was at the start). Taped, the record keeps the particle each cell's φ is the distance
     /// to.
-    fn surface(&mut self, record: Option<&mut ParticleRecord>) -> Vec<f64> {
+    fn surface(&mut self, record: Option<&mut ParticleRecord>, weights: &FaceWeights) -> Vec<f64> {
+        let close = self.settings.solver.close_pockets.filter(|k| *k > 0.0);
         match record {
             Some(r) => {
                 let bins = Bins::new(&self.particles, &self.grid);
                 let deep = self.band.as_deref().map(Band::deep);
                 let model = self.surface_model();
-                let (phi, nearest) =
+                let (mut phi, nearest) =
                     surface::liquid_sdf_nearest(&self.particles, &bins, &self.grid, &model, deep);
                 r.nearest = nearest;
+                if let Some(k) = close {
+                    r.pockets = surface::close_pockets(&mut phi, &self.grid, weights, k);
+                }
                 phi
             }
             // Nothing reads the last step's φ_L after the band's update: its memory takes
@@ -293,6 +299,9 @@ impl Simulation {
             None => {
                 let mut phi = std::mem::take(&mut self.phi);
                 self.particle_phi_into(&mut phi);
+                if let (Some(k), None) = (close, &self.frozen_phi) {
+                    surface::close_pockets(&mut phi, &self.grid, weights, k);
+                }
                 phi
             }
         }
