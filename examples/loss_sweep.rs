@@ -1,0 +1,140 @@
+//! Where the forward map jumps: the loss along one initial coordinate of a scene's first
+//! body, sampled finely, and its roughness; or two runs stepped side by side to find the step
+//! and the cells where they part.
+//!
+//! ```text
+//! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS HALF
+//! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS --pair T1 T2
+//! ```
+//!
+//! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
+//! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
+//! `close-pockets=K`. The sweep runs the scene at v_x + t for 41 values of t over ±`HALF`
+//! (in parallel) and prints the median slope, the net slope and the roughness: the sum of
+//! the 40 steps' deviations from the median step over the net change (0 for a line, about 1
+//! or more where jumps dominate). `--pair` steps the runs at t = T1 and T2 together and
+//! prints, per step, how far the body's position and velocity differ, how many cells differ
+//! in kind, and each such cell with its φ in both runs and its neighbours' φ.
+//! docs/gradients.md ("Air pockets") quotes what it measured.
+
+use diffluid::experiments::scene::Scene;
+use diffluid::geometry::body::Param;
+use diffluid::gradients::Loss;
+use diffluid::world::Simulation;
+use rayon::prelude::*;
+use std::path::Path;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let usage = "usage: loss_sweep SCENE STEPS SETTINGS (HALF | --pair T1 T2)";
+    if args.len() < 4 {
+        return Err(usage.into());
+    }
+    let mut scene = if Path::new(&args[0]).exists() {
+        Scene::from_file(Path::new(&args[0]))?
+    } else {
+        Scene::builtin(&args[0])?
+    };
+    let steps: usize = args[1].parse()?;
+    for setting in args[2].split(',') {
+        let (key, value) = setting.split_once('=').unwrap_or((setting, ""));
+        let s = &mut scene.solver;
+        match key {
+            "default" => {}
+            "no-density" => s.density_correction = false,
+            "no-sparse" => s.sparse_cells = false,
+            "substeps" => s.particle_substeps = value.parse()?,
+            "volume-control" => s.volume_control = Some(value.parse()?),
+            "theta-min" => s.theta_min = value.parse()?,
+            "close-pockets" => s.close_pockets = Some(value.parse()?),
+            other => return Err(format!("unknown setting {other}").into()),
+        }
+    }
+    let loss = scene.loss().ok_or("the scene has no [loss]")?;
+    let sim = scene.build()?;
+    let start = |t: f64| -> diffluid::Result<Simulation> {
+        let mut s = sim.clone();
+        let h = s.handles()[0];
+        let state = Param::V.perturbed(&s.bodies()[0].state(), 0, t);
+        s.set_body_state(h, &state)?;
+        Ok(s)
+    };
+    if args[3] == "--pair" {
+        let t: Vec<f64> = args[4..].iter().map(|x| x.parse()).collect::<Result<_, _>>()?;
+        let [t1, t2] = t[..] else { return Err(usage.into()) };
+        return pair(start(t1)?, start(t2)?, steps).map_err(Into::into);
+    }
+    let half: f64 = args[3].parse()?;
+    let n = 20;
+    let ts: Vec<f64> = (-n..=n).map(|k| half * k as f64 / n as f64).collect();
+    let losses: Vec<f64> = ts
+        .par_iter()
+        .map(|&t| {
+            let mut s = start(t)?;
+            for _ in 0..steps {
+                s.step()?;
+            }
+            Ok(loss.value(&s))
+        })
+        .collect::<diffluid::Result<_>>()?;
+    let d: Vec<f64> = losses.windows(2).map(|w| w[1] - w[0]).collect();
+    let mut sorted = d.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    let net = losses[losses.len() - 1] - losses[0];
+    let rough: f64 = d.iter().map(|x| (x - median).abs()).sum();
+    let h = half / n as f64;
+    println!(
+        "{} {steps} steps, {}: median slope {:.4e}, net slope {:.4e}, roughness {:.3}",
+        scene.name,
+        args[2],
+        median / h,
+        net / (2.0 * half),
+        rough / net.abs()
+    );
+    for (t, x) in ts.iter().zip(&d) {
+        println!("  t {t:+.2e}: slope {:+.4e}", x / h);
+    }
+    Ok(())
+}
+
+/// Steps `a` and `b` together and prints where they part.
+fn pair(mut a: Simulation, mut b: Simulation, steps: usize) -> diffluid::Result<()> {
+    let grid = *a.grid();
+    for k in 1..=steps {
+        let (ra, rb) = (a.step()?, b.step()?);
+        let (sa, sb) = (a.bodies()[0].state(), b.bodies()[0].state());
+        let (pa, pb) = (a.liquid_phi(), b.liquid_phi());
+        let changed: Vec<usize> =
+            (0..pa.len()).filter(|&c| (pa[c] < 0.0) != (pb[c] < 0.0)).collect();
+        println!(
+            "step {k:3}: |Δx| {:.3e} |Δv| {:.3e}, {} cells of another kind, liquid cells {} / {}",
+            (sa.x - sb.x).length(),
+            (sa.v - sb.v).length(),
+            changed.len(),
+            ra.liquid_cells,
+            rb.liquid_cells
+        );
+        for c in changed {
+            let [i, j, l] = grid.cells().ijk(c);
+            let around: Vec<String> = (0..3)
+                .flat_map(|axis| (0..2).map(move |side| (axis, side)))
+                .map(|(axis, side)| {
+                    let mut n = [i, j, l];
+                    if side == 0 && n[axis] == 0 || side == 1 && n[axis] + 1 == grid.n[axis] {
+                        return "wall".to_string();
+                    }
+                    n[axis] = if side == 0 { n[axis] - 1 } else { n[axis] + 1 };
+                    format!("{:+.3}", pb[grid.cell(n[0], n[1], n[2])] / grid.dx)
+                })
+                .collect();
+            println!(
+                "  cell ({i}, {j}, {l}): φ/dx {:+.3e} and {:+.3e}; neighbours' φ/dx (−x +x −y +y −z +z, second run) {}",
+                pa[c] / grid.dx,
+                pb[c] / grid.dx,
+                around.join(" ")
+            );
+        }
+    }
+    Ok(())
+}
