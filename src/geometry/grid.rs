@@ -131,6 +131,24 @@ fn trilinear(field: &[f64], n: [usize; 3], at: [Located; 3]) -> f64 {
     plane(k0) * (1.0 - tz) + plane(k1) * tz
 }
 
+/// [`trilinear`] on a lattice of two samples or more along every axis (the face lattices of
+/// a grid at least two cells across), where each upper index is the lower one plus one
+/// ([`place`]): the corners are one base index and fixed offsets, each row a pair read with
+/// one bounds check instead of two indices and two checks. The same products and sums in
+/// the same order, so the same bits.
+#[inline(always)]
+fn trilinear_paired(field: &[f64], n: [usize; 3], at: [Located; 3]) -> f64 {
+    let [(i0, _, tx), (j0, _, ty), (k0, _, tz)] = at;
+    let (n0, n01) = (n[0], n[0] * n[1]);
+    let row = |b: usize| {
+        let r = &field[b..b + 2];
+        r[0] * (1.0 - tx) + r[1] * tx
+    };
+    let plane = |b: usize| row(b) * (1.0 - ty) + row(b + n0) * ty;
+    let base = i0 + j0 * n0 + k0 * n01;
+    plane(base) * (1.0 - tz) + plane(base + n01) * tz
+}
+
 /// A sample point's place along one axis with the derivative of its fraction: the lower
 /// and upper sample indices, the fraction between them, and d(fraction)/dx (0 where the
 /// point is clamped to an end).
@@ -368,6 +386,13 @@ impl Mac {
         let t = [x.x / grid.dx, x.y / grid.dx, x.z / grid.dx];
         let [a0, a1, a2] = face_places(grid, t, |g, n| locate(g, 0.0, n));
         let c = &self.c;
+        if grid.n.iter().all(|&n| n > 1) {
+            return Vec3::new(
+                trilinear_paired(&c[0], grid.face_dims(0), a0),
+                trilinear_paired(&c[1], grid.face_dims(1), a1),
+                trilinear_paired(&c[2], grid.face_dims(2), a2),
+            );
+        }
         Vec3::new(
             trilinear(&c[0], grid.face_dims(0), a0),
             trilinear(&c[1], grid.face_dims(1), a1),
