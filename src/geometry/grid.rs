@@ -319,6 +319,9 @@ impl Lattice {
     pub fn sample_scaled(&self, field: &[f64], t: [f64; 3]) -> f64 {
         // Written out: as an array map this was left as a call (`try_map`) once `place` grew.
         let at = |a: usize| self.locate_scaled(a, t[a]);
+        if self.n.iter().all(|&m| m > 1) {
+            return trilinear_paired(field, self.n, [at(0), at(1), at(2)]);
+        }
         trilinear(field, self.n, [at(0), at(1), at(2)])
     }
 
