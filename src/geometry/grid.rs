@@ -377,6 +377,57 @@ fn face_stencil_places(grid: &Grid, x: Vec3) -> [[Place; 3]; 3] {
     face_places(grid, t, |g, n| place(g, n, grid.dx))
 }
 
+/// [`Mac::velocity`] with what it derives from the grid taken once: for a loop over many
+/// points (the particles' advection and displacement), where the compiler otherwise
+/// recomputes each lattice's clamp bounds at every point. The same bits as
+/// [`Mac::velocity`].
+#[derive(Clone, Copy)]
+pub struct MacSampler<'a> {
+    mac: &'a Mac,
+    grid: &'a Grid,
+    /// Per axis, for the faces normal to it (`n + 1` samples) and the centres (`n`): the
+    /// largest coordinate a place is clamped to, and the largest lower index.
+    bounds: [[(f64, usize); 2]; 3],
+    /// Whether every axis has two cells or more (the paired rows apply).
+    paired: bool,
+}
+
+impl<'a> MacSampler<'a> {
+    /// The sampler of `mac` on `grid`.
+    pub fn new(mac: &'a Mac, grid: &'a Grid) -> MacSampler<'a> {
+        // As `place` makes them, for `n` samples.
+        let bound = |n: usize| ((n - 1) as i64 as f64, n.saturating_sub(2));
+        let bounds = [0, 1, 2].map(|a| [bound(grid.n[a] + 1), bound(grid.n[a])]);
+        MacSampler { mac, grid, bounds, paired: grid.n.iter().all(|&n| n > 1) }
+    }
+
+    /// The velocity at `x`: [`Mac::velocity`].
+    #[inline(always)]
+    pub fn velocity(&self, x: Vec3) -> Vec3 {
+        if !self.paired {
+            return self.mac.velocity(self.grid, x);
+        }
+        let dx = self.grid.dx;
+        let t = [x.x / dx, x.y / dx, x.z / dx];
+        // `locate` with the bounds taken once: `place`'s lower index and fraction.
+        let at = |g: f64, (top, max_lo): (f64, usize)| -> Located {
+            let gc = g.clamp(0.0, top);
+            let lo = floor_index(gc).min(max_lo);
+            (lo, lo + 1, gc - lo as i64 as f64)
+        };
+        let b = &self.bounds;
+        let [f0, f1, f2] = [at(t[0], b[0][0]), at(t[1], b[1][0]), at(t[2], b[2][0])];
+        let [c0, c1, c2] =
+            [at(t[0] - 0.5, b[0][1]), at(t[1] - 0.5, b[1][1]), at(t[2] - 0.5, b[2][1])];
+        let (c, grid) = (&self.mac.c, self.grid);
+        Vec3::new(
+            trilinear_paired(&c[0], grid.face_dims(0), [f0, c1, c2]),
+            trilinear_paired(&c[1], grid.face_dims(1), [c0, f1, c2]),
+            trilinear_paired(&c[2], grid.face_dims(2), [c0, c1, f2]),
+        )
+    }
+}
+
 impl Mac {
     /// The zero field on `grid`.
     pub fn zeros(grid: &Grid) -> Self {

@@ -2,7 +2,7 @@
 //! static solids) and its adjoint.
 
 use crate::geometry::fractions::NodeSdf;
-use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::grid::{Grid, Mac, MacSampler};
 use crate::math::Vec3;
 use rayon::prelude::*;
 
@@ -51,12 +51,11 @@ impl<'a> Walls<'a> {
 /// One particle's path: `subs` midpoint (RK2) sub-steps of length `h` through `u`, each
 /// ending with [`Walls::keep`].
 #[inline]
-fn advect_one(x: Vec3, u: &Mac, walls: &Walls<'_>, h: f64, subs: usize) -> Vec3 {
-    let grid = walls.grid;
+fn advect_one(x: Vec3, u: &MacSampler<'_>, walls: &Walls<'_>, h: f64, subs: usize) -> Vec3 {
     let mut x = x;
     for _ in 0..subs {
-        let mid = x + 0.5 * h * u.velocity(grid, x);
-        x = walls.keep(x + h * u.velocity(grid, mid));
+        let mid = x + 0.5 * h * u.velocity(x);
+        x = walls.keep(x + h * u.velocity(mid));
     }
     x
 }
@@ -81,7 +80,8 @@ pub fn advect_substepped(
 ) {
     let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
-    pos.par_iter_mut().for_each(|x| *x = advect_one(*x, u, &walls, h, subs));
+    let u = MacSampler::new(u, grid);
+    pos.par_iter_mut().for_each(|x| *x = advect_one(*x, &u, &walls, h, subs));
 }
 
 /// `Jᵀ·v̄` of `f` at `x` by central differences with step `h`: for the few maps of a particle
