@@ -37,11 +37,14 @@ impl<'a> Walls<'a> {
         let margin = 1e-3 * self.grid.dx;
         let nodes = self.grid.nodes();
         let mut y = y;
-        // The distance alone first: far from the solids (most particles) that is all.
-        if let Some(sdf) = self.solids.filter(|sdf| nodes.sample(sdf, y) < margin) {
-            let (d, g) = nodes.sample_grad(sdf, y);
-            if g.length() > 1e-12 {
-                y += (margin - d) * g.normalize();
+        // The distance alone first: far from the solids (most particles) that is all. (An
+        // `if let` and a test, not `Option::filter`, which stayed a call a point.)
+        if let Some(sdf) = self.solids {
+            if nodes.sample(sdf, y) < margin {
+                let (d, g) = nodes.sample_grad(sdf, y);
+                if g.length() > 1e-12 {
+                    y += (margin - d) * g.normalize();
+                }
             }
         }
         y.clamp(Vec3::splat(margin), self.grid.size() - Vec3::splat(margin))
