@@ -13,15 +13,23 @@
 //! runs the step's loops where they are large enough to pay for it (`RAYON_NUM_THREADS=1`
 //! runs everything on one). What it measured on this project's machine is in
 //! docs/performance.md ("A pool at 30 frames a second"); `diffluid bench --only realtime`
-//! charts the frame time against the grid's size.
+//! charts the frame time against the grid's size. It runs on the allocator the `diffluid`
+//! binary runs on ([`GridAllocator`]): glibc keeps what a step frees for the next step,
+//! instead of handing each whole-grid array back to the kernel and faulting it in again.
 
 use diffluid::geometry::body::RigidBody;
 use diffluid::geometry::shape::Solid;
+use diffluid::math::memory::GridAllocator;
 use diffluid::math::{Pose, Rotation, SharedShape, Vec3};
 use diffluid::world::Simulation;
 use std::time::Instant;
 
+#[global_allocator]
+static ALLOCATOR: GridAllocator = GridAllocator;
+
 fn main() -> diffluid::Result<()> {
+    // Before rayon starts its threads.
+    GridAllocator::tune();
     let mut args = std::env::args().skip(1);
     let cells: usize = args.next().map_or(64, |a| a.parse().expect("CELLS: a whole number"));
     let seconds: f64 = args.next().map_or(4.0, |a| a.parse().expect("SECONDS: a number"));

@@ -38,7 +38,7 @@
 
 use crate::error::{Error, Result};
 use crate::geometry::fractions::NodeSdf;
-use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::grid::{Grid, Mac, MacSampler};
 use crate::geometry::weights::FaceWeights;
 use crate::math::Vec3;
 use crate::solvers::cg::CgStats;
@@ -333,10 +333,8 @@ impl DensityProjection {
     /// [`DensityProjection::displace`] by a displacement already computed.
     pub fn displace_by(&self, particles: &mut [Vec3], disp: &Displacement, g: &DensityInputs<'_>) {
         let walls = Walls::new(g.grid, g.node_sdf);
-        let d = &disp.d;
-        particles
-            .par_iter_mut()
-            .for_each(|x| *x = walls.keep(*x + capped(d.velocity(g.grid, *x), g.grid)));
+        let d = MacSampler::new(&disp.d, g.grid);
+        particles.par_iter_mut().for_each(|x| *x = walls.keep(*x + capped(d.velocity(*x), g.grid)));
     }
 
     /// Adjoint of [`DensityProjection::displace`] composed with the system's dependence on

@@ -18,6 +18,7 @@ use crate::stages::pressure::{
     BodyCoupling, Coupling, Entrained, PressureParams, PressureSystem, ProjectedFace, SystemMemory,
 };
 use crate::stages::solid_phi::SolidExtension;
+use rayon::prelude::*;
 
 /// Geometry that does not move: tank walls and obstacles.
 #[derive(Clone, Debug)]
@@ -243,8 +244,9 @@ impl StepSystem {
                 }
             })
             .collect();
+        // A body at a time in parallel (each its own faces; collected in body order).
         let couplings: Vec<BodyCoupling> = coupled
-            .iter()
+            .par_iter()
             .zip(&entrained)
             .map(|(&i, ent)| {
                 let b = &bodies[i];

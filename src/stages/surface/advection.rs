@@ -2,7 +2,7 @@
 //! static solids) and its adjoint.
 
 use crate::geometry::fractions::NodeSdf;
-use crate::geometry::grid::{Grid, Mac};
+use crate::geometry::grid::{Grid, Mac, MacSampler};
 use crate::math::Vec3;
 use rayon::prelude::*;
 
@@ -29,17 +29,22 @@ impl<'a> Walls<'a> {
         Walls { grid, solids: node_sdf.values() }
     }
 
-    /// A point a thousandth of a cell out of the static solids and inside the tank.
-    #[inline]
+    /// A point a thousandth of a cell out of the static solids and inside the tank. Always
+    /// inlined: left a call, each of a particle's sub-steps and its displacement paid for
+    /// one, and for passing the point through memory.
+    #[inline(always)]
     pub fn keep(&self, y: Vec3) -> Vec3 {
         let margin = 1e-3 * self.grid.dx;
         let nodes = self.grid.nodes();
         let mut y = y;
-        // The distance alone first: far from the solids (most particles) that is all.
-        if let Some(sdf) = self.solids.filter(|sdf| nodes.sample(sdf, y) < margin) {
-            let (d, g) = nodes.sample_grad(sdf, y);
-            if g.length() > 1e-12 {
-                y += (margin - d) * g.normalize();
+        // The distance alone first: far from the solids (most particles) that is all. (An
+        // `if let` and a test, not `Option::filter`, which stayed a call a point.)
+        if let Some(sdf) = self.solids {
+            if nodes.sample(sdf, y) < margin {
+                let (d, g) = nodes.sample_grad(sdf, y);
+                if g.length() > 1e-12 {
+                    y += (margin - d) * g.normalize();
+                }
             }
         }
         y.clamp(Vec3::splat(margin), self.grid.size() - Vec3::splat(margin))
@@ -49,12 +54,11 @@ impl<'a> Walls<'a> {
 /// One particle's path: `subs` midpoint (RK2) sub-steps of length `h` through `u`, each
 /// ending with [`Walls::keep`].
 #[inline]
-fn advect_one(x: Vec3, u: &Mac, walls: &Walls<'_>, h: f64, subs: usize) -> Vec3 {
-    let grid = walls.grid;
+fn advect_one(x: Vec3, u: &MacSampler<'_>, walls: &Walls<'_>, h: f64, subs: usize) -> Vec3 {
     let mut x = x;
     for _ in 0..subs {
-        let mid = x + 0.5 * h * u.velocity(grid, x);
-        x = walls.keep(x + h * u.velocity(grid, mid));
+        let mid = x + 0.5 * h * u.velocity(x);
+        x = walls.keep(x + h * u.velocity(mid));
     }
     x
 }
@@ -79,7 +83,8 @@ pub fn advect_substepped(
 ) {
     let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
-    pos.par_iter_mut().for_each(|x| *x = advect_one(*x, u, &walls, h, subs));
+    let u = MacSampler::new(u, grid);
+    pos.par_iter_mut().for_each(|x| *x = advect_one(*x, &u, &walls, h, subs));
 }
 
 /// `Jᵀ·v̄` of `f` at `x` by central differences with step `h`: for the few maps of a particle

@@ -145,6 +145,10 @@ fn liquid_sdf_with(
         refill(&mut phi, cells.len(), 0.0);
     }
     let mut who = if nearest { vec![NONE; cells.len()] } else { Vec::new() };
+    // The squared distance under which the second ring cannot hold a particle as near: the
+    // (1.5·dx)² of its nearest faces, less a relative 1e-9 for the rounding of a particle's
+    // bin (its cell from x/dx) and of its computed distance.
+    let ring2 = (1.5 * dx).powi(2) * (1.0 - 1e-9);
     // φ of cell (i, j, k) and the particle it is the distance to.
     let cell_phi = |i: usize, j: usize, k: usize| -> (f64, u32) {
         if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
@@ -169,9 +173,10 @@ fn liquid_sdf_with(
         };
         // A particle outside the cell is at least dx/2 from its centre, so one nearer inside
         // it is the nearest (deep in the liquid, most cells: 8 distances instead of 216). A
-        // particle outside the 3³ block is at least dx away, so a nearer one found inside it
-        // is the true nearest; otherwise look one ring further (exact up to 2·dx). Each ring
-        // is searched once, and none that `reach` says is empty.
+        // particle outside the 3³ block is at least 1.5·dx away (the nearest face of a cell
+        // two away), so one found inside it nearer than that is the true nearest (and no
+        // particle beyond ties with it); otherwise look one ring further (exact up to 2·dx).
+        // Each ring is searched once, and none that `reach` says is empty.
         let r = reach[own];
         if r == 0 {
             scan(own, &mut best);
@@ -179,7 +184,7 @@ fn liquid_sdf_with(
         if best.0.sqrt() >= 0.5 * dx && r <= 1 {
             for_ring_cells(grid, [i, j, k], 1, |c| scan(c, &mut best));
         }
-        if best.0.sqrt() > dx {
+        if best.0 > ring2 {
             for_ring_cells(grid, [i, j, k], 2, |c| scan(c, &mut best));
         }
         let mut d = (best.0.sqrt(), best.2);
