@@ -44,10 +44,51 @@ fn serial_pool() -> Option<&'static rayon::ThreadPool> {
         rayon::ThreadPoolBuilder::new()
             .num_threads(1)
             .thread_name(|_| "diffluid-serial".into())
+            .start_handler(|_| ON_SERIAL.with(|s| s.set(true)))
             .build()
             .ok()
     })
     .as_ref()
+}
+
+thread_local! {
+    /// Whether this thread is the one of [`serial_pool`].
+    static ON_SERIAL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// The one-thread pool [`ahead`] hands its work to, made on first use.
+fn ahead_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
+    POOL.get_or_init(|| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .thread_name(|_| "diffluid-ahead".into())
+            .build()
+            .ok()
+    })
+    .as_ref()
+}
+
+/// Runs `now` on this thread and `later` (work that a later call will read and that does
+/// not depend on `now`) on a thread of its own at the same time, when this is the thread of
+/// a serial step ([`Spread::Serial`]: the other threads idle); else `now`, then `later`.
+/// `later` runs on a one-thread pool, so its parallel loops stay on its thread, as a serial
+/// step's do. Nothing changes but where `later` runs: the results are the same bits.
+pub fn ahead<A: Send, B: Send>(
+    now: impl FnOnce() -> A + Send,
+    later: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    let pool = if ON_SERIAL.with(|s| s.get()) { ahead_pool() } else { None };
+    let Some(pool) = pool else {
+        let a = now();
+        return (a, later());
+    };
+    let mut b = None;
+    let a = pool.in_place_scope(|s| {
+        s.spawn(|_| b = Some(later()));
+        now()
+    });
+    (a, b.expect("the scope waited for `later`"))
 }
 
 /// Runs `f` on a thread of rayon's pool. A step makes dozens of short parallel loops; called
