@@ -23,7 +23,7 @@ use crate::math::so3;
 use crate::math::{add_twist, Twist, TwistParts, Vec3};
 use crate::stages::advect::{advect_adjoint_into, needed_faces};
 use crate::stages::band::Band;
-use crate::stages::extrapolate::correct_with_bodies_adjoint;
+use crate::stages::extrapolate::{correct_with_bodies_adjoint_planned, CorrectionPlan};
 use crate::stages::forces::body_velocity_adjoint;
 use crate::stages::particles::ParticleStage;
 use crate::stages::pressure::Coupling;
@@ -281,6 +281,8 @@ struct Rebuilt {
     /// û (advected, with gravity) on the faces where the adjoints of the correction and the
     /// projection read it.
     u_hat: Mac,
+    /// The masks and extrapolation layers the correction's adjoint reads.
+    correction: CorrectionPlan,
     seconds: AdjointSeconds,
 }
 
@@ -320,7 +322,11 @@ fn rebuild(initial: &Simulation, rec: &StepRecord, options: &GradientOptions) ->
     clock.lap(Stage::AdvectVelocity, times);
     sys.pressure.prepare(&settings.solver.linear());
     clock.lap(Stage::Pressure, times);
-    Rebuilt { bodies, sys, dual_faces, u_hat, seconds }
+    let faces = &sys.geometry.body_faces;
+    let layers = settings.solver.extrapolation_layers;
+    let correction = CorrectionPlan::new(sys.projected_mask(), faces, &grid, layers);
+    clock.lap(Stage::CorrectVelocity, times);
+    Rebuilt { bodies, sys, dual_faces, u_hat, correction, seconds }
 }
 
 /// The adjoint of one step: from the adjoint of the state after step `step` (recorded as
@@ -337,7 +343,7 @@ fn step_adjoint(
 ) -> Result<(AdjointState, AdjointSeconds)> {
     let full = options.mode == GradientMode::Full;
     let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
-    let Rebuilt { bodies, sys, dual_faces, u_hat, seconds } = read;
+    let Rebuilt { bodies, sys, dual_faces, u_hat, correction, seconds } = read;
     let mut total = seconds;
     let times = &mut total;
     let mut clock = StageClock::new();
@@ -353,7 +359,16 @@ fn step_adjoint(
     let dual = full.then_some(dual_faces.as_slice());
     let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
     correct_velocity_adjoint(
-        initial, rec, &sys, &bodies, dual, u_corr, &mut ubar, &mut vbar, &mut pose,
+        initial,
+        rec,
+        &sys,
+        &correction,
+        &bodies,
+        dual,
+        u_corr,
+        &mut ubar,
+        &mut vbar,
+        &mut pose,
     );
     clock.lap(Stage::CorrectVelocity, times);
 
@@ -429,14 +444,16 @@ fn step_adjoint(
 }
 
 /// The adjoint of [`Stage::CorrectVelocity`]: `ubar` (∂L/∂u after the step) becomes ∂L/∂u
-/// after the projection (`u_corr` gives that field where it is read); the bodies' ∂L/∂[v; ω]
-/// after the solve are added to `vbar`, and with `dual` (each body's dual fractions, the full
-/// gradient) their ∂L/∂[δx; δθ] to `pose`.
+/// after the projection (`u_corr` gives that field where it is read, `plan` the masks and
+/// layers of the correction); the bodies' ∂L/∂[v; ω] after the solve are added to `vbar`,
+/// and with `dual` (each body's dual fractions, the full gradient) their ∂L/∂[δx; δθ] to
+/// `pose`.
 #[allow(clippy::too_many_arguments)]
 fn correct_velocity_adjoint(
     initial: &Simulation,
     rec: &StepRecord,
     sys: &StepSystem,
+    plan: &CorrectionPlan,
     bodies: &[RigidBody],
     dual: Option<&[DualFaces]>,
     u_corr: impl Fn(usize, usize) -> f64,
@@ -449,17 +466,16 @@ fn correct_velocity_adjoint(
         (b.v, b.w) = (va.linear(), va.angular());
     }
     let grid = initial.grid();
-    let bva = correct_with_bodies_adjoint(
+    let bva = correct_with_bodies_adjoint_planned(
         ubar,
         u_corr,
         &rec.air_body_faces,
-        &sys.projected_mask(),
+        plan,
         &after,
         &sys.geometry.body_faces,
         &sys.geometry.weights,
         &initial.statics().weights,
         grid,
-        initial.settings().solver.extrapolation_layers,
     );
     for (i, r) in bva.iter().enumerate() {
         // A fixed body's pose and velocity are constants; a kinematic one's are the
