@@ -18,10 +18,12 @@ use crate::error::{GradientError, Result};
 use crate::geometry::body::{Motion, RigidBody};
 use crate::geometry::fractions::DualFaces;
 use crate::geometry::grid::Mac;
-use crate::math::pool::{self, run_spread};
+use crate::math::pool::{self, run_spread, Spread};
 use crate::math::so3;
 use crate::math::{add_twist, Twist, TwistParts, Vec3};
-use crate::stages::advect::{advect_adjoint_into, needed_faces};
+use crate::stages::advect::{
+    advect_adjoint_into, advect_adjoint_traced, needed_faces, AdvectionTraces,
+};
 use crate::stages::band::Band;
 use crate::stages::extrapolate::{correct_with_bodies_adjoint_planned, CorrectionPlan};
 use crate::stages::forces::body_velocity_adjoint;
@@ -283,6 +285,10 @@ struct Rebuilt {
     u_hat: Mac,
     /// The masks and extrapolation layers the correction's adjoint reads.
     correction: CorrectionPlan,
+    /// What the advection's adjoint reads of the taped field, when the pass runs serially
+    /// (then this rebuild may run beside the later steps' adjoints; on a grid large enough
+    /// to spread its loops, the adjoint traces each face as it goes instead).
+    traces: Option<AdvectionTraces>,
     seconds: AdjointSeconds,
 }
 
@@ -326,7 +332,10 @@ fn rebuild(initial: &Simulation, rec: &StepRecord, options: &GradientOptions) ->
     let layers = settings.solver.extrapolation_layers;
     let correction = CorrectionPlan::new(sys.projected_mask(), faces, &grid, layers);
     clock.lap(Stage::CorrectVelocity, times);
-    Rebuilt { bodies, sys, dual_faces, u_hat, correction, seconds }
+    let traces = (initial.spread() == Spread::Serial)
+        .then(|| AdvectionTraces::new(&rec.u, &grid, dt, Some(&sys.needed)));
+    clock.lap(Stage::AdvectVelocity, times);
+    Rebuilt { bodies, sys, dual_faces, u_hat, correction, traces, seconds }
 }
 
 /// The adjoint of one step: from the adjoint of the state after step `step` (recorded as
@@ -343,7 +352,7 @@ fn step_adjoint(
 ) -> Result<(AdjointState, AdjointSeconds)> {
     let full = options.mode == GradientMode::Full;
     let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
-    let Rebuilt { bodies, sys, dual_faces, u_hat, correction, seconds } = read;
+    let Rebuilt { bodies, sys, dual_faces, u_hat, correction, traces, seconds } = read;
     let mut total = seconds;
     let times = &mut total;
     let mut clock = StageClock::new();
@@ -411,7 +420,10 @@ fn step_adjoint(
     // any more.
     let mut u0 = u_hat;
     let uhat_bar = projected.u_hat;
-    advect_adjoint_into(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed), &mut u0);
+    match &traces {
+        Some(traces) => advect_adjoint_traced(traces, &uhat_bar, &grid, &mut u0),
+        None => advect_adjoint_into(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed), &mut u0),
+    }
     clock.lap(Stage::AdvectVelocity, times);
 
     // ∂L/∂φ_L back out of the solids, to the cells the extension read.
