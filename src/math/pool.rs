@@ -79,6 +79,31 @@ pub fn ahead<A: Send, B: Send>(
     later: impl FnOnce() -> B + Send,
 ) -> (A, B) {
     let pool = if ON_SERIAL.with(|s| s.get()) { ahead_pool() } else { None };
+    on_two(pool, now, later)
+}
+
+/// Runs `now` here and `other` beside it, on the thread of [`ahead`], when both are work of
+/// simulations whose steps are spread `spread` and that is [`Spread::Serial`] (so they step
+/// on one thread either way) and a second thread is free: called from the thread of a
+/// serial step or from outside rayon's pools with more than one thread. Else `now`, then
+/// `other`. The results are the same bits either way.
+pub fn beside<A: Send, B: Send>(
+    spread: Spread,
+    now: impl FnOnce() -> A + Send,
+    other: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    let free = ON_SERIAL.with(|s| s.get())
+        || (rayon::current_thread_index().is_none() && rayon::current_num_threads() > 1);
+    let pool = if spread == Spread::Serial && free { ahead_pool() } else { None };
+    on_two(pool, now, other)
+}
+
+/// `now` here and `later` on `pool` at once, or one after the other without a pool.
+fn on_two<A: Send, B: Send>(
+    pool: Option<&rayon::ThreadPool>,
+    now: impl FnOnce() -> A + Send,
+    later: impl FnOnce() -> B + Send,
+) -> (A, B) {
     let Some(pool) = pool else {
         let a = now();
         return (a, later());
