@@ -194,6 +194,16 @@ fn equal_to(level: &[u8], v: u8) -> Vec<usize> {
 /// `valid` is updated to the final mask of extrapolated-or-valid samples.
 pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: usize) {
     let lay = Layers::new(valid, lat, layers);
+    extrapolate_layered(field, &lay, lat);
+    valid.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(v, &lev)| {
+        if lev != NEVER {
+            *v = 1;
+        }
+    });
+}
+
+/// [`extrapolate`] with its layers found (`lay`), the mask left as it is.
+fn extrapolate_layered(field: &mut [f64], lay: &Layers, lat: &Lattice) {
     for (l, front) in lay.fronts.iter().enumerate() {
         // A face of this front reads only faces known before the layer, never another face
         // of the front: compute them all, then write.
@@ -208,18 +218,11 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
             .collect();
         for_each_keyed_mut(field, &values, |v| v.0, |_, v, x| *x = v.1);
     }
-    field
-        .par_iter_mut()
-        .zip(valid.par_iter_mut())
-        .zip(lay.level.par_iter())
-        .with_min_len(MIN_LEN)
-        .for_each(|((f, v), &lev)| {
-            if lev == NEVER {
-                *f = 0.0;
-            } else {
-                *v = 1;
-            }
-        });
+    field.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(f, &lev)| {
+        if lev == NEVER {
+            *f = 0.0;
+        }
+    });
 }
 
 /// Extrapolates all three components and then sets every face `weights` closes (weight 0:
@@ -345,6 +348,34 @@ pub fn correct_with_bodies(
     grid: &Grid,
     layers: usize,
 ) -> AirBodyFaces {
+    correct_with_bodies_layered(
+        u,
+        projected,
+        None,
+        bodies,
+        faces,
+        weights,
+        static_weights,
+        grid,
+        layers,
+    )
+}
+
+/// [`correct_with_bodies`], its extrapolation's layers found beforehand when `layered` is
+/// given (for `projected`, `faces` and `layers`, [`ExtrapolationLayers::new`]): the same
+/// bits.
+#[allow(clippy::too_many_arguments)]
+pub fn correct_with_bodies_layered(
+    u: &mut Mac,
+    projected: &[Vec<u8>; 3],
+    layered: Option<&ExtrapolationLayers>,
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
+    weights: &FaceWeights,
+    static_weights: &FaceWeights,
+    grid: &Grid,
+    layers: usize,
+) -> AirBodyFaces {
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
     mix_body_velocities(u, bodies, faces, weights, grid, set);
     let air: AirBodyFaces = std::array::from_fn(|a| {
@@ -369,10 +400,44 @@ pub fn correct_with_bodies(
         }
     }
     mix_body_velocities(u, bodies, faces, weights, grid, |a, f| !set(a, f));
-    let mut valid = projected.clone();
-    mark_body_faces(&mut valid, faces);
-    correct_velocity(u, &mut valid, static_weights, grid, layers);
+    match layered {
+        // As correct_velocity.
+        Some(lay) => {
+            for a in 0..3 {
+                extrapolate_layered(&mut u.c[a], &lay.axes[a], &grid.faces(a));
+                static_weights.zero_closed(a, &mut u.c[a]);
+            }
+        }
+        None => {
+            let mut valid = projected.clone();
+            mark_body_faces(&mut valid, faces);
+            correct_velocity(u, &mut valid, static_weights, grid, layers);
+        }
+    }
     air
+}
+
+/// The layers of [`correct_with_bodies`]'s extrapolation, per axis, from the faces the
+/// projection updated and those the bodies cover: masks only, so the forward step finds
+/// them beside its pressure solve.
+pub struct ExtrapolationLayers {
+    axes: Vec<Layers>,
+}
+
+impl ExtrapolationLayers {
+    /// The layers for the faces the projection updated (`projected`) and those `faces`
+    /// cover, with `layers` extrapolation layers.
+    pub fn new(
+        projected: &[Vec<u8>; 3],
+        faces: &[BodyFaces],
+        grid: &Grid,
+        layers: usize,
+    ) -> ExtrapolationLayers {
+        let mut valid = projected.clone();
+        mark_body_faces(&mut valid, faces);
+        let axes = (0..3).map(|a| Layers::new(&valid[a], &grid.faces(a), layers)).collect();
+        ExtrapolationLayers { axes }
+    }
 }
 
 /// The faces of `axis` some body covers that `keep` accepts, sorted, each once.
