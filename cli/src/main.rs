@@ -322,6 +322,11 @@ impl Drop for Listening {
 }
 
 fn run(args: RunArgs) -> Outcome {
+    run_to(args, &mut Console::Terminal, true)
+}
+
+/// [`run`], its lines to `console`, its progress bar shown if `bar_shown` (and not quiet).
+fn run_to(args: RunArgs, console: &mut Console, bar_shown: bool) -> Outcome {
     let mut scene = load_scene(args.scene.as_deref())?;
     match args.steps {
         Some(0) => return Err(Failure::new("--steps must be at least 1".into())),
@@ -334,10 +339,10 @@ fn run(args: RunArgs) -> Outcome {
     // stays free.
     sim.set_rollback(false);
     if !args.quiet {
-        eprintln!("model: {}", sim.model());
+        console.err(format!("model: {}", sim.model()));
     }
     for w in sim.warnings() {
-        eprintln!("warning: {w}");
+        console.err(format!("warning: {w}"));
     }
     let frames = Frames {
         every: scene.output.every,
@@ -353,7 +358,7 @@ fn run(args: RunArgs) -> Outcome {
     let mut rec = RunRecorder::new(folder, &scene.name, frames, &sim)?;
     let bar = bar(
         scene.time.steps,
-        args.quiet,
+        args.quiet || !bar_shown,
         "{spinner} {msg} [{bar:30}] step {pos}/{len} ({elapsed} < {eta})",
     );
     bar.set_message(scene.name.clone());
@@ -374,7 +379,7 @@ fn run(args: RunArgs) -> Outcome {
         match sim.step() {
             Ok(r) => {
                 for w in &r.warnings {
-                    bar.suspend(|| eprintln!("warning: {w}"));
+                    bar.suspend(|| console.err(format!("warning: {w}")));
                 }
                 bar.set_message(format!("{} cg {:>3} it", scene.name, r.cg_iterations));
                 rec.record(&sim, r)?;
@@ -392,7 +397,7 @@ fn run(args: RunArgs) -> Outcome {
         return Err(failure);
     }
     let last = rec.reports().last().expect("at least one step");
-    println!(
+    console.out(format!(
         "{}: {} steps in {total:.3} s ({} particles, {} liquid cells); final volume {:.4} m³ \
          (start {:.4}), max speed {:.3} m/s; wrote {}",
         scene.name,
@@ -403,11 +408,16 @@ fn run(args: RunArgs) -> Outcome {
         rec.initial_volume(),
         last.max_speed,
         out.display()
-    );
+    ));
     Ok(())
 }
 
 fn optimize(args: OptimizeArgs) -> Outcome {
+    optimize_to(args, &mut Console::Terminal)
+}
+
+/// [`optimize`], its lines to `console`.
+fn optimize_to(args: OptimizeArgs, console: &mut Console) -> Outcome {
     let mut scene = load_scene(args.scene.as_deref())?;
     match (args.epochs, scene.optimize.as_mut()) {
         (Some(0), _) => return Err(Failure::new("--epochs must be at least 1".into())),
@@ -447,10 +457,10 @@ fn optimize(args: OptimizeArgs) -> Outcome {
         return Err(Failure::new(format!("optimisation stopped at {reason}")));
     }
     if let Some(reason) = &outcome.converged {
-        println!("L-BFGS converged at {reason}");
+        console.out(format!("L-BFGS converged at {reason}"));
     }
     let initial = outcome.history.first().map(|r| r.loss).unwrap_or(f64::NAN);
-    println!(
+    console.out(format!(
         "{}: {} epochs ({} evaluations), loss {initial:.4e} -> {:.4e} ({:.0}x) in {:.1} s; v0 = {:?}; wrote {}",
         problem.scene.name,
         outcome.history.len(),
@@ -460,7 +470,7 @@ fn optimize(args: OptimizeArgs) -> Outcome {
         start.elapsed().as_secs_f64(),
         outcome.params.v.to_array(),
         out.display()
-    );
+    ));
     Ok(())
 }
 
@@ -555,6 +565,83 @@ fn bench(args: BenchArgs) -> Outcome {
 #[global_allocator]
 static ALLOCATOR: GridAllocator = GridAllocator;
 
+/// Where a command's lines go: the terminal at once, or kept to be printed later in order.
+enum Console {
+    Terminal,
+    Kept(Vec<(bool, String)>),
+}
+
+impl Console {
+    /// A line for standard output.
+    fn out(&mut self, line: String) {
+        match self {
+            Console::Terminal => println!("{line}"),
+            Console::Kept(lines) => lines.push((true, line)),
+        }
+    }
+
+    /// A line for standard error.
+    fn err(&mut self, line: String) {
+        match self {
+            Console::Terminal => eprintln!("{line}"),
+            Console::Kept(lines) => lines.push((false, line)),
+        }
+    }
+
+    /// Prints the lines kept, in order.
+    fn print(self) {
+        if let Console::Kept(lines) = self {
+            let mut terminal = Console::Terminal;
+            for (out, line) in lines {
+                if out {
+                    terminal.out(line)
+                } else {
+                    terminal.err(line)
+                }
+            }
+        }
+    }
+}
+
+/// The main job: the embedded block drop forward (`run`), and its optimisation (`optimize`).
+/// Neither reads the other's results, and each steps on one thread (the grid is small), so
+/// the run goes on a thread of its own while the optimisation runs here. Their lines come
+/// out as if one ran after the other: the run's first, kept until both are done (its
+/// progress bar not drawn). A failed or interrupted run ends the process at once, as it
+/// ended the job before the optimisation started.
+fn main_job() -> Outcome {
+    // Its own one-thread pool: the run's serial steps would otherwise queue behind the
+    // optimisation's on the library's one (`math::pool`).
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .thread_name(|_| "diffluid-run".into())
+        .build()
+        .ok();
+    std::thread::scope(|s| {
+        let forward = s.spawn(|| {
+            let run = || {
+                let mut console = Console::Kept(Vec::new());
+                (run_to(RunArgs::default(), &mut console, false), console)
+            };
+            let (outcome, console) = match &pool {
+                Some(pool) => pool.install(run),
+                None => run(),
+            };
+            if let Err(Failure { message, status }) = outcome {
+                console.print();
+                eprintln!("error: {message}");
+                std::process::exit(status.into());
+            }
+            console
+        });
+        let mut console = Console::Kept(Vec::new());
+        let optimised = optimize_to(OptimizeArgs::default(), &mut console);
+        forward.join().expect("the run returned or ended the process").print();
+        console.print();
+        optimised
+    })
+}
+
 fn main() -> ExitCode {
     // Before rayon starts its threads.
     GridAllocator::tune();
@@ -565,8 +652,7 @@ fn main() -> ExitCode {
         Some(Command::Control(args)) => control(args),
         Some(Command::Bench(args)) => bench(args),
         Some(Command::Render(args)) => render(args),
-        // The main job: the embedded block drop forward, then its optimisation.
-        None => run(RunArgs::default()).and_then(|()| optimize(OptimizeArgs::default())),
+        None => main_job(),
     };
     if let Err(Failure { message, status }) = result {
         eprintln!("error: {message}");

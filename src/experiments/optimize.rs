@@ -231,6 +231,7 @@ impl Optimization {
         }
         if let Some(vstar) = spec.recover_velocity {
             let mut s = initial.clone();
+            s.set_report_measures(false);
             s.bodies_mut()[body].v = crate::math::v3(vstar);
             for _ in 0..scene.time.steps {
                 s.step()?;
@@ -310,6 +311,8 @@ impl Optimization {
     /// The loss at `p` (forward only).
     pub fn loss_at(&self, p: &BodyState) -> Result<f64> {
         let mut s = self.simulation(p);
+        // The loss reads the bodies, none of the reports' measures.
+        s.set_report_measures(false);
         for _ in 0..self.scene.time.steps {
             s.step()?;
         }

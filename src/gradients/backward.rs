@@ -18,12 +18,14 @@ use crate::error::{GradientError, Result};
 use crate::geometry::body::{Motion, RigidBody};
 use crate::geometry::fractions::DualFaces;
 use crate::geometry::grid::Mac;
-use crate::math::pool::run_spread;
+use crate::math::pool::{self, run_spread, Spread};
 use crate::math::so3;
 use crate::math::{add_twist, Twist, TwistParts, Vec3};
-use crate::stages::advect::{advect_adjoint_into, needed_faces};
+use crate::stages::advect::{
+    advect_adjoint_into, advect_adjoint_traced, needed_faces, AdvectionTraces,
+};
 use crate::stages::band::Band;
-use crate::stages::extrapolate::correct_with_bodies_adjoint;
+use crate::stages::extrapolate::{correct_with_bodies_adjoint_planned, CorrectionPlan};
 use crate::stages::forces::body_velocity_adjoint;
 use crate::stages::particles::ParticleStage;
 use crate::stages::pressure::Coupling;
@@ -230,8 +232,19 @@ pub fn backward_adjoint_hooked(
     run_spread(initial.spread(), || {
         let mut times = AdjointSeconds::default();
         let mut adj = final_adjoint;
-        for (t, rec) in tape.steps.iter().enumerate().rev() {
-            adj = step_adjoint(initial, rec, adj, options, first + t + 1, &mut times)?;
+        let steps = &tape.steps;
+        let mut next = steps.last().map(|rec| rebuild(initial, rec, options));
+        for (t, rec) in steps.iter().enumerate().rev() {
+            let read = next.take().expect("rebuilt");
+            // The step before's rebuild reads only its record: it runs beside this step's
+            // adjoints when a second thread is free.
+            let step = |adj| step_adjoint(initial, rec, read, adj, options, first + t + 1);
+            let earlier = t.checked_sub(1).map(|e| &steps[e]);
+            let (stepped, ahead) =
+                pool::ahead(|| step(adj), || earlier.map(|e| rebuild(initial, e, options)));
+            let (a, seconds) = stepped?;
+            (adj, next) = (a, ahead);
+            times += seconds;
             at_boundary(first + t, &mut adj);
         }
         Ok((adj, times))
@@ -258,23 +271,37 @@ fn bodies_at(initial: &Simulation, rec: &StepRecord) -> Vec<RigidBody> {
     bodies
 }
 
-/// The adjoint of one step: from the adjoint of the state after step `step` (recorded as
-/// `rec`), the adjoint of the state before it. The stages' adjoints in the reverse order of
-/// [`Stage::ALL`], after rebuilding what they read: the step's system, the fractions' pose
-/// derivatives and the predicted field.
-fn step_adjoint(
-    initial: &Simulation,
-    rec: &StepRecord,
-    adj: AdjointState,
-    options: &GradientOptions,
-    step: usize,
-    times: &mut AdjointSeconds,
-) -> Result<AdjointState> {
+/// What a step's adjoints read besides the adjoint state, rebuilt from its record as the
+/// forward step built it, and what rebuilding it cost.
+struct Rebuilt {
+    /// The bodies as the step started.
+    bodies: Vec<RigidBody>,
+    /// The step's system, its preconditioner factored.
+    sys: StepSystem,
+    /// Each body's dual fractions (the full gradient; empty for the paper's).
+    dual_faces: Vec<DualFaces>,
+    /// û (advected, with gravity) on the faces where the adjoints of the correction and the
+    /// projection read it.
+    u_hat: Mac,
+    /// The masks and extrapolation layers the correction's adjoint reads.
+    correction: CorrectionPlan,
+    /// What the advection's adjoint reads of the taped field, when the pass runs serially
+    /// (then this rebuild may run beside the later steps' adjoints; on a grid large enough
+    /// to spread its loops, the adjoint traces each face as it goes instead).
+    traces: Option<AdvectionTraces>,
+    seconds: AdjointSeconds,
+}
+
+/// What the adjoint of the step recorded as `rec` reads: the step's system (and the
+/// preconditioner its adjoint solve takes), the fractions' pose derivatives and the predicted
+/// field. It reads nothing of the adjoint state, so it may run before the later steps'
+/// adjoints are done.
+fn rebuild(initial: &Simulation, rec: &StepRecord, options: &GradientOptions) -> Rebuilt {
     let full = options.mode == GradientMode::Full;
     let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
+    let mut seconds = AdjointSeconds::default();
+    let times = &mut seconds;
     let mut clock = StageClock::new();
-
-    // What the stages read, rebuilt as the forward step built it.
     let bodies = bodies_at(initial, rec);
     let geometry = initial.geometry_with(&bodies, rec.body_faces.clone());
     let phi = if rec.phi.is_empty() { initial.particle_phi() } else { rec.phi.clone() };
@@ -287,8 +314,6 @@ fn step_adjoint(
         Vec::new()
     };
     clock.lap(Stage::Geometry, times);
-    // û (advected, with gravity) on the faces the bodies cover, where the adjoints of the
-    // correction and the projection read it.
     let mut at_bodies = needed_faces(&grid, &[], &sys.geometry.body_faces);
     for faces in &dual_faces {
         for (a, m) in at_bodies.iter_mut().enumerate() {
@@ -301,6 +326,36 @@ fn step_adjoint(
     let gravity = settings.fluid.gravity;
     let u_hat = predicted_velocity(&rec.u, &grid, dt, gravity, &at_bodies, out_field);
     clock.lap(Stage::AdvectVelocity, times);
+    sys.pressure.prepare(&settings.solver.linear());
+    clock.lap(Stage::Pressure, times);
+    let faces = &sys.geometry.body_faces;
+    let layers = settings.solver.extrapolation_layers;
+    let correction = CorrectionPlan::new(sys.projected_mask(), faces, &grid, layers);
+    clock.lap(Stage::CorrectVelocity, times);
+    let traces = (initial.spread() == Spread::Serial)
+        .then(|| AdvectionTraces::new(&rec.u, &grid, dt, Some(&sys.needed)));
+    clock.lap(Stage::AdvectVelocity, times);
+    Rebuilt { bodies, sys, dual_faces, u_hat, correction, traces, seconds }
+}
+
+/// The adjoint of one step: from the adjoint of the state after step `step` (recorded as
+/// `rec`, what its stages read rebuilt as `read`), the adjoint of the state before it, and
+/// what each stage's adjoint cost (the rebuild's included). The stages' adjoints in the
+/// reverse order of [`Stage::ALL`].
+fn step_adjoint(
+    initial: &Simulation,
+    rec: &StepRecord,
+    read: Rebuilt,
+    adj: AdjointState,
+    options: &GradientOptions,
+    step: usize,
+) -> Result<(AdjointState, AdjointSeconds)> {
+    let full = options.mode == GradientMode::Full;
+    let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
+    let Rebuilt { bodies, sys, dual_faces, u_hat, correction, traces, seconds } = read;
+    let mut total = seconds;
+    let times = &mut total;
+    let mut clock = StageClock::new();
 
     let (mut out, mut vbar) =
         integrate_adjoint(&bodies, &rec.bodies, &rec.v_after, &adj.bodies, dt);
@@ -313,7 +368,16 @@ fn step_adjoint(
     let dual = full.then_some(dual_faces.as_slice());
     let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
     correct_velocity_adjoint(
-        initial, rec, &sys, &bodies, dual, u_corr, &mut ubar, &mut vbar, &mut pose,
+        initial,
+        rec,
+        &sys,
+        &correction,
+        &bodies,
+        dual,
+        u_corr,
+        &mut ubar,
+        &mut vbar,
+        &mut pose,
     );
     clock.lap(Stage::CorrectVelocity, times);
 
@@ -356,7 +420,10 @@ fn step_adjoint(
     // any more.
     let mut u0 = u_hat;
     let uhat_bar = projected.u_hat;
-    advect_adjoint_into(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed), &mut u0);
+    match &traces {
+        Some(traces) => advect_adjoint_traced(traces, &uhat_bar, &grid, &mut u0),
+        None => advect_adjoint_into(&rec.u, &uhat_bar, &grid, dt, Some(&sys.needed), &mut u0),
+    }
     clock.lap(Stage::AdvectVelocity, times);
 
     // ∂L/∂φ_L back out of the solids, to the cells the extension read.
@@ -385,18 +452,20 @@ fn step_adjoint(
     clock.lap(Stage::Geometry, times);
     initial.spare().keep_velocity(uhat_bar);
     initial.spare().keep_system(sys.geometry, sys.pressure);
-    Ok(AdjointState { u: u0, bodies: out, particles, mass })
+    Ok((AdjointState { u: u0, bodies: out, particles, mass }, total))
 }
 
 /// The adjoint of [`Stage::CorrectVelocity`]: `ubar` (∂L/∂u after the step) becomes ∂L/∂u
-/// after the projection (`u_corr` gives that field where it is read); the bodies' ∂L/∂[v; ω]
-/// after the solve are added to `vbar`, and with `dual` (each body's dual fractions, the full
-/// gradient) their ∂L/∂[δx; δθ] to `pose`.
+/// after the projection (`u_corr` gives that field where it is read, `plan` the masks and
+/// layers of the correction); the bodies' ∂L/∂[v; ω] after the solve are added to `vbar`,
+/// and with `dual` (each body's dual fractions, the full gradient) their ∂L/∂[δx; δθ] to
+/// `pose`.
 #[allow(clippy::too_many_arguments)]
 fn correct_velocity_adjoint(
     initial: &Simulation,
     rec: &StepRecord,
     sys: &StepSystem,
+    plan: &CorrectionPlan,
     bodies: &[RigidBody],
     dual: Option<&[DualFaces]>,
     u_corr: impl Fn(usize, usize) -> f64,
@@ -409,17 +478,16 @@ fn correct_velocity_adjoint(
         (b.v, b.w) = (va.linear(), va.angular());
     }
     let grid = initial.grid();
-    let bva = correct_with_bodies_adjoint(
+    let bva = correct_with_bodies_adjoint_planned(
         ubar,
         u_corr,
         &rec.air_body_faces,
-        &sys.projected_mask(),
+        plan,
         &after,
         &sys.geometry.body_faces,
         &sys.geometry.weights,
         &initial.statics().weights,
         grid,
-        initial.settings().solver.extrapolation_layers,
     );
     for (i, r) in bva.iter().enumerate() {
         // A fixed body's pose and velocity are constants; a kinematic one's are the

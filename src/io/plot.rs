@@ -316,8 +316,9 @@ fn animation_gif_at(
     first.delay = delay;
     let palette = first.palette.clone().unwrap_or_default();
     gif.write_frame(&first).map_err(|e| err(path, e))?;
-    // Drawn and mapped to the palette a few frames at a time on every thread, written in
-    // order: at most a chunk of frames is held.
+    // Drawn, mapped to the palette and LZW-compressed a few frames at a time on every
+    // thread, written in order: at most a chunk of frames is held. The compression is the
+    // one `write_frame` does, so the same bytes.
     let chunk = 2 * rayon::current_num_threads();
     for part in frames[1..].chunks(chunk) {
         let encoded: Vec<gif::Frame<'static>> = part
@@ -326,11 +327,12 @@ fn animation_gif_at(
                 let indices = palette_indices(&draw(f)?, &palette);
                 let mut frame = gif::Frame::from_palette_pixels(gw, gh, &indices, &palette, None);
                 frame.delay = delay;
+                frame.make_lzw_pre_encoded();
                 Ok(frame)
             })
             .collect::<Result<_>>()?;
         for frame in &encoded {
-            gif.write_frame(frame).map_err(|e| err(path, e))?;
+            gif.write_lzw_pre_encoded_frame(frame).map_err(|e| err(path, e))?;
         }
     }
     let file = gif.into_inner().map_err(|e| err(path, e))?;

@@ -44,10 +44,81 @@ fn serial_pool() -> Option<&'static rayon::ThreadPool> {
         rayon::ThreadPoolBuilder::new()
             .num_threads(1)
             .thread_name(|_| "diffluid-serial".into())
+            .start_handler(|_| ON_SERIAL.with(|s| s.set(true)))
             .build()
             .ok()
     })
     .as_ref()
+}
+
+thread_local! {
+    /// Whether this thread is the one of [`serial_pool`].
+    static ON_SERIAL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// The one-thread pool [`ahead`] hands its work to, made on first use.
+fn ahead_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
+    POOL.get_or_init(|| one_thread("diffluid-ahead")).as_ref()
+}
+
+/// A pool of one thread named `name` (None if it could not be started).
+fn one_thread(name: &'static str) -> Option<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new().num_threads(1).thread_name(move |_| name.into()).build().ok()
+}
+
+/// The one-thread pool [`beside`] hands its second job to, made on first use.
+fn beside_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
+    POOL.get_or_init(|| one_thread("diffluid-beside")).as_ref()
+}
+
+/// Runs `now` on this thread and `later` (work that a later call will read and that does
+/// not depend on `now`) on a thread of its own at the same time, when this is the thread of
+/// a serial step ([`Spread::Serial`]: the other threads idle); else `now`, then `later`.
+/// `later` runs on a one-thread pool, so its parallel loops stay on its thread, as a serial
+/// step's do. Nothing changes but where `later` runs: the results are the same bits.
+pub fn ahead<A: Send, B: Send>(
+    now: impl FnOnce() -> A + Send,
+    later: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    let pool = if ON_SERIAL.with(|s| s.get()) { ahead_pool() } else { None };
+    on_two(pool, now, later)
+}
+
+/// Runs `now` here and `other` beside it, on a one-thread pool of its own, when both are
+/// work of simulations whose steps are spread `spread` and that is [`Spread::Serial`] (so
+/// they step on one thread either way) and a second thread is free: called from the thread
+/// of a serial step or from outside rayon's pools with more than one thread. Else `now`,
+/// then `other`. The results are the same bits either way. Not the pool of [`ahead`]: the
+/// steps of `now` hand it work, which would wait behind `other`.
+pub fn beside<A: Send, B: Send>(
+    spread: Spread,
+    now: impl FnOnce() -> A + Send,
+    other: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    let free = ON_SERIAL.with(|s| s.get())
+        || (rayon::current_thread_index().is_none() && rayon::current_num_threads() > 1);
+    let pool = if spread == Spread::Serial && free { beside_pool() } else { None };
+    on_two(pool, now, other)
+}
+
+/// `now` here and `later` on `pool` at once, or one after the other without a pool.
+fn on_two<A: Send, B: Send>(
+    pool: Option<&rayon::ThreadPool>,
+    now: impl FnOnce() -> A + Send,
+    later: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    let Some(pool) = pool else {
+        let a = now();
+        return (a, later());
+    };
+    let mut b = None;
+    let a = pool.in_place_scope(|s| {
+        s.spawn(|_| b = Some(later()));
+        now()
+    });
+    (a, b.expect("the scope waited for `later`"))
 }
 
 /// Runs `f` on a thread of rayon's pool. A step makes dozens of short parallel loops; called
@@ -102,6 +173,24 @@ pub fn on_pool_spinning<R: Send>(spin: bool, f: impl FnOnce() -> R + Send) -> R 
 mod tests {
     use super::*;
     use rayon::prelude::*;
+
+    /// `ahead` and `beside` return both results; on the serial pool (and from outside the
+    /// pools, for `beside`) the second job runs on another thread, elsewhere on this one.
+    #[test]
+    fn two_jobs_return_both_results_and_run_apart_when_serial() {
+        let id = || std::thread::current().id();
+        assert_eq!(ahead(|| 1, || 2), (1, 2));
+        let (a, b) = ahead(id, id);
+        assert_eq!(a, b, "outside the serial pool, one after the other");
+        let (a, b) = run_spread(Spread::Serial, || ahead(id, id));
+        let (c, d) = beside(Spread::Serial, id, id);
+        let (e, f) = beside(Spread::Parallel, id, id);
+        assert_eq!(e, f, "a parallel simulation's work is not split off");
+        if rayon::current_num_threads() > 1 {
+            assert_ne!(a, b);
+            assert_ne!(c, d);
+        }
+    }
 
     /// With spinning workers, a parallel sum on a pool of two threads is the same bits as
     /// without, nested calls return, and a panic in the work reaches the caller instead of

@@ -210,47 +210,201 @@ pub fn advect_adjoint_into(
     mask: Option<&FaceMask>,
     out: &mut Mac,
 ) {
-    for c in &mut out.c {
-        c.par_iter_mut().with_min_len(MIN_LEN).for_each(|x| *x = 0.0);
+    let blocks = Blocks::new(u, grid, dt);
+    blocks.scatter(grid, out, |j, sc| {
+        let walk = AdjointWalk { u, adj, grid, dt, mask };
+        let z = |a: usize| blocks.slabs(j, a);
+        walk.slabs::<0>(z(0), sc);
+        walk.slabs::<1>(z(1), sc);
+        walk.slabs::<2>(z(2), sc);
+    });
+}
+
+/// [`advect_adjoint_into`] from the faces' traces through `u` found beforehand: the same
+/// bits, the faces taken in the same order, each face's sums in the same order.
+pub fn advect_adjoint_traced(traces: &AdvectionTraces, adj: &Mac, grid: &Grid, out: &mut Mac) {
+    let dt = traces.dt;
+    traces.blocks.scatter(grid, out, |j, sc| {
+        let [x, y, z] = &traces.faces[j];
+        x.iter().for_each(|t| scatter::<0>(t, adj.c[0][t.face as usize], dt, sc));
+        y.iter().for_each(|t| scatter::<1>(t, adj.c[1][t.face as usize], dt, sc));
+        z.iter().for_each(|t| scatter::<2>(t, adj.c[2][t.face as usize], dt, sc));
+    });
+}
+
+/// How the adjoint's scatter splits the faces (see [`advect_adjoint`]): in blocks of
+/// `2·reach` z-slabs, a face's writes reaching at most `reach` slabs from its own.
+#[derive(Clone, Copy, Debug)]
+struct Blocks {
+    reach: usize,
+    block: usize,
+    /// Slabs of each lattice along z (the z faces have one more).
+    slabs: [usize; 3],
+    count: usize,
+}
+
+impl Blocks {
+    fn new(u: &Mac, grid: &Grid, dt: f64) -> Blocks {
+        let w_max = crate::geometry::grid::max_abs(&u.c[2]);
+        let reach = (dt * w_max / grid.dx).ceil() as usize + 2;
+        let block = 2 * reach;
+        let slabs = [0, 1, 2].map(|a| grid.faces(a).n[2]);
+        let count = slabs.iter().max().expect("three axes").div_ceil(block);
+        Blocks { reach, block, slabs, count }
     }
-    let w_max = crate::geometry::grid::max_abs(&u.c[2]);
-    let reach = (dt * w_max / grid.dx).ceil() as usize + 2;
-    let block = 2 * reach;
-    // Slabs of each lattice along z (the z faces have one more).
-    let slabs = [0, 1, 2].map(|a| grid.faces(a).n[2]);
-    let blocks = slabs.iter().max().expect("three axes").div_ceil(block);
-    let walk = AdjointWalk { u, adj, grid, dt, mask };
-    for parity in 0..2 {
-        // Each block of this parity owns the slabs within `reach` of its own.
-        let mut parts: Vec<(usize, Scatter<'_>)> = Vec::new();
-        let mut rest: [&mut [f64]; 3] = {
-            let [x, y, z] = &mut out.c;
-            [x.as_mut_slice(), y.as_mut_slice(), z.as_mut_slice()]
-        };
-        let mut at = [0usize; 3];
-        for j in (parity..blocks).step_by(2) {
-            let lo = (j * block).saturating_sub(reach);
-            let mut pieces: [&mut [f64]; 3] = Default::default();
-            let mut first = [0usize; 3];
-            for a in 0..3 {
-                let slab = grid.faces(a).slab();
-                let l = lo.min(slabs[a]) * slab;
-                let h = ((j + 1) * block + reach).min(slabs[a]) * slab;
-                // Blocks of one parity are 2·reach slabs apart: their shares follow in order.
-                let (_, tail) = std::mem::take(&mut rest[a]).split_at_mut(l - at[a]);
-                let (mine, tail) = tail.split_at_mut(h - l);
-                (pieces[a], rest[a], first[a], at[a]) = (mine, tail, l, h);
-            }
-            parts.push((j, Scatter { pieces, first }));
+
+    /// The z-slabs of block `j` on the lattice of component `a`.
+    fn slabs(&self, j: usize, a: usize) -> std::ops::Range<usize> {
+        (j * self.block).min(self.slabs[a])..((j + 1) * self.block).min(self.slabs[a])
+    }
+
+    /// Zeroes `out`, then runs `block(j, share)` for every block j, the even ones in
+    /// parallel and then the odd ones, `share` the slabs within `reach` of block j's own.
+    fn scatter(&self, grid: &Grid, out: &mut Mac, block: impl Fn(usize, &mut Scatter<'_>) + Sync) {
+        for c in &mut out.c {
+            c.par_iter_mut().with_min_len(MIN_LEN).for_each(|x| *x = 0.0);
         }
-        // A block of a small grid is less work than waking a worker.
-        let per = min_pieces(block * grid.faces(0).slab());
-        parts.into_par_iter().with_min_len(per).for_each(|(j, mut sc)| {
-            let z = |a: usize| (j * block).min(slabs[a])..((j + 1) * block).min(slabs[a]);
-            walk.slabs::<0>(z(0), &mut sc);
-            walk.slabs::<1>(z(1), &mut sc);
-            walk.slabs::<2>(z(2), &mut sc);
-        });
+        let Blocks { reach, block: size, slabs, count } = *self;
+        for parity in 0..2 {
+            // Each block of this parity owns the slabs within `reach` of its own.
+            let mut parts: Vec<(usize, Scatter<'_>)> = Vec::new();
+            let mut rest: [&mut [f64]; 3] = {
+                let [x, y, z] = &mut out.c;
+                [x.as_mut_slice(), y.as_mut_slice(), z.as_mut_slice()]
+            };
+            let mut at = [0usize; 3];
+            for j in (parity..count).step_by(2) {
+                let lo = (j * size).saturating_sub(reach);
+                let mut pieces: [&mut [f64]; 3] = Default::default();
+                let mut first = [0usize; 3];
+                for a in 0..3 {
+                    let slab = grid.faces(a).slab();
+                    let l = lo.min(slabs[a]) * slab;
+                    let h = ((j + 1) * size + reach).min(slabs[a]) * slab;
+                    // Blocks of one parity are 2·reach slabs apart: their shares follow in
+                    // order.
+                    let (_, tail) = std::mem::take(&mut rest[a]).split_at_mut(l - at[a]);
+                    let (mine, tail) = tail.split_at_mut(h - l);
+                    (pieces[a], rest[a], first[a], at[a]) = (mine, tail, l, h);
+                }
+                parts.push((j, Scatter { pieces, first }));
+            }
+            // A block of a small grid is less work than waking a worker.
+            let per = min_pieces(size * grid.faces(0).slab());
+            parts.into_par_iter().with_min_len(per).for_each(|(j, mut sc)| block(j, &mut sc));
+        }
+    }
+}
+
+/// What the adjoint's scatter at a field `u` reads of `u` alone ([`advect_adjoint_traced`]):
+/// per block of the scatter and per component, each face's [`Trace`] in the order the
+/// scatter takes them (the faces of the mask). It does not depend on the adjoint, so the
+/// backward pass finds it ahead of the step's adjoints (`gradients/backward.rs`).
+#[derive(Clone, Debug)]
+pub struct AdvectionTraces {
+    blocks: Blocks,
+    dt: f64,
+    faces: Vec<[Vec<Trace>; 3]>,
+}
+
+impl AdvectionTraces {
+    /// The traces of [`advect_adjoint_into`] at `u` with these arguments.
+    pub fn new(u: &Mac, grid: &Grid, dt: f64, mask: Option<&FaceMask>) -> AdvectionTraces {
+        let blocks = Blocks::new(u, grid, dt);
+        let faces = (0..blocks.count)
+            .into_par_iter()
+            .map(|j| {
+                let z = |a: usize| blocks.slabs(j, a);
+                [
+                    traces::<0>(u, grid, dt, mask, z(0)),
+                    traces::<1>(u, grid, dt, mask, z(1)),
+                    traces::<2>(u, grid, dt, mask, z(2)),
+                ]
+            })
+            .collect();
+        AdvectionTraces { blocks, dt, faces }
+    }
+}
+
+/// The traces of the faces of component `AXIS` of the mask in the z-slabs `z`, in face order.
+fn traces<const AXIS: usize>(
+    u: &Mac,
+    grid: &Grid,
+    dt: f64,
+    mask: Option<&FaceMask>,
+    z: std::ops::Range<usize>,
+) -> Vec<Trace> {
+    let [n0, n1, _] = grid.faces(AXIS).n;
+    let mut out = Vec::new();
+    let mut g = z.start * n0 * n1;
+    for k in z {
+        for row in 0..n1 {
+            for i in 0..n0 {
+                if mask.is_none_or(|m| m[AXIS][g]) {
+                    out.push(trace::<AXIS>(u, grid, dt, [i, row, k], g));
+                }
+                g += 1;
+            }
+        }
+    }
+    out
+}
+
+/// What the adjoint's scatter reads of the forward field at one face: the face, the
+/// eight samples of its backtrace's stencil and their weights, the gradient of its own
+/// component there, and the four faces of each other component (in increasing order) its
+/// velocity was the mean of.
+#[derive(Clone, Copy, Debug)]
+struct Trace {
+    face: u32,
+    idx: [u32; 8],
+    w: [f64; 8],
+    grad: Vec3,
+    q: [[u32; 4]; 2],
+}
+
+/// The [`Trace`] of face `ijk` (flat index `g`) of component `AXIS`.
+#[inline(always)]
+fn trace<const AXIS: usize>(u: &Mac, grid: &Grid, dt: f64, ijk: [usize; 3], g: usize) -> Trace {
+    let lat = grid.faces(AXIS);
+    let mut q = [[0u32; 4]; 2];
+    let mut v = [0.0; 3];
+    v[AXIS] = u.c[AXIS][g];
+    for (k, b) in (0..3).filter(|&b| b != AXIS).enumerate() {
+        let qb = cross_faces(grid, AXIS, ijk, b);
+        let c = &u.c[b];
+        v[b] = 0.25 * ((c[qb[0]] + c[qb[1]]) + (c[qb[2]] + c[qb[3]]));
+        q[k] = qb.map(|f| f as u32);
+    }
+    let xb = lat.position(ijk[0], ijk[1], ijk[2]) - dt * crate::math::v3(v);
+    let sb = lat.stencil(xb);
+    let mut grad = Vec3::ZERO;
+    for c in 0..8 {
+        grad += sb.dw[c] * u.c[AXIS][sb.idx[c]];
+    }
+    Trace { face: g as u32, idx: sb.idx.map(|i| i as u32), w: sb.w, grad, q }
+}
+
+/// One face's transpose from its trace and its adjoint `a`: the sample's weights and,
+/// through its backtrace, the velocity it was traced with ([`face_velocity`]'s transpose).
+/// Nothing for a zero adjoint.
+#[inline(always)]
+fn scatter<const AXIS: usize>(t: &Trace, a: f64, dt: f64, out: &mut Scatter<'_>) {
+    if a == 0.0 {
+        return;
+    }
+    for c in 0..8 {
+        out.add(AXIS, t.idx[c] as usize, a * t.w[c]);
+    }
+    let coef = (-dt * a) * t.grad;
+    out.add(AXIS, t.face as usize, crate::math::comp(coef, AXIS));
+    for (k, b) in (0..3).filter(|&b| b != AXIS).enumerate() {
+        let c = 0.25 * crate::math::comp(coef, b);
+        if c != 0.0 {
+            for f in t.q[k] {
+                out.add(b, f as usize, c);
+            }
+        }
     }
 }
 
@@ -280,44 +434,14 @@ impl AdjointWalk<'_> {
         }
     }
 
-    /// One face's transpose: its sample's weights and, through its backtrace, the
-    /// velocity it was traced with ([`face_velocity`]'s transpose, the four faces of each
-    /// other component found once for both).
+    /// One face's transpose, its trace found on the way.
     #[inline(always)]
     fn face<const AXIS: usize>(&self, ijk: [usize; 3], g: usize, out: &mut Scatter<'_>) {
-        let (u, grid, dt) = (self.u, self.grid, self.dt);
-        let lat = grid.faces(AXIS);
         let a = self.adj.c[AXIS][g];
         if a == 0.0 || self.mask.is_some_and(|m| !m[AXIS][g]) {
             return;
         }
-        // The four faces of each other component, read for the velocity and written by
-        // its transpose.
-        let mut q = [[0usize; 4]; 3];
-        let mut v = [0.0; 3];
-        v[AXIS] = u.c[AXIS][g];
-        for b in (0..3).filter(|&b| b != AXIS) {
-            q[b] = cross_faces(grid, AXIS, ijk, b);
-            let c = &u.c[b];
-            v[b] = 0.25 * ((c[q[b][0]] + c[q[b][1]]) + (c[q[b][2]] + c[q[b][3]]));
-        }
-        let xb = lat.position(ijk[0], ijk[1], ijk[2]) - dt * crate::math::v3(v);
-        let sb = lat.stencil(xb);
-        let mut grad = Vec3::ZERO;
-        for c in 0..8 {
-            out.add(AXIS, sb.idx[c], a * sb.w[c]);
-            grad += sb.dw[c] * u.c[AXIS][sb.idx[c]];
-        }
-        let coef = (-dt * a) * grad;
-        out.add(AXIS, g, crate::math::comp(coef, AXIS));
-        for b in (0..3).filter(|&b| b != AXIS) {
-            let c = 0.25 * crate::math::comp(coef, b);
-            if c != 0.0 {
-                for f in q[b] {
-                    out.add(b, f, c);
-                }
-            }
-        }
+        scatter::<AXIS>(&trace::<AXIS>(self.u, self.grid, self.dt, ijk, g), a, self.dt, out);
     }
 }
 
@@ -394,6 +518,32 @@ mod adjoint_tests {
             let lhs = advect_tangent(&u, &du, &grid, dt, m).dot(&w);
             let rhs = du.dot(&advect_adjoint(&u, &w, &grid, dt, m));
             assert!((lhs - rhs).abs() <= 1e-12 * lhs.abs().max(rhs.abs()), "{lhs} vs {rhs}");
+        }
+    }
+
+    /// The scatter from traces found beforehand gives the bits of the one that traces each
+    /// face as it goes, on a tall grid (blocks of both parities), with and without a mask,
+    /// some adjoints zero, at a small and a large Δt.
+    #[test]
+    fn traced_adjoint_is_the_adjoint_bit_for_bit() {
+        let grid = Grid { n: [5, 4, 37], dx: 0.1 };
+        let (u, mut w) = (field(&grid, 5), field(&grid, 7));
+        for a in 0..3 {
+            w.c[a].iter_mut().step_by(7).for_each(|x| *x = 0.0);
+        }
+        let mask = some_faces(&grid);
+        for dt in [0.05, 0.6] {
+            for m in [None, Some(&mask)] {
+                let plain = advect_adjoint(&u, &w, &grid, dt, m);
+                let traces = AdvectionTraces::new(&u, &grid, dt, m);
+                let mut traced = field(&grid, 9);
+                advect_adjoint_traced(&traces, &w, &grid, &mut traced);
+                for a in 0..3 {
+                    let same = plain.c[a].iter().zip(&traced.c[a]);
+                    assert!(same.clone().all(|(x, y)| x.to_bits() == y.to_bits()), "dt {dt}");
+                    assert!(same.clone().any(|(x, _)| *x != 0.0));
+                }
+            }
         }
     }
 

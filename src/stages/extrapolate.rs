@@ -194,6 +194,16 @@ fn equal_to(level: &[u8], v: u8) -> Vec<usize> {
 /// `valid` is updated to the final mask of extrapolated-or-valid samples.
 pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: usize) {
     let lay = Layers::new(valid, lat, layers);
+    extrapolate_layered(field, &lay, lat);
+    valid.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(v, &lev)| {
+        if lev != NEVER {
+            *v = 1;
+        }
+    });
+}
+
+/// [`extrapolate`] with its layers found (`lay`), the mask left as it is.
+fn extrapolate_layered(field: &mut [f64], lay: &Layers, lat: &Lattice) {
     for (l, front) in lay.fronts.iter().enumerate() {
         // A face of this front reads only faces known before the layer, never another face
         // of the front: compute them all, then write.
@@ -208,18 +218,11 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
             .collect();
         for_each_keyed_mut(field, &values, |v| v.0, |_, v, x| *x = v.1);
     }
-    field
-        .par_iter_mut()
-        .zip(valid.par_iter_mut())
-        .zip(lay.level.par_iter())
-        .with_min_len(MIN_LEN)
-        .for_each(|((f, v), &lev)| {
-            if lev == NEVER {
-                *f = 0.0;
-            } else {
-                *v = 1;
-            }
-        });
+    field.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(f, &lev)| {
+        if lev == NEVER {
+            *f = 0.0;
+        }
+    });
 }
 
 /// Extrapolates all three components and then sets every face `weights` closes (weight 0:
@@ -240,14 +243,33 @@ pub fn correct_velocity(
 /// Transpose of [`extrapolate`] for the projection's mask `valid0`: takes the adjoint of
 /// the extrapolated field and returns (in place) the adjoint of the field before it.
 pub fn extrapolate_adjoint(adj: &mut [f64], valid0: &[u8], lat: &Lattice, layers: usize) {
-    let lay = Layers::new(valid0, lat, layers);
+    extrapolate_adjoint_planned(adj, &AxisPlan::new(valid0, lat, layers), lat);
+}
+
+/// The layers of one component's extrapolation from its mask, and the faces each layer read
+/// (its [`Layers::targets`]): all its transpose reads but the adjoint itself.
+struct AxisPlan {
+    lay: Layers,
+    targets: Vec<Vec<usize>>,
+}
+
+impl AxisPlan {
+    fn new(valid0: &[u8], lat: &Lattice, layers: usize) -> AxisPlan {
+        let lay = Layers::new(valid0, lat, layers);
+        let targets = lay.targets(lat);
+        AxisPlan { lay, targets }
+    }
+}
+
+/// [`extrapolate_adjoint`] with its layers found.
+fn extrapolate_adjoint_planned(adj: &mut [f64], plan: &AxisPlan, lat: &Lattice) {
+    let AxisPlan { lay, targets } = plan;
     // Faces left invalid were set to zero: nothing flows back from them.
     adj.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(a, &lev)| {
         if lev == NEVER {
             *a = 0.0;
         }
     });
-    let targets = lay.targets(lat);
     for (l, front) in lay.fronts.iter().enumerate().rev() {
         // A face of the front was set to the mean of its n neighbours known before the
         // layer: each of them gets adj/n of it back, gathered per neighbour (in parallel,
@@ -326,6 +348,34 @@ pub fn correct_with_bodies(
     grid: &Grid,
     layers: usize,
 ) -> AirBodyFaces {
+    correct_with_bodies_layered(
+        u,
+        projected,
+        None,
+        bodies,
+        faces,
+        weights,
+        static_weights,
+        grid,
+        layers,
+    )
+}
+
+/// [`correct_with_bodies`], its extrapolation's layers found beforehand when `layered` is
+/// given (for `projected`, `faces` and `layers`, [`ExtrapolationLayers::new`]): the same
+/// bits.
+#[allow(clippy::too_many_arguments)]
+pub fn correct_with_bodies_layered(
+    u: &mut Mac,
+    projected: &[Vec<u8>; 3],
+    layered: Option<&ExtrapolationLayers>,
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
+    weights: &FaceWeights,
+    static_weights: &FaceWeights,
+    grid: &Grid,
+    layers: usize,
+) -> AirBodyFaces {
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
     mix_body_velocities(u, bodies, faces, weights, grid, set);
     let air: AirBodyFaces = std::array::from_fn(|a| {
@@ -350,10 +400,44 @@ pub fn correct_with_bodies(
         }
     }
     mix_body_velocities(u, bodies, faces, weights, grid, |a, f| !set(a, f));
-    let mut valid = projected.clone();
-    mark_body_faces(&mut valid, faces);
-    correct_velocity(u, &mut valid, static_weights, grid, layers);
+    match layered {
+        // As correct_velocity.
+        Some(lay) => {
+            for a in 0..3 {
+                extrapolate_layered(&mut u.c[a], &lay.axes[a], &grid.faces(a));
+                static_weights.zero_closed(a, &mut u.c[a]);
+            }
+        }
+        None => {
+            let mut valid = projected.clone();
+            mark_body_faces(&mut valid, faces);
+            correct_velocity(u, &mut valid, static_weights, grid, layers);
+        }
+    }
     air
+}
+
+/// The layers of [`correct_with_bodies`]'s extrapolation, per axis, from the faces the
+/// projection updated and those the bodies cover: masks only, so the forward step finds
+/// them beside its pressure solve.
+pub struct ExtrapolationLayers {
+    axes: Vec<Layers>,
+}
+
+impl ExtrapolationLayers {
+    /// The layers for the faces the projection updated (`projected`) and those `faces`
+    /// cover, with `layers` extrapolation layers.
+    pub fn new(
+        projected: &[Vec<u8>; 3],
+        faces: &[BodyFaces],
+        grid: &Grid,
+        layers: usize,
+    ) -> ExtrapolationLayers {
+        let mut valid = projected.clone();
+        mark_body_faces(&mut valid, faces);
+        let axes = (0..3).map(|a| Layers::new(&valid[a], &grid.faces(a), layers)).collect();
+        ExtrapolationLayers { axes }
+    }
 }
 
 /// The faces of `axis` some body covers that `keep` accepts, sorted, each once.
@@ -471,11 +555,65 @@ pub fn correct_with_bodies_adjoint(
     grid: &Grid,
     layers: usize,
 ) -> Vec<BodyVelocityAdjoint> {
+    let plan = CorrectionPlan::new(projected.clone(), faces, grid, layers);
+    correct_with_bodies_adjoint_planned(
+        ubar,
+        u_projected,
+        air,
+        &plan,
+        bodies,
+        faces,
+        weights,
+        static_weights,
+        grid,
+    )
+}
+
+/// What [`correct_with_bodies_adjoint`] reads of the step but the adjoint and the fields: the
+/// faces the projection updated, and per axis the layers of the extrapolation from those and
+/// the faces the bodies cover. Masks only, so the backward pass builds it ahead of the
+/// step's adjoints.
+pub struct CorrectionPlan {
+    projected: [Vec<u8>; 3],
+    axes: Vec<AxisPlan>,
+}
+
+impl CorrectionPlan {
+    /// The plan for the faces the projection updated (`projected`) and those `faces` cover,
+    /// with `layers` extrapolation layers.
+    pub fn new(
+        projected: [Vec<u8>; 3],
+        faces: &[BodyFaces],
+        grid: &Grid,
+        layers: usize,
+    ) -> CorrectionPlan {
+        let mut valid = projected.clone();
+        mark_body_faces(&mut valid, faces);
+        let axes = (0..3).map(|a| AxisPlan::new(&valid[a], &grid.faces(a), layers)).collect();
+        CorrectionPlan { projected, axes }
+    }
+}
+
+/// [`correct_with_bodies_adjoint`] with its masks and layers found (`plan`).
+#[allow(clippy::too_many_arguments)]
+pub fn correct_with_bodies_adjoint_planned(
+    ubar: &mut Mac,
+    u_projected: impl Fn(usize, usize) -> f64,
+    air: &AirBodyFaces,
+    plan: &CorrectionPlan,
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
+    weights: &FaceWeights,
+    static_weights: &FaceWeights,
+    grid: &Grid,
+) -> Vec<BodyVelocityAdjoint> {
+    let projected = &plan.projected;
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
-    // 3ᵀ.
-    let mut valid = projected.clone();
-    mark_body_faces(&mut valid, faces);
-    correct_velocity_adjoint(ubar, &valid, static_weights, grid, layers);
+    // 3ᵀ: as correct_velocity_adjoint.
+    for a in 0..3 {
+        static_weights.zero_closed(a, &mut ubar.c[a]);
+        extrapolate_adjoint_planned(&mut ubar.c[a], &plan.axes[a], &grid.faces(a));
+    }
     // 2ᵀ: the mixture, then each air face's mean back to the faces it read.
     let extrapolated = |a: usize, f: usize| {
         let list = &air[a];

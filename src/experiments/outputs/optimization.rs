@@ -9,7 +9,7 @@ use crate::io::liquid_mesh::{body_surfaces, liquid_surface};
 use crate::io::output::{write_csv, write_json};
 use crate::io::plot::{self, Frame, Series, Track};
 use crate::io::render::{Picture, View};
-use crate::math::Vec3;
+use crate::math::{pool, Vec3};
 use crate::world::Simulation;
 use serde::Serialize;
 use std::path::Path;
@@ -173,8 +173,12 @@ fn pictures(
         }
         Ok((path, gif))
     };
-    let (before, _) = record(start, false)?;
-    let (after, gif) = record(&outcome.params, true)?;
+    // Two runs that read nothing of each other: side by side when their steps are serial.
+    let spread = problem.initial.spread();
+    let (optimised, first) =
+        pool::beside(spread, || record(&outcome.params, true), || record(start, false));
+    let (before, _) = first?;
+    let (after, gif) = optimised?;
     let target = problem.loss.position.map(|(t, _)| t);
     let domain = problem.initial.grid().size();
     let last = gif.last().expect("the final frame");

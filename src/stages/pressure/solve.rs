@@ -79,6 +79,15 @@ impl PressureSystem {
         b
     }
 
+    /// Factors the preconditioner a solve with `how` reads, if it is not yet (a solve does
+    /// it first otherwise): for a caller that builds the system ahead of its solve. Nothing
+    /// without liquid or without the operator.
+    pub fn prepare(&self, how: &LinearSolve) {
+        if self.operator && !self.is_empty() {
+            self.preconditioner.get(how.preconditioner.resolve(self.len()), self);
+        }
+    }
+
     /// Solves A p = b from p = 0 ([`Preconditioner::Auto`](crate::solvers::Preconditioner::Auto) picks the preconditioner by the
     /// number of unknowns).
     pub fn solve(&self, b: &[f64], how: &LinearSolve) -> (Vec<f64>, CgStats) {

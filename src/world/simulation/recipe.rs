@@ -8,12 +8,13 @@ use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::grid::Mac;
 use crate::geometry::weights::FaceWeights;
+use crate::math::pool;
 use crate::math::{v3, Twist, TwistParts};
 use crate::solvers::cg::CgStats;
 use crate::stages::band::Band;
 use crate::stages::contact::contact_possible;
 use crate::stages::density::DensityStats;
-use crate::stages::extrapolate::{correct_with_bodies, AirBodyFaces};
+use crate::stages::extrapolate::{correct_with_bodies_layered, AirBodyFaces, ExtrapolationLayers};
 use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
 use crate::stages::project::{project, HeldContact, Projection};
@@ -87,13 +88,24 @@ impl Simulation {
             sys.coupled.iter().map(|&i| body_velocity(&self.bodies[i], v3(gravity), dt)).collect();
         timed.lap(Stage::Forces);
 
-        let (proj, mut u, contact) =
-            self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures)?;
+        // The correction's extrapolation layers read the system's masks only: found beside
+        // the solve when a second thread is free.
+        let layers = self.settings.solver.extrapolation_layers;
+        let (projected, layered) = pool::ahead(
+            || self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures),
+            || {
+                let projected = sys.projected_mask();
+                let layered =
+                    ExtrapolationLayers::new(&projected, &sys.geometry.body_faces, &grid, layers);
+                (projected, layered)
+            },
+        );
+        let (proj, mut u, contact) = projected?;
         let report = report && solves;
         let (max_divergence, kinetic_energy) = self.projected_measures(&sys, &u, &proj, report);
         timed.lap(Stage::Pressure);
 
-        let air_body_faces = self.correct_velocity(&sys, &mut u);
+        let air_body_faces = self.correct_velocity(&sys, &mut u, layered);
         timed.lap(Stage::CorrectVelocity);
 
         // Whether rapier integrates the bodies: contact possible at their new velocities.
@@ -137,11 +149,20 @@ impl Simulation {
         sys
     }
 
-    /// [`Stage::CorrectVelocity`] on `u`; returns what the backward pass needs of it.
-    fn correct_velocity(&self, sys: &StepSystem, u: &mut Mac) -> AirBodyFaces {
-        correct_with_bodies(
+    /// [`Stage::CorrectVelocity`] on `u` (`layered`: the faces the projection updated and
+    /// the extrapolation's layers, found beside the solve); returns what the backward pass
+    /// needs of it.
+    fn correct_velocity(
+        &self,
+        sys: &StepSystem,
+        u: &mut Mac,
+        layered: ([Vec<u8>; 3], ExtrapolationLayers),
+    ) -> AirBodyFaces {
+        let (projected, layers) = layered;
+        correct_with_bodies_layered(
             u,
-            &sys.projected_mask(),
+            &projected,
+            Some(&layers),
             &self.bodies,
             &sys.geometry.body_faces,
             &sys.geometry.weights,
