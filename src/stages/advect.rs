@@ -297,8 +297,9 @@ impl Blocks {
 }
 
 /// What the adjoint's scatter at a field `u` reads of `u` alone ([`advect_adjoint_traced`]):
-/// per block of the scatter and per component, each face's [`Trace`] in the order the
-/// scatter takes them (the faces of the mask). It does not depend on the adjoint, so the
+/// per block of the scatter and per component, each face's trace (the eight samples of its
+/// backtrace's stencil and their weights, the gradient there, the faces its velocity was
+/// the mean of) in the order the scatter takes them (the faces of the mask). It does not depend on the adjoint, so the
 /// backward pass finds it ahead of the step's adjoints (`gradients/backward.rs`).
 #[derive(Clone, Debug)]
 pub struct AdvectionTraces {
