@@ -8,8 +8,38 @@
 //! fractions, [`FaceWeights::subtract`]) and the density projection's (closed at the narrow
 //! band's deep cells, [`FaceWeights::close_faces`]).
 
+use crate::geometry::grid::Grid;
 use crate::math::par::MIN_LEN;
 use rayon::prelude::*;
+
+/// The face index of the −side (`side = 0`) or +side (`side = 1`) face of cell `ijk` along
+/// `axis`.
+#[inline]
+pub fn cell_face(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> usize {
+    let mut f = ijk;
+    f[axis] += side;
+    grid.faces(axis).index(f[0], f[1], f[2])
+}
+
+/// The neighbouring cell of cell `c` (at `ijk`) across its −side or +side face of axis
+/// `axis` and the face's weight, when the face is open (weight > 0) and the neighbour inside
+/// the grid (`weights`: [`FaceWeights::axes`]). The pressure couples a cell to it, or sees air
+/// there; the closing of air pockets connects air through it.
+#[inline]
+pub fn open_neighbour(
+    grid: &Grid,
+    weights: &[AxisWeights<'_>; 3],
+    c: usize,
+    ijk: [usize; 3],
+    axis: usize,
+    side: usize,
+) -> Option<(usize, f64)> {
+    let w = weights[axis].weight(cell_face(grid, axis, ijk, side));
+    if w <= 0.0 {
+        return None;
+    }
+    grid.cells().neighbour(c, ijk, axis, side).map(|n| (n, w))
+}
 
 /// What a face's byte says. A closed or open face's byte is its weight (0 or 1), which
 /// [`AxisWeights::weight`] reads as it is.

@@ -21,7 +21,7 @@
 //! memory pool systems are built into (`pool.rs`).
 
 use crate::geometry::grid::{Grid, NONE};
-use crate::geometry::weights::{AxisWeights, FaceWeights};
+use crate::geometry::weights::{cell_face, open_neighbour, AxisWeights, FaceWeights};
 use crate::solvers::stencil::Stencil;
 use serde::{Deserialize, Serialize};
 
@@ -196,14 +196,6 @@ fn open_faces(
     }
 }
 
-/// The face index of the −side (`side = 0`) or +side (`side = 1`) face of cell `ijk` along `axis`.
-#[inline]
-fn cell_face(grid: &Grid, axis: usize, ijk: [usize; 3], side: usize) -> usize {
-    let mut f = ijk;
-    f[axis] += side;
-    grid.faces(axis).index(f[0], f[1], f[2])
-}
-
 /// Whether cell `c` has a face of positive weight (a liquid cell is an unknown when it has).
 pub fn has_open_face(grid: &Grid, weights: &FaceWeights, c: usize) -> bool {
     has_open_face_at(grid, &weights.axes(), grid.cells().ijk(c))
@@ -213,25 +205,6 @@ pub fn has_open_face(grid: &Grid, weights: &FaceWeights, c: usize) -> bool {
 #[inline]
 fn has_open_face_at(grid: &Grid, w: &[AxisWeights<'_>; 3], ijk: [usize; 3]) -> bool {
     (0..3).any(|a| (0..2).any(|s| w[a].open(cell_face(grid, a, ijk, s))))
-}
-
-/// The neighbouring cell of cell `c` (at `ijk`) across its −side or +side face of axis
-/// `axis` and the face's weight, when the face is open (weight > 0) and the neighbour inside
-/// the grid: a liquid neighbour is coupled to the cell, any other is air (a ghost-fluid face).
-#[inline]
-fn open_neighbour(
-    grid: &Grid,
-    weights: &[AxisWeights<'_>; 3],
-    c: usize,
-    ijk: [usize; 3],
-    axis: usize,
-    side: usize,
-) -> Option<(usize, f64)> {
-    let w = weights[axis].weight(cell_face(grid, axis, ijk, side));
-    if w <= 0.0 {
-        return None;
-    }
-    grid.cells().neighbour(c, ijk, axis, side).map(|n| (n, w))
 }
 
 #[cfg(test)]

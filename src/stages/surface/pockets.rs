@@ -29,7 +29,7 @@
 //! max-first Dijkstra.
 
 use crate::geometry::grid::{Grid, NONE};
-use crate::geometry::weights::FaceWeights;
+use crate::geometry::weights::{open_neighbour, FaceWeights};
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 
@@ -102,14 +102,8 @@ pub fn close_pockets(phi: &mut [f64], grid: &Grid, weights: &FaceWeights, radius
     let kappa = radius * grid.dx;
     let cells = grid.cells();
     let axes = weights.axes();
-    let open = |c: usize, ijk: [usize; 3], a: usize, side: usize| -> Option<usize> {
-        let mut f = ijk;
-        f[a] += side;
-        let face = grid.faces(a).index(f[0], f[1], f[2]);
-        if axes[a].weight(face) <= 0.0 {
-            return None;
-        }
-        cells.neighbour(c, ijk, a, side)
+    let open = |c: usize, ijk: [usize; 3], a: usize, side: usize| {
+        open_neighbour(grid, &axes, c, ijk, a, side).map(|(n, _)| n)
     };
     let in_shell = |p: f64| p > 0.0 && p < 2.0 * kappa;
     // The shell: its value so far, the origin of that value and the slope in it.
