@@ -434,7 +434,9 @@ fn step_adjoint(
     clock.lap(Stage::Assemble, times);
 
     let mut particles = Vec::new();
-    if let (Some(pr), Some(phi_bar)) = (rec.particles.as_ref(), phi_bar) {
+    if let (Some(pr), Some(mut phi_bar)) = (rec.particles.as_ref(), phi_bar) {
+        // ∂L/∂φ_L before the closing of air pockets (the surface stage's last step).
+        pr.pockets.adjoint(&mut phi_bar);
         let pieces =
             ParticlePieces { pr, phi_bar: &phi_bar, rhs: &projected.rhs, dual_faces: &dual_faces };
         let after = adj.particles;
@@ -555,15 +557,6 @@ fn particles_adjoint(
     if pbar.is_empty() {
         pbar = vec![Vec3::ZERO; replayed.end.len()];
     }
-    let closed;
-    let phi_bar = if pr.pockets.is_empty() {
-        phi_bar
-    } else {
-        let mut bar = phi_bar.to_vec();
-        pr.pockets.adjoint(&mut bar);
-        closed = bar;
-        &closed
-    };
     surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, phi_bar, &mut pbar);
     // Volume control: the solve's sources read the particles' density here.
     if rec.volume_control {

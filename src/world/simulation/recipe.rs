@@ -299,19 +299,19 @@ impl Simulation {
     /// [`Stage::Surface`]: φ_L where the particles are now (with a frozen surface: where it
     /// was at the start). Taped, the record keeps the particle each cell's φ is the distance
     /// to.
-    fn surface(&mut self, record: Option<&mut ParticleRecord>, weights: &FaceWeights) -> Vec<f64> {
-        let close = self.settings.solver.close_pockets.filter(|k| *k > 0.0);
-        match record {
+    fn surface(
+        &mut self,
+        mut record: Option<&mut ParticleRecord>,
+        weights: &FaceWeights,
+    ) -> Vec<f64> {
+        let mut phi = match record.as_deref_mut() {
             Some(r) => {
                 let bins = Bins::new(&self.particles, &self.grid);
                 let deep = self.band.as_deref().map(Band::deep);
                 let model = self.surface_model();
-                let (mut phi, nearest) =
+                let (phi, nearest) =
                     surface::liquid_sdf_nearest(&self.particles, &bins, &self.grid, &model, deep);
                 r.nearest = nearest;
-                if let Some(k) = close {
-                    r.pockets = surface::close_pockets(&mut phi, &self.grid, weights, k);
-                }
                 phi
             }
             // Nothing reads the last step's φ_L after the band's update: its memory takes
@@ -320,12 +320,18 @@ impl Simulation {
             None => {
                 let mut phi = std::mem::take(&mut self.phi);
                 self.particle_phi_into(&mut phi);
-                if let (Some(k), None) = (close, &self.frozen_phi) {
-                    surface::close_pockets(&mut phi, &self.grid, weights, k);
-                }
                 phi
             }
+        };
+        // A frozen surface keeps the φ_L it was frozen with.
+        let close = self.settings.solver.close_pockets.filter(|k| *k > 0.0);
+        if let (Some(k), None) = (close, &self.frozen_phi) {
+            let pockets = surface::close_pockets(&mut phi, &self.grid, weights, k);
+            if let Some(r) = record {
+                r.pockets = pockets;
+            }
         }
+        phi
     }
 
     /// With volume control (`solver.volume_control`) and the surface moving, the marker
