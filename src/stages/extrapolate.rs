@@ -255,7 +255,11 @@ struct AxisPlan {
 
 impl AxisPlan {
     fn new(valid0: &[u8], lat: &Lattice, layers: usize) -> AxisPlan {
-        let lay = Layers::new(valid0, lat, layers);
+        AxisPlan::of(Layers::new(valid0, lat, layers), lat)
+    }
+
+    /// The plan of layers `lay` already found.
+    fn of(lay: Layers, lat: &Lattice) -> AxisPlan {
         let targets = lay.targets(lat);
         AxisPlan { lay, targets }
     }
@@ -587,9 +591,13 @@ impl CorrectionPlan {
         grid: &Grid,
         layers: usize,
     ) -> CorrectionPlan {
-        let mut valid = projected.clone();
-        mark_body_faces(&mut valid, faces);
-        let axes = (0..3).map(|a| AxisPlan::new(&valid[a], &grid.faces(a), layers)).collect();
+        let ExtrapolationLayers { axes } =
+            ExtrapolationLayers::new(&projected, faces, grid, layers);
+        let axes = axes
+            .into_iter()
+            .enumerate()
+            .map(|(a, lay)| AxisPlan::of(lay, &grid.faces(a)))
+            .collect();
         CorrectionPlan { projected, axes }
     }
 }
