@@ -47,6 +47,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "volume-control" => s.volume_control = Some(value.parse()?),
             "theta-min" => s.theta_min = value.parse()?,
             "close-pockets" => s.close_pockets = Some(value.parse()?),
+            "sparse-depth" => s.sparse_depth = value.parse()?,
             other => return Err(format!("unknown setting {other}").into()),
         }
     }

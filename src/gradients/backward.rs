@@ -557,7 +557,8 @@ fn particles_adjoint(
     if pbar.is_empty() {
         pbar = vec![Vec3::ZERO; replayed.end.len()];
     }
-    surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, phi_bar, &mut pbar);
+    let model = initial.surface_model();
+    surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, &model, phi_bar, &mut pbar);
     // Volume control: the solve's sources read the particles' density here.
     if rec.volume_control {
         let rate = settings.solver.volume_rate();

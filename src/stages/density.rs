@@ -417,7 +417,7 @@ impl DensityProjection {
         // The operator and the update read φ through the ghost-fluid θ.
         let mut phi_bar = self.sys.phi_adjoint(&self.phi, self.weights(g), &s, q, &dbar);
         self.extension.transpose(&mut phi_bar);
-        surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &phi_bar, pbar);
+        surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &g.surface, &phi_bar, pbar);
         (s, stats)
     }
 }
@@ -666,6 +666,7 @@ mod tests {
                 surface: surface::SurfaceModel {
                     radius: surface::particle_radius(self.grid.dx, 2),
                     sparse_cells: true,
+                    sparse_depth: 0.0,
                 },
                 particles_per_cell: 8,
                 theta_min: 0.01,

@@ -76,6 +76,49 @@ pub struct SurfaceModel {
     /// A cell that holds a particle is liquid even where the distance says air (see
     /// [`liquid_sdf_nearest`]).
     pub sparse_cells: bool,
+    /// With `sparse_cells`: 0 for the rule as it was (a cell is liquid the moment it holds a
+    /// particle, a jump of φ as a particle crosses a face), or the depth (cells, up to 0.5)
+    /// a particle must be inside its cell to make it liquid, φ falling continuously with the
+    /// particle's depth up to there (see [`sparse_phi`]).
+    pub sparse_depth: f64,
+}
+
+/// The φ (in cells, negative) the sparse-cell rule sets a cell that holds a particle to.
+pub(super) const SPARSE_FLOOR: f64 = 1e-3;
+/// Marks a cell's entry in the nearest-particle list as set by the sparse-cell rule.
+pub(super) const SPARSE: u32 = 1 << 31;
+
+/// The continuous sparse-cell rule's φ for a cell holding a particle `offset` from its
+/// centre (see [`SurfaceModel::sparse_depth`], `depth` > 0 cells): it falls linearly with the
+/// particle's depth δ in the cell (dx/2 less the L∞ norm of `offset`) from the most a
+/// particle on the cell's boundary leaves φ at (√3/2·dx − r: it is that near the centre),
+/// through 0 at δ = `depth`·dx, to −[`SPARSE_FLOOR`]·dx. So a particle entering or leaving
+/// the cell through a face moves φ continuously, with Lipschitz constant
+/// (√3/2·dx − r)/(depth·dx) (4.7 for two particles a cell across at depth 0.05).
+#[inline]
+pub(super) fn sparse_phi(offset: Vec3, dx: f64, radius: f64, depth: f64) -> f64 {
+    let top = 0.5 * 3f64.sqrt() * dx - radius;
+    let inside = 0.5 * dx - offset.abs().max_element();
+    (top * (1.0 - inside / (depth * dx))).max(-SPARSE_FLOOR * dx)
+}
+
+/// ∂/∂offset of [`sparse_phi`] (zero on its floor).
+fn sparse_phi_gradient(offset: Vec3, dx: f64, radius: f64, depth: f64) -> Vec3 {
+    if sparse_phi(offset, dx, radius, depth) <= -SPARSE_FLOOR * dx {
+        return Vec3::ZERO;
+    }
+    let top = 0.5 * 3f64.sqrt() * dx - radius;
+    let a = offset.abs();
+    let axis = if a.x >= a.y && a.x >= a.z {
+        0
+    } else if a.y >= a.z {
+        1
+    } else {
+        2
+    };
+    let mut g = Vec3::ZERO;
+    g[axis] = top / (depth * dx) * offset[axis].signum();
+    g
 }
 
 /// The liquid signed distance at cell centres: `min_p |x − x_p| − r`, exact where the
@@ -103,11 +146,13 @@ pub fn liquid_sdf_into(
 }
 
 /// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
-/// move with a particle: capped far from the liquid, or set by the sparse-cell rule). With
-/// `model.sparse_cells`, a cell that holds a particle is liquid even where the particles are
+/// move with a particle: capped far from the liquid, or on the sparse-cell rule's floor;
+/// tagged with `SPARSE` where the continuous rule set it). With `model.sparse_cells`, a cell
+/// that holds a particle is liquid even where the particles are
 /// too sparse for the distance to say so (thin sheets, splashes): the projection then keeps
 /// it divergence-free instead of leaving its particles to extrapolated air velocities, which
-/// bunch them up and lose volume. The rule makes φ jump when a particle crosses a cell face.
+/// bunch them up and lose volume. As it was, the rule makes φ jump when a particle crosses
+/// a cell face; with `model.sparse_depth` > 0, φ moves continuously (see [`sparse_phi`]).
 /// The `deep` cells of a narrow band are liquid with its φ (see `band.rs`).
 pub fn liquid_sdf_nearest(
     pos: &[Vec3],
@@ -192,10 +237,25 @@ fn liquid_sdf_with(
             d = (2.0 * dx, NONE);
         }
         let value = d.0 - radius;
-        if model.sparse_cells && value >= 0.0 && !bins.cell(grid.cell(i, j, k)).is_empty() {
-            (-1e-3 * dx, NONE)
-        } else {
+        // The sparse-cell rule can only lower φ where it is above the rule's floor.
+        let own_particles = bins.cell(own);
+        if !model.sparse_cells || value <= -SPARSE_FLOOR * dx || own_particles.is_empty() {
             (value, d.1)
+        } else if model.sparse_depth == 0.0 {
+            if value >= 0.0 {
+                (-SPARSE_FLOOR * dx, NONE)
+            } else {
+                (value, d.1)
+            }
+        } else {
+            let mut sparse = (value, d.1);
+            for &p in own_particles {
+                let s = sparse_phi(pos[p as usize] - x, dx, radius, model.sparse_depth);
+                if s < sparse.0 {
+                    sparse = (s, p | SPARSE);
+                }
+            }
+            sparse
         }
     };
     let slab_phi = |k: usize, phi_k: &mut [f64], mut who_k: Option<&mut [u32]>| {
@@ -221,12 +281,14 @@ fn liquid_sdf_with(
     (phi, who)
 }
 
-/// Adjoint of [`liquid_sdf_nearest`] in the particles: ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c|
-/// for the particle p whose distance φ_c is. Adds into `pbar`.
+/// Adjoint of [`liquid_sdf_nearest`] (of surface model `model`) in the particles:
+/// ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c| for the particle p whose distance φ_c is, or the
+/// derivative of [`sparse_phi`] where the sparse-cell rule set φ_c. Adds into `pbar`.
 pub fn liquid_sdf_adjoint(
     pos: &[Vec3],
     nearest: &[u32],
     grid: &Grid,
+    model: &SurfaceModel,
     phi_bar: &[f64],
     pbar: &mut [Vec3],
 ) {
@@ -236,6 +298,12 @@ pub fn liquid_sdf_adjoint(
             continue;
         }
         let [i, j, k] = cells.ijk(c);
+        if p & SPARSE != 0 {
+            let p = (p & !SPARSE) as usize;
+            let offset = pos[p] - cells.position(i, j, k);
+            pbar[p] += g * sparse_phi_gradient(offset, grid.dx, model.radius, model.sparse_depth);
+            continue;
+        }
         let d = pos[p as usize] - cells.position(i, j, k);
         let len = d.length();
         if len > 0.0 {

@@ -29,7 +29,7 @@ mod forward {
         // Sparse: most cells find their nearest particle one or two cells away, or none.
         let grid = Grid { n: [11, 9, 10], dx: 0.1 };
         let pos = scattered(&grid, 60);
-        let model = SurfaceModel { radius: 0.03, sparse_cells: false };
+        let model = SurfaceModel { radius: 0.03, sparse_cells: false, sparse_depth: 0.0 };
         let bins = Bins::new(&pos, &grid);
         let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
         let cells = grid.cells();
@@ -92,7 +92,11 @@ mod forward {
         let mut pos = seed(&grid, &[pool], 8, &node_sdf, None);
         pos.retain(|x| (x.x * 40.0) as usize % 7 != 3 || x.y > 0.2);
         pos.extend([Vec3::new(0.55, 0.65, 0.35), Vec3::new(0.125, 0.775, 0.625)]);
-        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
+        let model = SurfaceModel {
+            radius: particle_radius(grid.dx, 2),
+            sparse_cells: true,
+            sparse_depth: 0.0,
+        };
         let bins = Bins::new(&pos, &grid);
         let cells = grid.cells();
         let block_scan = |c: usize| {
@@ -216,13 +220,69 @@ mod forward {
         let bins = Bins::new(&pos, &grid);
         let vol = liquid_volume(&pos, &grid, 8, None);
         assert!((vol - 0.5).abs() < 1e-12, "volume {vol}");
-        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
+        let model = SurfaceModel {
+            radius: particle_radius(grid.dx, 2),
+            sparse_cells: true,
+            sparse_depth: 0.0,
+        };
         let phi = liquid_sdf(&pos, &bins, &grid, &model, None);
         // Centres at y = 7/16 (below) and 9/16 (above) straddle the surface y = 0.5 evenly.
         let below = phi[grid.cell(3, 3, 3)];
         let above = phi[grid.cell(3, 4, 3)];
         assert!(below < 0.0 && above > 0.0);
         assert!((below / (below - above) - 0.5).abs() < 1e-12);
+    }
+
+    /// The continuous sparse-cell rule (`sparse_depth` > 0): a lone particle makes its cell
+    /// liquid once it is that deep inside it, and moving it across a face moves φ
+    /// continuously (the rule as it was switches a cell from air to liquid the moment it
+    /// holds the particle).
+    #[test]
+    fn continuous_sparse_cells_are_liquid_inside_and_continuous_across_faces() {
+        let grid = Grid { n: [8, 8, 8], dx: 0.1 };
+        let radius = particle_radius(grid.dx, 2);
+        let depth = 0.05;
+        let sparse = SurfaceModel { radius, sparse_cells: true, sparse_depth: depth };
+        let jumping = SurfaceModel { sparse_depth: 0.0, ..sparse };
+        let plain = SurfaceModel { sparse_cells: false, ..sparse };
+        let phi_at = |x: Vec3, model: &SurfaceModel| {
+            let pos = [x];
+            liquid_sdf(&pos, &Bins::new(&pos, &grid), &grid, model, None)
+        };
+        let (a, b) = (grid.cell(3, 4, 4), grid.cell(4, 4, 4));
+        // Near a corner of cell a, 0.1 of a cell inside it, farther from its centre than the
+        // particle radius: air by the distance, liquid by the rule (on its floor); cell b
+        // stays air.
+        let corner = Vec3::new(0.39, 0.49, 0.49);
+        assert!(phi_at(corner, &plain)[a] > 0.0);
+        let held = phi_at(corner, &sparse);
+        assert_eq!(held[a], -distance::SPARSE_FLOOR * grid.dx);
+        assert!(held[b] > 0.0);
+        // Along a line through the face x = 0.4 between cells a and b, 0.042 off their
+        // centres' line in y and z: every cell's φ moves by at most the rule's Lipschitz
+        // constant (the distance's is 1) times the step, the rule sets φ somewhere on the
+        // line, and both cells are air where the particle is within `depth` of the face.
+        let lipschitz = ((0.5 * 3f64.sqrt() * grid.dx - radius) / (depth * grid.dx)).max(1.0);
+        let h = 1e-5;
+        let at = |n: usize| Vec3::new(0.38 + n as f64 * h, 0.492, 0.492);
+        let mut last = phi_at(at(0), &sparse);
+        let (mut ruled, mut worst) = (0, 0.0f64);
+        for n in 1..=4000 {
+            let phi = phi_at(at(n), &sparse);
+            for c in 0..grid.num_cells() {
+                worst = worst.max((phi[c] - last[c]).abs() / h);
+            }
+            ruled += usize::from(phi[a] < phi_at(at(n), &plain)[a]);
+            last = phi;
+        }
+        assert!(worst <= lipschitz * (1.0 + 1e-6), "slope {worst} over {lipschitz}");
+        assert!(ruled > 100, "the rule set cell a's φ in {ruled} samples");
+        assert!(phi_at(at(0), &sparse)[a] < 0.0 && phi_at(at(4000), &sparse)[b] < 0.0);
+        let face = phi_at(at(2000), &sparse);
+        assert!(face[a] > 0.0 && face[b] > 0.0, "a particle on the face is air to both");
+        // The rule as it was jumps there: the cell holding the particle is liquid.
+        let jumped = phi_at(at(2000), &jumping);
+        assert!(jumped[a].min(jumped[b]) < 0.0);
     }
 }
 
@@ -289,7 +349,11 @@ mod adjoint {
                 ));
             }
         }
-        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: false };
+        let model = SurfaceModel {
+            radius: particle_radius(grid.dx, 2),
+            sparse_cells: false,
+            sparse_depth: 0.0,
+        };
         let bins = Bins::new(&pos, &grid);
         let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
         let cells = grid.cells();
@@ -418,7 +482,11 @@ mod adjoint {
         let (p0, dp) = (particles(300), dir(300, 8));
         let cells = grid.num_cells();
         let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
-        let model = SurfaceModel { radius: particle_radius(grid.dx, 2), sparse_cells: true };
+        let model = SurfaceModel {
+            radius: particle_radius(grid.dx, 2),
+            sparse_cells: true,
+            sparse_depth: 0.0,
+        };
         let sdf = |p: &[Vec3]| {
             let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, None);
             phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
@@ -432,7 +500,7 @@ mod adjoint {
         };
         let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model, None);
         let mut g_sdf = vec![Vec3::ZERO; p0.len()];
-        liquid_sdf_adjoint(&p0, &nearest, &grid, &phi_bar, &mut g_sdf);
+        liquid_sdf_adjoint(&p0, &nearest, &grid, &model, &phi_bar, &mut g_sdf);
         let mut g_dens = vec![Vec3::ZERO; p0.len()];
         particle_density_adjoint(&p0, &grid, 8, &phi_bar, &mut g_dens);
         let eps = 1e-7;
@@ -445,6 +513,51 @@ mod adjoint {
             assert!(fd.abs() > 1e-3, "{name}: a vanishing derivative checks nothing");
             assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "{name}: adjoint {ad:e}, fd {fd:e}");
         }
+    }
+
+    /// φ_L where the continuous sparse-cell rule sets it: lone particles on its ramp
+    /// (between 0 and `sparse_depth` of a cell inside their cells, nearest a face along each
+    /// axis in turn).
+    #[test]
+    fn continuous_sparse_rule_adjoint_matches_central_differences() {
+        let grid = grid();
+        let radius = particle_radius(grid.dx, 2);
+        let model = SurfaceModel { radius, sparse_cells: true, sparse_depth: 0.05 };
+        // Cells two apart, so each particle's cell has no other particle within reach; each
+        // particle near a corner of its cell (farther from its centre than the radius),
+        // 0.033–0.038 of a cell inside it along the axis n % 3 and a little deeper along the
+        // others, at offsets with no symmetry (which would make two particles tie as the
+        // nearest of a cell between them, a kink of φ).
+        let p0: Vec<Vec3> = (0..6)
+            .map(|n| {
+                let (i, j) = ((n % 3) as f64, (n / 3) as f64);
+                let centre = Vec3::new(0.15 + 0.2 * i, 0.15 + 0.2 * j, 0.25);
+                let sign = |k: usize| if (n * 5 + k * 3) % 4 < 2 { 1.0 } else { -1.0 };
+                let size = |k: usize| 0.044 + 0.0002 * ((n * 7 + k * 3) % 5) as f64;
+                let mut offset = Vec3::new(size(0) * sign(0), size(1) * sign(1), size(2) * sign(2));
+                offset[n % 3] = (0.0462 + 1e-4 * n as f64) * sign(n % 3);
+                centre + offset
+            })
+            .collect();
+        let dp = dir(p0.len(), 3);
+        let cells = grid.num_cells();
+        let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
+        let sdf = |p: &[Vec3]| {
+            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, None);
+            phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model, None);
+        let tagged = |p: &&u32| **p != crate::geometry::grid::NONE && **p & distance::SPARSE != 0;
+        let ruled = nearest.iter().filter(tagged).count();
+        assert_eq!(ruled, p0.len(), "each particle's cell set by the rule");
+        let mut g = vec![Vec3::ZERO; p0.len()];
+        liquid_sdf_adjoint(&p0, &nearest, &grid, &model, &phi_bar, &mut g);
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        let fd = (sdf(&shift(eps)) - sdf(&shift(-eps))) / (2.0 * eps);
+        let ad = dot(&g, &dp);
+        assert!(fd.abs() > 1e-2, "a vanishing derivative checks nothing: {fd:e}");
+        assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "adjoint {ad:e}, fd {fd:e}");
     }
 }
 

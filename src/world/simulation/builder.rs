@@ -267,7 +267,11 @@ impl SimulationBuilder {
         };
         let frozen_phi = settings.solver.freeze_surface.then(|| {
             let bins = Bins::new(&particles, &grid);
-            let surface = SurfaceModel { radius, sparse_cells: settings.solver.sparse_cells };
+            let surface = SurfaceModel {
+                radius,
+                sparse_cells: settings.solver.sparse_cells,
+                sparse_depth: settings.solver.sparse_depth,
+            };
             let deep = band.as_ref().map(Band::deep);
             Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &surface, deep))
         });

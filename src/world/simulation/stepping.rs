@@ -371,7 +371,12 @@ impl Simulation {
 
     /// How φ_L is made from the particles.
     pub(crate) fn surface_model(&self) -> SurfaceModel {
-        SurfaceModel { radius: self.radius, sparse_cells: self.settings.solver.sparse_cells }
+        let solver = &self.settings.solver;
+        SurfaceModel {
+            radius: self.radius,
+            sparse_cells: solver.sparse_cells,
+            sparse_depth: solver.sparse_depth,
+        }
     }
 
     /// What the density projection of a step with `geometry` reads (None when it is off).
