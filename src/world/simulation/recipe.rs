@@ -80,8 +80,14 @@ impl Simulation {
         let sys = self.assemble(geometry, phi, crowding.as_deref(), dt, solves);
         timed.lap(Stage::Assemble);
 
+        // The pressure solve's preconditioner is factored beside the advection, which does
+        // not read it (both are loops too short to keep two threads busy alone).
         let out = self.spare.velocity(&grid);
-        let u_hat = predicted_velocity(&self.u, &grid, dt, gravity, &sys.needed, out);
+        let how = self.settings.solver.linear();
+        let (u_hat, ()) = rayon::join(
+            || predicted_velocity(&self.u, &grid, dt, gravity, &sys.needed, out),
+            || sys.pressure.prepare(&how),
+        );
         timed.lap(Stage::AdvectVelocity);
 
         let v_hat: Vec<Twist> =
