@@ -30,6 +30,8 @@
 
 use crate::geometry::grid::{Grid, NONE};
 use crate::geometry::weights::{open_neighbour, FaceWeights};
+use crate::math::par::MIN_LEN;
+use rayon::prelude::*;
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 
@@ -106,16 +108,25 @@ pub fn close_pockets(phi: &mut [f64], grid: &Grid, weights: &FaceWeights, radius
         open_neighbour(grid, &axes, c, ijk, a, side).map(|(n, _)| n)
     };
     let in_shell = |p: f64| p > 0.0 && p < 2.0 * kappa;
-    // The shell: its value so far, the origin of that value and the slope in it.
-    let shell: Vec<u32> = (0..phi.len() as u32).filter(|&c| in_shell(phi[c as usize])).collect();
+    // The shell, in increasing cell order (a cell's place in it by a binary search: the shell
+    // is about a cell thick over the surface, so arrays over it, not over the grid).
+    let shell: Vec<u32> = phi
+        .par_iter()
+        .enumerate()
+        .with_min_len(MIN_LEN)
+        .filter(|(_, &p)| in_shell(p))
+        .map(|(c, _)| c as u32)
+        .collect();
     if shell.is_empty() {
         return Pockets::default();
     }
-    let mut value = vec![f64::NAN; phi.len()];
-    let mut origin = vec![NONE; phi.len()];
-    let mut slope = vec![1.0; phi.len()];
+    let place = |c: usize| shell.binary_search(&(c as u32)).expect("a shell cell");
+    // Per shell cell: its value so far, the origin of that value and the slope in it.
+    let mut value = vec![f64::NAN; shell.len()];
+    let mut origin = vec![NONE; shell.len()];
+    let mut slope = vec![1.0; shell.len()];
     let mut heap = BinaryHeap::with_capacity(shell.len());
-    for &c in &shell {
+    for (i, &c) in shell.iter().enumerate() {
         let c = c as usize;
         let ijk = cells.ijk(c);
         // Its own σ, or a neighbour that ends a path: liquid (its φ), or air beyond the shell
@@ -139,14 +150,15 @@ pub fn close_pockets(phi: &mut [f64], grid: &Grid, weights: &FaceWeights, radius
                 }
             }
         }
-        (value[c], origin[c], slope[c]) = (v, from as u32, k);
-        heap.push(Entry(v, c as u32));
+        (value[i], origin[i], slope[i]) = (v, from as u32, k);
+        heap.push(Entry(v, i as u32));
     }
-    while let Some(Entry(v, c)) = heap.pop() {
-        let c = c as usize;
-        if v < value[c] {
+    while let Some(Entry(v, i)) = heap.pop() {
+        let i = i as usize;
+        if v < value[i] {
             continue;
         }
+        let c = shell[i] as usize;
         let ijk = cells.ijk(c);
         for a in 0..3 {
             for s in 0..2 {
@@ -155,24 +167,25 @@ pub fn close_pockets(phi: &mut [f64], grid: &Grid, weights: &FaceWeights, radius
                     continue;
                 }
                 let candidate = phi[n].min(v);
-                if candidate > value[n] {
-                    value[n] = candidate;
+                let m = place(n);
+                if candidate > value[m] {
+                    value[m] = candidate;
                     if phi[n] <= v {
-                        (origin[n], slope[n]) = (n as u32, 1.0);
+                        (origin[m], slope[m]) = (n as u32, 1.0);
                     } else {
-                        (origin[n], slope[n]) = (origin[c], slope[c]);
+                        (origin[m], slope[m]) = (origin[i], slope[i]);
                     }
-                    heap.push(Entry(candidate, n as u32));
+                    heap.push(Entry(candidate, m as u32));
                 }
             }
         }
     }
     let mut changed = Vec::new();
-    for &c in &shell {
+    for (i, &c) in shell.iter().enumerate() {
         let c = c as usize;
-        if value[c] != phi[c] {
-            changed.push((c as u32, origin[c], slope[c]));
-            phi[c] = value[c];
+        if value[i] != phi[c] {
+            changed.push((c as u32, origin[i], slope[i]));
+            phi[c] = value[i];
         }
     }
     Pockets { changed }
