@@ -29,10 +29,10 @@
 //! must not start a solve), subtracted so that b is continuous in the density.
 //!
 //! Where the interior ends, the deficit fades out instead of stopping
-//! ([`interior_weights`]): over a tenth of a cell as the block's highest φ_L rises to zero,
-//! and over half a cell as a body comes within √3 cells. A yes/no interior was a jump of the
-//! forward map: one cell of a block crossing φ_L = 0 switched a deficit of up to 30% of a
-//! cell on or off, and moved particles by up to a quarter of a cell in that step.
+//! ([`interior_weights`]): as the block's highest φ_L rises to zero from a tenth of a cell
+//! below, and as a body comes from √3 cells to half a cell closer. A yes/no interior was a
+//! jump of the forward map: one cell of a block crossing φ_L = 0 switched a deficit of up to
+//! 30% of a cell on or off, and moved particles by up to a quarter of a cell in that step.
 //!
 //! With a narrow band (`band.rs`), the deep cells are full by construction and carry no
 //! particles: every face of a deep cell is closed to the projection, which then has the
@@ -62,12 +62,12 @@ use rayon::prelude::*;
 /// Densities within this much of full count as full.
 const DEAD_ZONE: f64 = 1e-6;
 
-/// The depth (in cells) over which a cell's deficit fades in as the highest φ_L of its
-/// 3×3×3 block falls below zero (see [`interior_weights`]).
+/// Over how much depth (in cells) a cell's deficit fades out as the highest φ_L of its
+/// 3×3×3 block rises to zero (see [`interior_weights`]).
 const DEPTH_RAMP: f64 = 0.1;
 
-/// The distance (in cells) beyond [`NEAR_SOLID`] cells from a body over which a cell's
-/// deficit fades in (see [`interior_weights`]).
+/// How much closer than [`NEAR_SOLID`] cells (in cells) a body may come to a cell centre
+/// while the cell's deficit fades out (see [`interior_weights`]).
 const BODY_RAMP: f64 = 0.5;
 
 /// A cell's excess density (in cells): over `1 + DEAD_ZONE` it pushes out what it holds
@@ -106,14 +106,18 @@ fn excess_derivatives(dens: f64, interior: f64) -> (f64, f64) {
 /// - its depth: clamp(−φ_max/([`DEPTH_RAMP`]·dx), 0, 1), φ_max the highest φ_L over its
 ///   3×3×3 block (within the tank: the deposit reflects at the walls, so a wall is no gap;
 ///   a band's deep cell counts as air), and
-/// - per body, its clearance: clamp((d − [`NEAR_SOLID`]·dx)/([`BODY_RAMP`]·dx), 0, 1), d
-///   the body's distance at the cell centre (at √3 cells a body reaches the box between the
-///   centres of the cell's neighbours, which its deposit reads).
+/// - per body, its clearance: clamp(1 + (d − [`NEAR_SOLID`]·dx)/([`BODY_RAMP`]·dx), 0, 1),
+///   d the body's distance at the cell centre (within √3 cells a body reaches the box
+///   between the centres of the cell's neighbours, which its deposit reads).
 ///
 /// Cells near a static solid count 0: the static solids do not move. Both ramps keep the
 /// weight continuous in the particles and the bodies' poses: a yes/no interior made the
 /// projection jump when one cell of a block crossed φ_L = 0 or a body moved past a cell
-/// (docs/gradients.md, "The density projection's interior").
+/// (docs/gradients.md, "The density projection's interior"). The clearance is 1 wherever
+/// the yes/no rule counted a cell: with its ramp inside (0 at √3 cells) a bobbing ball
+/// gained 0.33 J in the energy audit instead of 0.22 J. The depth ramp lies inside the old
+/// interior: outside it (0 from a tenth of a cell above zero) the dam break's particles
+/// lost 3.3% of its volume in 50 steps (tests/physics/dam_break.rs allows 3%).
 fn interior_weights(sys: &PressureSystem, phi: &[f64], g: &DensityInputs<'_>) -> Vec<f64> {
     let grid = g.grid;
     let mut high: Vec<f64> = phi
@@ -158,13 +162,13 @@ fn depth_weight(high: f64, dx: f64) -> f64 {
 /// The interior weight's part for a body at distance `d` from the cell centre.
 #[inline]
 fn body_weight(d: f64, dx: f64) -> f64 {
-    ((d - NEAR_SOLID * dx) / (BODY_RAMP * dx)).clamp(0.0, 1.0)
+    (1.0 + (d - NEAR_SOLID * dx) / (BODY_RAMP * dx)).clamp(0.0, 1.0)
 }
 
-/// Calls `visit(cell, [i, j, k])` for the cells whose centre may be within
-/// ([`NEAR_SOLID`] + [`BODY_RAMP`]) cells of body `b` (its bounding box, widened).
+/// Calls `visit(cell, [i, j, k])` for the cells whose centre may be within [`NEAR_SOLID`]
+/// cells of body `b` (its bounding box, widened).
 fn for_cells_near(grid: &Grid, b: &RigidBody, mut visit: impl FnMut(usize, [usize; 3])) {
-    let reach = (NEAR_SOLID + BODY_RAMP) * grid.dx;
+    let reach = NEAR_SOLID * grid.dx;
     let (lo, hi) = b.bounds();
     let lo = lo.to_array().map(|x| ((x - reach) / grid.dx).floor().max(0.0) as usize);
     let hi = hi.to_array().map(|x| ((x + reach) / grid.dx).ceil().max(0.0) as usize + 1);
@@ -945,9 +949,10 @@ mod tests {
         assert!(stats.converged);
     }
 
-    /// The interior weights' two ramps (see [`interior_weights`]): a pool squeezed a little
-    /// and rippled along x, so that cells deep in the liquid are over and under full in turn,
-    /// and a ball above it whose clearance ramp reaches the pool's interior. The adjoint
+    /// The interior weights' two ramps (see [`interior_weights`]): a pool squeezed in height
+    /// until its top layer's cells are liquid by less than a tenth of a cell, and rippled
+    /// along x, so that cells deep in the liquid are over and under full in turn, and a ball just
+    /// above it whose clearance ramp reaches the pool's interior. The adjoint
     /// matches central differences in the particles and in the ball's position, which enters
     /// the projection only through the weights here (its faces are not in the inputs).
     #[test]
@@ -966,7 +971,7 @@ mod tests {
             let pose = Pose::from_parts(x, Rotation::IDENTITY);
             [RigidBody::with_density("ball".into(), SharedShape::ball(0.1), pose, 500.0)]
         };
-        let x0 = Vec3::new(0.13, 0.45, 0.3);
+        let x0 = Vec3::new(0.13, 0.4, 0.3);
         let bodies = ball_at(x0);
         let inputs = DensityInputs { bodies: &bodies, ..pool.inputs() };
         let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
