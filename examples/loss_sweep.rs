@@ -9,12 +9,14 @@
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
-//! `close-pockets=K`. The sweep runs the scene at v_x + t for 41 values of t over ±`HALF`
-//! (in parallel) and prints the median slope, the net slope and the roughness: the sum of
+//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`. The sweep runs the scene at
+//! v_x + t for 41 values of t over ±`HALF` (in parallel) and prints the median slope, the net slope and the roughness: the sum of
 //! the 40 steps' deviations from the median step over the net change (0 for a line, about 1
 //! or more where jumps dominate). `--pair` steps the runs at t = T1 and T2 together and
 //! prints, per step, how far the body's position and velocity differ, how many cells differ
-//! in kind, and each such cell with its φ in both runs and its neighbours' φ.
+//! in kind, and each such cell with its φ in both runs and its neighbours' φ; then how far
+//! the marker particles, φ and the face velocities differ at most, and where (a jump that
+//! changes no cell's kind shows there first, often far from the body).
 //! docs/gradients.md ("Air pockets") quotes what it measured.
 
 use diffluid::experiments::scene::Scene;
@@ -48,6 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "theta-min" => s.theta_min = value.parse()?,
             "close-pockets" => s.close_pockets = Some(value.parse()?),
             "sparse-depth" => s.sparse_depth = value.parse()?,
+            "density-tolerance" => s.density_tolerance = value.parse()?,
             other => return Err(format!("unknown setting {other}").into()),
         }
     }
@@ -116,7 +119,7 @@ fn pair(mut a: Simulation, mut b: Simulation, steps: usize) -> diffluid::Result<
             ra.liquid_cells,
             rb.liquid_cells
         );
-        for c in changed {
+        for c in changed.iter().copied() {
             let [i, j, l] = grid.cells().ijk(c);
             let around: Vec<String> = (0..3)
                 .flat_map(|axis| (0..2).map(move |side| (axis, side)))
@@ -136,6 +139,25 @@ fn pair(mut a: Simulation, mut b: Simulation, steps: usize) -> diffluid::Result<
                 around.join(" ")
             );
         }
+        let apart = a.particles().iter().zip(b.particles()).map(|(x, y)| (*x - *y).length());
+        let (c, dphi) = largest((0..pa.len()).map(|c| (pa[c] - pb[c]).abs()));
+        let (ua, ub) = (a.velocity_field(), b.velocity_field());
+        let (axis, (f, du)) = (0..3)
+            .map(|k| (k, largest(ua.c[k].iter().zip(&ub.c[k]).map(|(x, y)| (x - y).abs()))))
+            .max_by(|x, y| x.1 .1.total_cmp(&y.1 .1))
+            .expect("three axes");
+        println!(
+            "  at most: particles {:.3e} m apart, φ/dx {:.3e} at cell {:?}, u {du:.3e} m/s at face {:?} of axis {axis}",
+            apart.fold(0.0, f64::max),
+            dphi / grid.dx,
+            grid.cells().ijk(c),
+            grid.faces(axis).ijk(f)
+        );
     }
     Ok(())
+}
+
+/// The index and value of the largest of `x` (the first, where several are).
+fn largest(x: impl Iterator<Item = f64>) -> (usize, f64) {
+    x.enumerate().fold((0, f64::NEG_INFINITY), |m, (i, v)| if v > m.1 { (i, v) } else { m })
 }

@@ -546,7 +546,7 @@ fn particles_adjoint(
         bodies,
         node_sdf: &initial.statics().node_sdf,
         margin: initial.push_margin(),
-        density: initial.density_inputs(&sys.geometry).map(|mut g| {
+        density: initial.density_inputs(&sys.geometry, bodies).map(|mut g| {
             g.band = band.as_ref();
             g
         }),

@@ -186,7 +186,7 @@ impl ParticleStage<'_> {
             surface::push_out_of_bodies_adjoint(&displaced, pbar, self.bodies, self.margin, fd);
         add_pose(pose, push);
         let q = q.expect("a kept projection has its potential");
-        let (s, stats) = proj.adjoint_with(&replayed.advected, &q, &disp, pbar, g);
+        let (s, stats) = proj.adjoint_with(&replayed.advected, &q, &disp, pbar, pose, g);
         if !stats.converged {
             return Err(Error::NotConverged {
                 solve: Solve::DensityAdjoint,

@@ -45,8 +45,6 @@ pub struct Geometry {
     pub weights: FaceWeights,
     /// Cells whose centre is inside a static solid or a body.
     pub centre_in_solid: Vec<bool>,
-    /// Cells whose centre is within [`NEAR_SOLID`] cells of a static solid or a body.
-    pub near_solid: Vec<bool>,
     /// Faces covered by each body.
     pub body_faces: Vec<BodyFaces>,
     /// The faces each body seals (empty for a body at least 2 cells thick somewhere).
@@ -80,41 +78,29 @@ impl Geometry {
         faces: Vec<BodyFaces>,
     ) -> Geometry {
         assert_eq!(bodies.len(), faces.len());
-        let (mut weights, mut centre_in_solid, mut near_solid) = match old {
-            Some(Geometry { mut weights, mut centre_in_solid, mut near_solid, .. })
-                if centre_in_solid.len() == statics.centre_in_solid.len()
-                    && near_solid.len() == statics.near_solid.len() =>
+        let (mut weights, mut centre_in_solid) = match old {
+            Some(Geometry { mut weights, mut centre_in_solid, .. })
+                if centre_in_solid.len() == statics.centre_in_solid.len() =>
             {
                 weights.copy_from(&statics.weights);
                 centre_in_solid.copy_from_slice(&statics.centre_in_solid);
-                near_solid.copy_from_slice(&statics.near_solid);
-                (weights, centre_in_solid, near_solid)
+                (weights, centre_in_solid)
             }
-            _ => (
-                statics.weights.clone(),
-                statics.centre_in_solid.clone(),
-                statics.near_solid.clone(),
-            ),
+            _ => (statics.weights.clone(), statics.centre_in_solid.clone()),
         };
         let cells = grid.cells();
-        let reach = NEAR_SOLID * grid.dx;
         for (b, faces) in bodies.iter().zip(&faces) {
             // β is already snapped to 0 or 1 where it is within round-off of them, so
             // w + β = 1 holds exactly on every face a body alone covers.
             weights.subtract(&faces.faces);
             let (lo, hi) = b.bounds();
-            let lo = lo.to_array().map(|x| (((x - reach) / grid.dx).floor().max(0.0)) as usize);
-            let hi = hi.to_array().map(|x| ((x + reach) / grid.dx).ceil() as usize + 1);
+            let lo = lo.to_array().map(|x| ((x / grid.dx).floor().max(0.0)) as usize);
+            let hi = hi.to_array().map(|x| (x / grid.dx).ceil().max(0.0) as usize + 1);
             for k in lo[2]..grid.n[2].min(hi[2]) {
                 for j in lo[1]..grid.n[1].min(hi[1]) {
                     for i in lo[0]..grid.n[0].min(hi[0]) {
-                        let d = b.sdf(cells.position(i, j, k));
-                        let c = grid.cell(i, j, k);
-                        if d < 0.0 {
-                            centre_in_solid[c] = true;
-                        }
-                        if d < reach {
-                            near_solid[c] = true;
+                        if b.sdf(cells.position(i, j, k)) < 0.0 {
+                            centre_in_solid[grid.cell(i, j, k)] = true;
                         }
                     }
                 }
@@ -126,7 +112,7 @@ impl Geometry {
         for seal in seals.iter().filter(|s| !s.is_empty()) {
             weights.subtract(&seal.closing());
         }
-        Geometry { weights, centre_in_solid, near_solid, body_faces: faces, seals }
+        Geometry { weights, centre_in_solid, body_faces: faces, seals }
     }
 
     /// The faces of body `i`'s columns of J: its fractions, and on the faces it seals and

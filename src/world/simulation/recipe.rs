@@ -274,7 +274,7 @@ impl Simulation {
                 bodies: &self.bodies,
                 node_sdf: &self.statics.node_sdf,
                 margin: self.push_margin(),
-                density: self.density_inputs(geometry),
+                density: self.density_inputs(geometry, &self.bodies),
                 step,
             };
             let substeps = stage.substeps(self.settings.solver.particle_substeps);

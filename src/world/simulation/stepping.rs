@@ -379,10 +379,12 @@ impl Simulation {
         }
     }
 
-    /// What the density projection of a step with `geometry` reads (None when it is off).
+    /// What the density projection of a step with `geometry` and `bodies` reads (None when
+    /// it is off).
     pub(crate) fn density_inputs<'a>(
         &'a self,
         geometry: &'a Geometry,
+        bodies: &'a [RigidBody],
     ) -> Option<DensityInputs<'a>> {
         let solver = &self.settings.solver;
         solver.density_correction.then(|| DensityInputs {
@@ -390,7 +392,8 @@ impl Simulation {
             weights: &geometry.weights,
             node_sdf: &self.statics.node_sdf,
             centre_in_solid: &geometry.centre_in_solid,
-            near_solid: &geometry.near_solid,
+            near_solid: &self.statics.near_solid,
+            bodies,
             gravity: self.settings.fluid.gravity,
             surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,
