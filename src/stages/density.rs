@@ -29,7 +29,7 @@
 //! must not start a solve), subtracted so that b is continuous in the density.
 //!
 //! Where the interior ends, the deficit fades out instead of stopping
-//! ([`interior_weights`]): as the block's highest φ_L rises to zero from a tenth of a cell
+//! (`interior_weights`): as the block's highest φ_L rises to zero from a tenth of a cell
 //! below, and as a body comes from √3 cells to half a cell closer. A yes/no interior was a
 //! jump of the forward map: one cell of a block crossing φ_L = 0 switched a deficit of up to
 //! 30% of a cell on or off, and moved particles by up to a quarter of a cell in that step.
@@ -63,11 +63,11 @@ use rayon::prelude::*;
 const DEAD_ZONE: f64 = 1e-6;
 
 /// Over how much depth (in cells) a cell's deficit fades out as the highest φ_L of its
-/// 3×3×3 block rises to zero (see [`interior_weights`]).
+/// 3×3×3 block rises to zero (see `interior_weights`).
 const DEPTH_RAMP: f64 = 0.1;
 
 /// How much closer than [`NEAR_SOLID`] cells (in cells) a body may come to a cell centre
-/// while the cell's deficit fades out (see [`interior_weights`]).
+/// while the cell's deficit fades out (see `interior_weights`).
 const BODY_RAMP: f64 = 0.5;
 
 /// A cell's excess density (in cells): over `1 + DEAD_ZONE` it pushes out what it holds
@@ -204,7 +204,7 @@ fn block_max(grid: &Grid, d: &[f64], axis: usize) -> Vec<f64> {
 }
 
 /// What sets the interior weight of a cell where it is strictly between 0 and 1 (see
-/// [`interior_weights`]), for the adjoint.
+/// `interior_weights`), for the adjoint.
 enum WeightSetBy {
     /// The depth, by φ of this cell of the block.
     Depth(usize),
@@ -212,7 +212,7 @@ enum WeightSetBy {
     Body(usize, Dual<6>),
 }
 
-/// Which part of [`interior_weights`] sets the weight `w` of cell `c` (the least one; the
+/// Which part of `interior_weights` sets the weight `w` of cell `c` (the least one; the
 /// depth where they tie).
 fn weight_set_by(c: usize, w: f64, phi: &[f64], g: &DensityInputs<'_>) -> WeightSetBy {
     let grid = g.grid;
@@ -264,7 +264,7 @@ pub struct DensityInputs<'a> {
     /// between the centres of their neighbours, which their deposit reads).
     pub near_solid: &'a [bool],
     /// The bodies where the step's geometry has them (their clearance weighs the cells'
-    /// deficit, see [`interior_weights`]).
+    /// deficit, see `interior_weights`).
     pub bodies: &'a [RigidBody],
     /// Gravity, m/s² (φ_L is carried into the solids across it, see [`SolidExtension`]).
     pub gravity: [f64; 3],
@@ -318,7 +318,7 @@ pub struct DensityProjection {
     pub nearest: Vec<u32>,
     /// Particle density at cell centres.
     pub dens: Vec<f64>,
-    /// How much of each cell's deficit counts (see [`interior_weights`]).
+    /// How much of each cell's deficit counts (see `interior_weights`).
     pub interior: Vec<f64>,
     /// The operator (unit Δt and density: its velocity update is a displacement in metres).
     pub sys: PressureSystem,
@@ -660,7 +660,7 @@ fn close_where<T: Copy>(out: &mut [T], a: &[bool], b: Option<&[bool]>, shut: T) 
     }
 }
 
-/// Whether every over-full cell of `sys` (built with `weights`; its [`interior_weights`]
+/// Whether every over-full cell of `sys` (built with `weights`; its `interior_weights`
 /// `interior`) can send its excess to the air: it is an unknown (when it has an open face in
 /// the inputs' weights), and its unknown reaches one next to air through the operator.
 /// Otherwise the system closed at the deep cells is singular where the excess is, or misses
@@ -950,7 +950,7 @@ mod tests {
         assert!(stats.converged);
     }
 
-    /// The interior weights' two ramps (see [`interior_weights`]): a pool squeezed in height
+    /// The interior weights' two ramps (see `interior_weights`): a pool squeezed in height
     /// until its top layer's cells are liquid by less than a tenth of a cell, and rippled
     /// along x, so that cells deep in the liquid are over and under full in turn, and a ball just
     /// above it whose clearance ramp reaches the pool's interior. The adjoint

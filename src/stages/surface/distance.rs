@@ -79,7 +79,7 @@ pub struct SurfaceModel {
     /// With `sparse_cells`: 0 for the rule as it was (a cell is liquid the moment it holds a
     /// particle, a jump of φ as a particle crosses a face), or the depth (cells, up to 0.5)
     /// a particle must be inside its cell to make it liquid, φ falling continuously with the
-    /// particle's depth up to there (see [`sparse_phi`]).
+    /// particle's depth up to there (see `sparse_phi`).
     pub sparse_depth: f64,
 }
 
@@ -152,7 +152,7 @@ pub fn liquid_sdf_into(
 /// too sparse for the distance to say so (thin sheets, splashes): the projection then keeps
 /// it divergence-free instead of leaving its particles to extrapolated air velocities, which
 /// bunch them up and lose volume. As it was, the rule makes φ jump when a particle crosses
-/// a cell face; with `model.sparse_depth` > 0, φ moves continuously (see [`sparse_phi`]).
+/// a cell face; with `model.sparse_depth` > 0, φ moves continuously (see `sparse_phi`).
 /// The `deep` cells of a narrow band are liquid with its φ (see `band.rs`).
 pub fn liquid_sdf_nearest(
     pos: &[Vec3],
@@ -283,7 +283,7 @@ fn liquid_sdf_with(
 
 /// Adjoint of [`liquid_sdf_nearest`] (of surface model `model`) in the particles:
 /// ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c| for the particle p whose distance φ_c is, or the
-/// derivative of [`sparse_phi`] where the sparse-cell rule set φ_c. Adds into `pbar`.
+/// derivative of `sparse_phi` where the sparse-cell rule set φ_c. Adds into `pbar`.
 pub fn liquid_sdf_adjoint(
     pos: &[Vec3],
     nearest: &[u32],
