@@ -31,6 +31,21 @@ impl Grid {
         Lattice { n: self.n, off: [0.5; 3], dx: self.dx }
     }
 
+    /// Calls `visit(cell, [i, j, k])` for every cell whose centre the box from `lo` to `hi`
+    /// (m) may hold, within the tank: the cells from the one `lo` falls in to one past the
+    /// one `hi` falls in, in lattice order.
+    pub fn for_cells_in_box(&self, lo: Vec3, hi: Vec3, mut visit: impl FnMut(usize, [usize; 3])) {
+        let lo = lo.to_array().map(|x| (x / self.dx).floor().max(0.0) as usize);
+        let hi = hi.to_array().map(|x| (x / self.dx).ceil().max(0.0) as usize + 1);
+        for k in lo[2]..self.n[2].min(hi[2]) {
+            for j in lo[1]..self.n[1].min(hi[1]) {
+                for i in lo[0]..self.n[0].min(hi[0]) {
+                    visit(self.cell(i, j, k), [i, j, k]);
+                }
+            }
+        }
+    }
+
     /// Lattice of the faces normal to `axis` (velocity component `axis`).
     pub fn faces(&self, axis: usize) -> Lattice {
         let mut off = [0.5; 3];

@@ -144,7 +144,10 @@ fn interior_weights(sys: &PressureSystem, phi: &[f64], g: &DensityInputs<'_>) ->
         .collect();
     let cells = grid.cells();
     for b in g.bodies {
-        for_cells_near(grid, b, |c, [i, j, k]| {
+        // The cells whose centre may be within NEAR_SOLID cells of the body.
+        let (lo, hi) = b.bounds();
+        let reach = Vec3::splat(NEAR_SOLID * grid.dx);
+        grid.for_cells_in_box(lo - reach, hi + reach, |c, [i, j, k]| {
             if w[c] > 0.0 {
                 w[c] = w[c].min(body_weight(b.sdf(cells.position(i, j, k)), grid.dx));
             }
@@ -163,22 +166,6 @@ fn depth_weight(high: f64, dx: f64) -> f64 {
 #[inline]
 fn body_weight(d: f64, dx: f64) -> f64 {
     (1.0 + (d - NEAR_SOLID * dx) / (BODY_RAMP * dx)).clamp(0.0, 1.0)
-}
-
-/// Calls `visit(cell, [i, j, k])` for the cells whose centre may be within [`NEAR_SOLID`]
-/// cells of body `b` (its bounding box, widened).
-fn for_cells_near(grid: &Grid, b: &RigidBody, mut visit: impl FnMut(usize, [usize; 3])) {
-    let reach = NEAR_SOLID * grid.dx;
-    let (lo, hi) = b.bounds();
-    let lo = lo.to_array().map(|x| ((x - reach) / grid.dx).floor().max(0.0) as usize);
-    let hi = hi.to_array().map(|x| ((x + reach) / grid.dx).ceil().max(0.0) as usize + 1);
-    for k in lo[2]..grid.n[2].min(hi[2]) {
-        for j in lo[1]..grid.n[1].min(hi[1]) {
-            for i in lo[0]..grid.n[0].min(hi[0]) {
-                visit(grid.cell(i, j, k), [i, j, k]);
-            }
-        }
-    }
 }
 
 /// Per cell, the largest of `d` over the cell and its two neighbours along `axis` within

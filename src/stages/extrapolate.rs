@@ -341,35 +341,12 @@ pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 /// a face used to keep its advected velocity with gravity added, never projected, which grew
 /// by g·Δt a step and was carried into the liquid by the extrapolation and the next
 /// advection (issue 33).
+///
+/// `layered`: step 3's layers found beforehand (for `projected`, `faces` and `layers`,
+/// [`ExtrapolationLayers::new`], for example beside the solve), or None to find them here;
+/// the same bits either way.
 #[allow(clippy::too_many_arguments)]
 pub fn correct_with_bodies(
-    u: &mut Mac,
-    projected: &[Vec<u8>; 3],
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    static_weights: &FaceWeights,
-    grid: &Grid,
-    layers: usize,
-) -> AirBodyFaces {
-    correct_with_bodies_layered(
-        u,
-        projected,
-        None,
-        bodies,
-        faces,
-        weights,
-        static_weights,
-        grid,
-        layers,
-    )
-}
-
-/// [`correct_with_bodies`], its extrapolation's layers found beforehand when `layered` is
-/// given (for `projected`, `faces` and `layers`, [`ExtrapolationLayers::new`]): the same
-/// bits.
-#[allow(clippy::too_many_arguments)]
-pub fn correct_with_bodies_layered(
     u: &mut Mac,
     projected: &[Vec<u8>; 3],
     layered: Option<&ExtrapolationLayers>,
@@ -825,8 +802,9 @@ mod tests {
         };
         let (x, y) = (val(1), val(2));
         let mut cx = x.clone();
-        let air =
-            correct_with_bodies(&mut cx, &projected, &bodies, &faces, &weights, &statics, &grid, 3);
+        let air = correct_with_bodies(
+            &mut cx, &projected, None, &bodies, &faces, &weights, &statics, &grid, 3,
+        );
         let mut cty = y.clone();
         let u_old = |a: usize, f: usize| x.c[a][f];
         let bva = correct_with_bodies_adjoint(

@@ -94,17 +94,11 @@ impl Geometry {
             // w + β = 1 holds exactly on every face a body alone covers.
             weights.subtract(&faces.faces);
             let (lo, hi) = b.bounds();
-            let lo = lo.to_array().map(|x| ((x / grid.dx).floor().max(0.0)) as usize);
-            let hi = hi.to_array().map(|x| (x / grid.dx).ceil().max(0.0) as usize + 1);
-            for k in lo[2]..grid.n[2].min(hi[2]) {
-                for j in lo[1]..grid.n[1].min(hi[1]) {
-                    for i in lo[0]..grid.n[0].min(hi[0]) {
-                        if b.sdf(cells.position(i, j, k)) < 0.0 {
-                            centre_in_solid[grid.cell(i, j, k)] = true;
-                        }
-                    }
+            grid.for_cells_in_box(lo, hi, |c, [i, j, k]| {
+                if b.sdf(cells.position(i, j, k)) < 0.0 {
+                    centre_in_solid[c] = true;
                 }
-            }
+            });
         }
         // Thin bodies seal the faces they cut, once every body's fractions are off.
         let seals: Vec<Seal> =

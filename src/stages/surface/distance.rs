@@ -97,9 +97,13 @@ pub(super) const SPARSE: u32 = 1 << 31;
 /// (√3/2·dx − r)/(depth·dx) (4.7 for two particles a cell across at depth 0.05).
 #[inline]
 pub(super) fn sparse_phi(offset: Vec3, dx: f64, radius: f64, depth: f64) -> f64 {
-    let top = 0.5 * 3f64.sqrt() * dx - radius;
     let inside = 0.5 * dx - offset.abs().max_element();
-    (top * (1.0 - inside / (depth * dx))).max(-SPARSE_FLOOR * dx)
+    (sparse_top(dx, radius) * (1.0 - inside / (depth * dx))).max(-SPARSE_FLOOR * dx)
+}
+
+/// [`sparse_phi`] of a particle on its cell's boundary: the most its distance leaves φ at.
+fn sparse_top(dx: f64, radius: f64) -> f64 {
+    0.5 * 3f64.sqrt() * dx - radius
 }
 
 /// ∂/∂offset of [`sparse_phi`] (zero on its floor).
@@ -107,17 +111,10 @@ fn sparse_phi_gradient(offset: Vec3, dx: f64, radius: f64, depth: f64) -> Vec3 {
     if sparse_phi(offset, dx, radius, depth) <= -SPARSE_FLOOR * dx {
         return Vec3::ZERO;
     }
-    let top = 0.5 * 3f64.sqrt() * dx - radius;
-    let a = offset.abs();
-    let axis = if a.x >= a.y && a.x >= a.z {
-        0
-    } else if a.y >= a.z {
-        1
-    } else {
-        2
-    };
+    // The axis of the L∞ norm (the first of equals, as `max_element` reads it).
+    let axis = offset.abs().max_position();
     let mut g = Vec3::ZERO;
-    g[axis] = top / (depth * dx) * offset[axis].signum();
+    g[axis] = sparse_top(dx, radius) / (depth * dx) * offset[axis].signum();
     g
 }
 

@@ -14,7 +14,7 @@ use crate::solvers::cg::CgStats;
 use crate::stages::band::Band;
 use crate::stages::contact::contact_possible;
 use crate::stages::density::DensityStats;
-use crate::stages::extrapolate::{correct_with_bodies_layered, AirBodyFaces, ExtrapolationLayers};
+use crate::stages::extrapolate::{correct_with_bodies, AirBodyFaces, ExtrapolationLayers};
 use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
 use crate::stages::project::{project, HeldContact, Projection};
@@ -165,7 +165,7 @@ impl Simulation {
         layered: ([Vec<u8>; 3], ExtrapolationLayers),
     ) -> AirBodyFaces {
         let (projected, layers) = layered;
-        correct_with_bodies_layered(
+        correct_with_bodies(
             u,
             &projected,
             Some(&layers),
