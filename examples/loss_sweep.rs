@@ -9,8 +9,9 @@
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
-//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`. The sweep runs the scene at
-//! v_x + t for 41 values of t over ±`HALF` (in parallel) and prints the median slope, the net slope and the roughness: the sum of
+//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `body-ramp`, and
+//! `along=P` (the coordinate moved: `v0` … `q2`, default `v0`). The sweep runs the scene at
+//! that coordinate + t for 41 values of t over ±`HALF` (in parallel) and prints the median slope, the net slope and the roughness: the sum of
 //! the 40 steps' deviations from the median step over the net change (0 for a line, about 1
 //! or more where jumps dominate). `--pair` steps the runs at t = T1 and T2 together and
 //! prints, per step, how far the body's position and velocity differ, how many cells differ
@@ -38,11 +39,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Scene::builtin(&args[0])?
     };
     let steps: usize = args[1].parse()?;
+    let mut along = (Param::V, 0);
     for setting in args[2].split(',') {
         let (key, value) = setting.split_once('=').unwrap_or((setting, ""));
         let s = &mut scene.solver;
         match key {
             "default" => {}
+            "body-ramp" => s.body_ramp = true,
+            "along" => along = parse_along(value)?,
             "no-density" => s.density_correction = false,
             "no-sparse" => s.sparse_cells = false,
             "substeps" => s.particle_substeps = value.parse()?,
@@ -59,7 +63,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let start = |t: f64| -> diffluid::Result<Simulation> {
         let mut s = sim.clone();
         let h = s.handles()[0];
-        let state = Param::V.perturbed(&s.bodies()[0].state(), 0, t);
+        let state = along.0.perturbed(&s.bodies()[0].state(), along.1, t);
         s.set_body_state(h, &state)?;
         Ok(s)
     };
@@ -100,6 +104,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("  t {t:+.2e}: slope {:+.4e}", x / h);
     }
     Ok(())
+}
+
+/// `v0` … `q2`: the parameter and axis the sweep moves along.
+fn parse_along(value: &str) -> Result<(Param, usize), String> {
+    let bad = || format!("along={value}: expected v, w, x or q and an axis 0–2, as x2");
+    let (name, axis) = value.split_at_checked(1).ok_or_else(bad)?;
+    let param = Param::ALL.into_iter().find(|p| p.name() == name).ok_or_else(bad)?;
+    let axis: usize = axis.parse().map_err(|_| bad())?;
+    if axis > 2 {
+        return Err(bad());
+    }
+    Ok((param, axis))
 }
 
 /// Steps `a` and `b` together and prints where they part.

@@ -31,6 +31,7 @@ use crate::stages::particles::ParticleStage;
 use crate::stages::pressure::Coupling;
 use crate::stages::project::{project_adjoint, ProjectAdjointInputs};
 use crate::stages::rigid::integrate_adjoint;
+use crate::stages::solid_phi::solidity_pose_adjoint;
 use crate::stages::surface;
 use crate::stages::system::{predicted_velocity, volume_source_derivative};
 use crate::stages::{Stage, StageClock, StageSeconds};
@@ -382,6 +383,10 @@ fn step_adjoint(
     clock.lap(Stage::CorrectVelocity, times);
 
     let live_surface = options.surface == SurfaceGradient::Live && rec.particles.is_some();
+    // φ_L in the cells a body's surface crosses moves with its pose (the solids' ramp), the
+    // surface frozen or not; the paper's gradient holds it fixed.
+    let solids_ramp =
+        full && options.surface == SurfaceGradient::Live && !sys.geometry.partial.is_empty();
     let inputs = ProjectAdjointInputs {
         sys: &sys,
         bodies: &bodies,
@@ -391,10 +396,9 @@ fn step_adjoint(
         u_hat: &u_hat,
         static_weights: &initial.statics().weights,
         dual_faces: dual,
-        surface: live_surface,
+        surface: live_surface || solids_ramp,
         how: settings.solver.linear(),
         density: settings.fluid.density,
-        theta_min: settings.solver.theta_min,
         dt,
         step,
     };
@@ -426,11 +430,16 @@ fn step_adjoint(
     }
     clock.lap(Stage::AdvectVelocity, times);
 
-    // ∂L/∂φ_L back out of the solids, to the cells the extension read.
+    // ∂L/∂φ_L back out of the solids, to the cells the extension read and the bodies' poses
+    // (through how deep their surfaces lie in the cells they cross).
     let phi_bar = projected.phi.map(|mut g| {
-        sys.extension.transpose(&mut g);
+        let sbar = sys.extension.transpose(&sys.phi, &mut g);
+        if full {
+            solidity_pose_adjoint(&grid, &bodies, &sbar, &mut pose);
+        }
         g
     });
+    let phi_bar = phi_bar.filter(|_| live_surface);
     clock.lap(Stage::Assemble, times);
 
     let mut particles = Vec::new();

@@ -11,7 +11,7 @@ pub mod stencil;
 #[cfg(test)]
 pub(crate) mod testing {
     use crate::geometry::grid::Grid;
-    use crate::stages::pressure::{PressureParams, PressureSystem};
+    use crate::stages::pressure::{GhostFluid, PressureParams, PressureSystem};
 
     /// A tank of `n` cells filled to `level` (a sloped surface; above 1 it is full and
     /// closed), with a blob of fractional face weights standing in for a body.
@@ -42,7 +42,7 @@ pub(crate) mod testing {
             &grid,
             &phi,
             &crate::geometry::weights::FaceWeights::new(&weights),
-            PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
+            PressureParams { dt: 0.01, density: 1000.0, ghost: GhostFluid::clamped(0.01) },
         )
     }
 }

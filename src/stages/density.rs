@@ -53,8 +53,10 @@ use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
 use crate::stages::band::Band;
 use crate::stages::extrapolate::{correct_velocity, correct_velocity_adjoint};
-use crate::stages::pressure::{has_open_face, PressureParams, PressureSystem, SystemPool};
-use crate::stages::solid_phi::SolidExtension;
+use crate::stages::pressure::{
+    has_open_face, GhostFluid, PressureParams, PressureSystem, SystemPool,
+};
+use crate::stages::solid_phi::{solidity_pose_adjoint, PartialSolid, SolidExtension};
 use crate::stages::surface::{self, jacobian_step, jacobian_t, Bins, Walls};
 use crate::stages::system::NEAR_SOLID;
 use rayon::prelude::*;
@@ -261,6 +263,8 @@ pub struct DensityInputs<'a> {
     pub node_sdf: &'a NodeSdf,
     /// Cells whose centre is in a solid.
     pub centre_in_solid: &'a [bool],
+    /// Those of them partly in a body (see [`crate::stages::system::Geometry::partial`]).
+    pub partial: &'a [PartialSolid],
     /// Cells whose centre is within [`NEAR_SOLID`] cells of a static solid (it reaches the box
     /// between the centres of their neighbours, which their deposit reads).
     pub near_solid: &'a [bool],
@@ -273,8 +277,8 @@ pub struct DensityInputs<'a> {
     pub surface: surface::SurfaceModel,
     /// Marker particles seeded per cell (the density of a full cell).
     pub particles_per_cell: usize,
-    /// The ghost-fluid θ clamp of the projection's operator.
-    pub theta_min: f64,
+    /// The ghost-fluid θ of the projection's operator.
+    pub ghost: GhostFluid,
     /// How to solve it.
     pub solve: LinearSolve,
     /// The narrow band's deep cells (full liquid without particles), if the liquid has one.
@@ -366,11 +370,11 @@ impl DensityProjection {
                 (surface::liquid_sdf(particles, &bins, grid, &g.surface, deep), Vec::new())
             }
         };
-        let extension = SolidExtension::new(grid, g.centre_in_solid, g.gravity);
-        extension.apply(&mut phi);
+        let extension =
+            SolidExtension::apply_new(grid, g.centre_in_solid, g.partial, g.gravity, &mut phi);
         let base = g.band.map(|b| b.density.as_slice());
         let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
-        let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
+        let params = PressureParams { dt: 1.0, density: 1.0, ghost: g.ghost };
         let memory = g.systems.map(SystemPool::take).unwrap_or_default();
         let mut closed = g.band.filter(|b| b.deep.par_iter().any(|&d| d)).map(|b| {
             g.weights.close_faces(|a, kind, shut| closed_at_deep(grid, a, &b.deep, kind, shut))
@@ -590,7 +594,8 @@ impl DensityProjection {
                 }
             }
         }
-        self.extension.transpose(&mut phi_bar);
+        let sbar = self.extension.transpose(&self.phi, &mut phi_bar);
+        solidity_pose_adjoint(grid, g.bodies, &sbar, pose);
         surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &g.surface, &phi_bar, pbar);
         (s, stats)
     }
@@ -835,6 +840,7 @@ mod tests {
                 weights: &self.weights,
                 node_sdf: &self.node_sdf,
                 centre_in_solid: &self.centre_in_solid,
+                partial: &[],
                 near_solid: &self.centre_in_solid,
                 bodies: &[],
                 gravity: [0.0, -9.81, 0.0],
@@ -844,7 +850,7 @@ mod tests {
                     sparse_depth: 0.0,
                 },
                 particles_per_cell: 8,
-                theta_min: 0.01,
+                ghost: GhostFluid::clamped(0.01),
                 solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),
                 band: self.band.as_ref(),
                 systems: None,

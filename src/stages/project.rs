@@ -173,8 +173,6 @@ pub struct ProjectAdjointInputs<'a> {
     pub how: LinearSolve,
     /// The liquid's density, kg/m³.
     pub density: f64,
-    /// The ghost-fluid θ clamp.
-    pub theta_min: f64,
     /// The step's Δt.
     pub dt: f64,
     /// The step's number (for the error of a solve that fails).
@@ -237,7 +235,7 @@ pub fn project_adjoint(
         ys[k] = y;
         if let Some(out) = phi_bar.as_mut() {
             let v_new = &g.v_after[sys.coupled[k]];
-            ent.phi_adjoint(&y, v_new, g.u_hat, &sys.phi, g.theta_min, out);
+            ent.phi_adjoint(&y, v_new, g.u_hat, &sys.phi, sys.pressure.params.ghost, out);
         }
     }
     // The masses, the inertias scaling with them (M → s·M): −V̂̄·(V′ − V̂)/m (the pressure's

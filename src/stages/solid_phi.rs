@@ -16,134 +16,391 @@
 //! current, fed back through the body's bobbing, drove still water around a floating ball to
 //! tens of joules (issue 33).
 //!
-//! The map depends on which cell centres lie in a solid only, never on φ: it is linear in
-//! φ, and its transpose ([`SolidExtension::transpose`]) carries ∂L/∂φ back to the cells it
-//! read.
+//! A moving body's surface crosses cell centres, and a yes/no rule would make φ jump there
+//! (by up to a cell: the particles' φ against the neighbours' mean), and with it the
+//! ghost-fluid θ of the cell's faces and the body's path. So a cell counts as solid by a
+//! degree s ∈ [0, 1]: 1 with its centre in a solid, falling to 0 over [`RAMP`] cells outside
+//! a body (a static solid does not move and keeps the yes/no rule), and every choice the rule
+//! makes is weighed continuously in s:
+//!
+//! - layer 0: E₀ = Σ w·φ / T₀ over the face neighbours, w = (1 − s_n)·(a + γ), with a the
+//!   axis's weight across gravity (1 − ĝ_a²) and γ = max(0, 1 − Σ(1 − s_n)·a / 0.05) letting
+//!   the neighbours along gravity count where (almost) none across it does; its share
+//!   μ = min(1, T₀/0.05);
+//! - layer 1: E₁ the same mean of the neighbours' E₀ with weights s_n·μ_n·(a + γ₁), its
+//!   share ν = min(1, T₁/0.05);
+//! - X = μ·E₀ + (1 − μ)·(ν·E₁ + (1 − ν)·φ), and the cell's φ becomes (1 − s)·φ + s·X.
+//!
+//! Where s is 0 or 1 (every static solid, every cell in a body, every cell over [`RAMP`]
+//! cells from one) this is the yes/no rule, with the same bits: a cell with a neighbour
+//! outside the solids is a mean of those (layer 0), one with a layer-0 neighbour a mean of
+//! theirs (layer 1), deeper cells keep the particles' φ. The ramp lies outside the body so
+//! that no cell inside one reads the particles' φ there (no particle is inside; a cell that
+//! did read them turned to air under a rising box, and a ball at rest lost its rest state).
+//! Where the particles' φ is level the ramp keeps it so (its mean across gravity is the same
+//! level). The map is linear in φ for fixed s, and [`SolidExtension::transpose`] carries ∂L/∂φ
+//! back to the cells it read and to s, hence to the bodies' poses.
 
-use crate::geometry::grid::Grid;
+use crate::geometry::body::RigidBody;
+use crate::geometry::grid::{Grid, NONE};
 use crate::math::par::MIN_LEN;
+use crate::math::Twist;
 use rayon::prelude::*;
 
-/// How many layers into a solid φ_L is carried: enough for every cell whose centre is in a
-/// solid and that has a face partly open (such a face's control volume reaches outside the
-/// solid, so its cell lies within a cell diagonal of the solid's surface).
-pub const LAYERS: usize = 2;
+/// How far (in cells) outside a body a cell centre lies before its φ is the particles' alone:
+/// from there to the body's surface the extension takes over linearly.
+pub const RAMP: f64 = 0.5;
 
-/// The cells whose centre is in a solid that φ_L is carried into, each with the cells its
-/// value is the mean of, in the order they are set (a layer after the other; the cells of a
-/// layer read only cells outside the solids and cells of earlier layers).
+/// A cell whose centre lies less than [`RAMP`] cells outside a body (and in no solid, nor
+/// nearer another body): how solid it counts, and the body that says so.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PartialSolid {
+    /// The cell.
+    pub cell: u32,
+    /// The body (index among the step's bodies).
+    pub body: u32,
+    /// Its degree of solidity, in (0, 1).
+    pub s: f64,
+}
+
+/// The degree of solidity of a centre at signed distance `sdf` from a body's surface.
+#[inline]
+pub fn solidity(sdf: f64, dx: f64) -> f64 {
+    (1.0 - sdf / (RAMP * dx)).clamp(0.0, 1.0)
+}
+
+/// The bodies' ∂L/∂pose from ∂L/∂s of the partial cells (`sbar`, as
+/// [`SolidExtension::transpose`] returns it), added into `pose`.
+pub fn solidity_pose_adjoint(
+    grid: &Grid,
+    bodies: &[RigidBody],
+    sbar: &[(PartialSolid, f64)],
+    pose: &mut [Twist],
+) {
+    let cells = grid.cells();
+    for (p, bar) in sbar {
+        let [i, j, k] = cells.ijk(p.cell as usize);
+        let d = bodies[p.body as usize].sdf_pose_dual(cells.position(i, j, k));
+        for (acc, dd) in pose[p.body as usize].iter_mut().zip(d.d) {
+            *acc -= bar * dd / (RAMP * grid.dx);
+        }
+    }
+}
+
+/// One cell the extension sets: its neighbours and the values of the forward pass that its
+/// transpose reads.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Set {
+    cell: u32,
+    /// Face neighbours, in face order (−x, +x, −y, …); `NONE` beyond the grid.
+    nbr: [u32; 6],
+    /// The neighbours' degrees of solidity.
+    s_nbr: [f64; 6],
+    /// This cell's degree of solidity.
+    s: f64,
+    /// Layer 0: Σ(1 − s_n)·a, its total weight and share, and its mean.
+    z0: f64,
+    t0: f64,
+    mu: f64,
+    e0: f64,
+    /// Layer 1: Σ s_n·μ_n·a, its total weight and share, and its mean.
+    z1: f64,
+    t1: f64,
+    nu: f64,
+    e1: f64,
+    /// φ here before the extension.
+    raw: f64,
+}
+
+impl Set {
+    /// The value the cell is set to.
+    fn value(&self) -> f64 {
+        let x =
+            self.mu * self.e0 + (1.0 - self.mu) * (self.nu * self.e1 + (1.0 - self.nu) * self.raw);
+        (1.0 - self.s) * self.raw + self.s * x
+    }
+}
+
+/// Where φ_L is carried into the solids, and how (see the module's documentation).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct SolidExtension {
-    /// The cells set, in order.
-    cells: Vec<u32>,
-    /// Cell `cells[i]` is `Σ weight·φ` over `sources[starts[i]..starts[i + 1]]`.
-    starts: Vec<u32>,
-    /// The cells read.
-    sources: Vec<u32>,
-    /// Each source's weight (a cell's weights sum to 1).
-    weights: Vec<f64>,
+    /// The weight of each axis across gravity.
+    across: [f64; 3],
+    /// The cells set, in cell order.
+    set: Vec<Set>,
+    /// The cells partly in a body, in cell order.
+    partial: Vec<PartialSolid>,
+}
+
+/// Below this total weight of neighbours across gravity, those along it count too (where
+/// none across it does, fully). Small, so that a cell beside a body, whose neighbours across
+/// gravity are partly solid, still reads the level beside it and not the cells above and
+/// below (a capsule at rest stirred the liquid to 2.8e-3 J with γ = max(0, 1 − z)).
+const ALONG_BELOW: f64 = 0.05;
+
+/// Below this total weight a layer's mean gives way to the next layer's (μ, ν =
+/// min(1, T/`SHARE_BELOW`)): small, so that a cell in a body reads the cells outside it
+/// however little of them is outside, and the particles' φ only where nothing around is.
+const SHARE_BELOW: f64 = 0.05;
+
+/// A layer's share min(1, t/[`SHARE_BELOW`]) and its derivative in t.
+#[inline]
+fn share(t: f64) -> (f64, f64) {
+    if t < SHARE_BELOW {
+        (t / SHARE_BELOW, 1.0 / SHARE_BELOW)
+    } else {
+        (1.0, 0.0)
+    }
+}
+
+/// Layer weight (a + γ) with γ = max(0, 1 − z/[`ALONG_BELOW`]): the neighbours along
+/// gravity count where too little across it does.
+#[inline]
+fn gamma(z: f64) -> f64 {
+    (1.0 - z / ALONG_BELOW).max(0.0)
+}
+
+/// dγ/dz.
+#[inline]
+fn gamma_slope(z: f64) -> f64 {
+    if z < ALONG_BELOW {
+        -1.0 / ALONG_BELOW
+    } else {
+        0.0
+    }
 }
 
 impl SolidExtension {
-    /// The extension for the cells `centre_in_solid` marks.
-    pub fn new(grid: &Grid, centre_in_solid: &[bool], gravity: [f64; 3]) -> SolidExtension {
+    /// Carries `phi` (the particles' φ_L) into the cells `centre_in_solid` marks, `partial`
+    /// (in cell order) saying which of those are partly solid; returns the extension, for
+    /// its transpose.
+    pub fn apply_new(
+        grid: &Grid,
+        centre_in_solid: &[bool],
+        partial: &[PartialSolid],
+        gravity: [f64; 3],
+        phi: &mut [f64],
+    ) -> SolidExtension {
         let g2: f64 = gravity.iter().map(|x| x * x).sum();
-        // A source along axis a weighs 1 − ĝ_a²: across gravity, where a liquid at rest is
+        // A neighbour along axis a weighs 1 − ĝ_a²: across gravity, where a liquid at rest is
         // level; along it only where nothing else is (or without gravity).
         let across: [f64; 3] =
             std::array::from_fn(
                 |a| if g2 > 0.0 { 1.0 - gravity[a] * gravity[a] / g2 } else { 1.0 },
             );
+        debug_assert!(partial.windows(2).all(|w| w[0].cell < w[1].cell));
         let cells = grid.cells();
-        let solid: Vec<u32> = (0..centre_in_solid.len() as u32)
+        let mut solid: Vec<u32> = (0..centre_in_solid.len() as u32)
             .into_par_iter()
             .with_min_len(MIN_LEN)
             .filter(|&c| centre_in_solid[c as usize])
             .collect();
-        let mut out = SolidExtension { starts: vec![0], ..Default::default() };
-        if solid.is_empty() {
-            return out;
+        if !partial.is_empty() {
+            solid.extend(partial.iter().map(|p| p.cell));
+            solid.sort_unstable();
         }
-        // 0: outside the solids (φ from the particles), 1 + l: set in layer l, u8::MAX: not
-        // set yet.
-        const UNSET: u8 = u8::MAX;
-        let mut level: Vec<u8> =
-            centre_in_solid.iter().map(|&s| if s { UNSET } else { 0 }).collect();
-        let mut left = solid;
-        for layer in 0..LAYERS as u8 {
-            // The cells of this layer and their sources, found against the levels before it.
-            let found: Vec<(u32, [u32; 6], [f64; 6], u8)> = left
-                .par_iter()
-                .filter_map(|&c| {
-                    let ci = c as usize;
-                    let ijk = cells.ijk(ci);
-                    let mut src = [0u32; 6];
-                    let mut w = [0.0; 6];
-                    let mut n = 0u8;
-                    for f in 0..6 {
-                        if let Some(nb) = cells.neighbour(ci, ijk, f / 2, f % 2) {
-                            if level[nb] <= layer {
-                                src[n as usize] = nb as u32;
-                                w[n as usize] = across[f / 2];
-                                n += 1;
-                            }
-                        }
+        let s_of = |c: usize| -> f64 {
+            if centre_in_solid[c] {
+                return 1.0;
+            }
+            match partial.binary_search_by_key(&(c as u32), |p| p.cell) {
+                Ok(k) => partial[k].s,
+                Err(_) => 0.0,
+            }
+        };
+        let phi_in: &[f64] = phi;
+        // Layer 0, from the cells outside the solids (by how much they are outside).
+        let layer0: Vec<Set> = solid
+            .par_iter()
+            .with_min_len(MIN_LEN)
+            .map(|&c| {
+                let ci = c as usize;
+                let ijk = cells.ijk(ci);
+                let mut set = Set {
+                    cell: c,
+                    nbr: [NONE; 6],
+                    s_nbr: [1.0; 6],
+                    s: s_of(ci),
+                    z0: 0.0,
+                    t0: 0.0,
+                    mu: 0.0,
+                    e0: 0.0,
+                    z1: 0.0,
+                    t1: 0.0,
+                    nu: 0.0,
+                    e1: 0.0,
+                    raw: phi_in[ci],
+                };
+                for f in 0..6 {
+                    if let Some(nb) = cells.neighbour(ci, ijk, f / 2, f % 2) {
+                        set.nbr[f] = nb as u32;
+                        set.s_nbr[f] = s_of(nb);
+                        set.z0 += (1.0 - set.s_nbr[f]) * across[f / 2];
                     }
-                    let n_us = n as usize;
-                    let total: f64 = w[..n_us].iter().sum();
-                    // Weights below round-off count as none (gravity along an axis).
-                    if total > 1e-9 {
-                        w[..n_us].iter_mut().for_each(|x| *x /= total);
-                    } else {
-                        w[..n_us].iter_mut().for_each(|x| *x = 1.0 / n as f64);
+                }
+                let outside = set.s_nbr.map(|s| 1.0 - s);
+                let w = weights(&set.nbr, &outside, across, set.z0);
+                set.t0 = w.iter().sum();
+                if set.t0 > 0.0 {
+                    set.mu = share(set.t0).0;
+                    set.e0 = (0..6)
+                        .filter(|&f| w[f] > 0.0)
+                        .map(|f| w[f] / set.t0 * phi_in[set.nbr[f] as usize])
+                        .sum();
+                }
+                set
+            })
+            .collect();
+        let find = |c: u32| solid.binary_search(&c).ok();
+        // Layer 1, from the layer-0 means of the cells around (by how much they have one).
+        let mut set: Vec<Set> = layer0
+            .par_iter()
+            .with_min_len(MIN_LEN)
+            .map(|&s0| {
+                let mut set = s0;
+                let kappa: [f64; 6] = std::array::from_fn(|f| {
+                    let nb = set.nbr[f];
+                    match (nb != NONE).then(|| find(nb)).flatten() {
+                        Some(k) => set.s_nbr[f] * layer0[k].mu,
+                        None => 0.0,
                     }
-                    (n > 0).then_some((c, src, w, n))
-                })
-                .collect();
-            if found.is_empty() {
-                break;
-            }
-            for &(c, src, w, n) in &found {
-                level[c as usize] = layer + 1;
-                out.cells.push(c);
-                out.sources.extend_from_slice(&src[..n as usize]);
-                out.weights.extend_from_slice(&w[..n as usize]);
-                out.starts.push(out.sources.len() as u32);
-            }
-            left.retain(|&c| level[c as usize] == UNSET);
+                });
+                set.z1 = (0..6).map(|f| kappa[f] * across[f / 2]).sum();
+                let v = weights(&set.nbr, &kappa, across, set.z1);
+                set.t1 = v.iter().sum();
+                if set.t1 > 0.0 {
+                    set.nu = share(set.t1).0;
+                    set.e1 = (0..6)
+                        .filter(|&f| v[f] > 0.0)
+                        .map(|f| v[f] / set.t1 * layer0[find(set.nbr[f]).expect("a solid cell")].e0)
+                        .sum();
+                }
+                set
+            })
+            .filter(|s| s.mu > 0.0 || s.nu > 0.0)
+            .collect();
+        set.shrink_to_fit();
+        for s in &set {
+            phi[s.cell as usize] = s.value();
         }
-        out
+        SolidExtension { across, set, partial: partial.to_vec() }
     }
 
-    /// The cells set, in the order they are set.
-    pub fn cells(&self) -> &[u32] {
-        &self.cells
+    /// The cells set, in cell order.
+    pub fn cells(&self) -> impl Iterator<Item = usize> + '_ {
+        self.set.iter().map(|s| s.cell as usize)
     }
 
-    /// The cells cell number `i` of [`SolidExtension::cells`] reads, with their weights.
-    fn sources(&self, i: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
-        let r = self.starts[i] as usize..self.starts[i + 1] as usize;
-        self.sources[r.clone()].iter().map(|&s| s as usize).zip(self.weights[r].iter().copied())
-    }
-
-    /// Sets φ of each cell of the extension to the weighted mean of its sources, in order.
-    pub fn apply(&self, phi: &mut [f64]) {
-        for (i, &c) in self.cells.iter().enumerate() {
-            phi[c as usize] = self.sources(i).map(|(s, w)| w * phi[s]).sum();
+    /// The transpose of [`SolidExtension::apply_new`] at the φ it made (`phi`, extended):
+    /// `phi_bar` of the extended φ becomes, in place, that of φ before it; returns ∂L/∂s of
+    /// the partly solid cells it reaches (for [`solidity_pose_adjoint`]).
+    pub fn transpose(&self, phi: &[f64], phi_bar: &mut [f64]) -> Vec<(PartialSolid, f64)> {
+        let n = self.set.len();
+        let find = |c: u32| self.set.binary_search_by_key(&c, |s| s.cell).ok();
+        let raw = |c: u32| find(c).map_or(phi[c as usize], |k| self.set[k].raw);
+        let mut sbar = vec![0.0; self.partial.len()];
+        let mut add_s = |c: u32, x: f64| {
+            if let Ok(k) = self.partial.binary_search_by_key(&c, |p| p.cell) {
+                sbar[k] += x;
+            }
+        };
+        let (mut e0b, mut mub, mut e1b, mut nub) =
+            (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        // φ = (1 − s)·raw + s·X, X = μ·E₀ + (1 − μ)·(ν·E₁ + (1 − ν)·raw).
+        let fb: Vec<f64> =
+            self.set.iter().map(|s| std::mem::take(&mut phi_bar[s.cell as usize])).collect();
+        for (r, s) in self.set.iter().enumerate() {
+            let b = fb[r];
+            if b == 0.0 {
+                continue;
+            }
+            let inner = s.nu * s.e1 + (1.0 - s.nu) * s.raw;
+            let x = s.mu * s.e0 + (1.0 - s.mu) * inner;
+            phi_bar[s.cell as usize] += (1.0 - s.s) * b + s.s * (1.0 - s.mu) * (1.0 - s.nu) * b;
+            add_s(s.cell, (x - s.raw) * b);
+            let xb = s.s * b;
+            e0b[r] += s.mu * xb;
+            mub[r] += (s.e0 - inner) * xb;
+            e1b[r] += (1.0 - s.mu) * s.nu * xb;
+            nub[r] += (1.0 - s.mu) * (s.e1 - s.raw) * xb;
         }
-    }
-
-    /// The transpose of [`SolidExtension::apply`]: `phi_bar` of the extended φ becomes, in
-    /// place, that of φ before it (a cell set carries nothing of its own: its value was
-    /// overwritten).
-    pub fn transpose(&self, phi_bar: &mut [f64]) {
-        for (i, &c) in self.cells.iter().enumerate().rev() {
-            let g = std::mem::take(&mut phi_bar[c as usize]);
-            for (s, w) in self.sources(i) {
-                phi_bar[s] += w * g;
+        // Layer 1: E₁ = Σ v·E₀ₙ / T₁, v = κ·(a + γ₁), κ = s_n·μ_n, ν = min(1, T₁).
+        for (r, s) in self.set.iter().enumerate() {
+            if s.t1 <= 0.0 || (e1b[r] == 0.0 && nub[r] == 0.0) {
+                continue;
+            }
+            let tb = share(s.t1).1 * nub[r];
+            let g1 = gamma(s.z1);
+            let mut gb = 0.0;
+            let mut kb = [0.0; 6];
+            let mut nbk = [usize::MAX; 6];
+            for f in 0..6 {
+                let Some(k) = (s.nbr[f] != NONE).then(|| find(s.nbr[f])).flatten() else {
+                    continue;
+                };
+                let kappa = s.s_nbr[f] * self.set[k].mu;
+                if kappa <= 0.0 {
+                    continue;
+                }
+                nbk[f] = k;
+                let v = kappa * (self.across[f / 2] + g1);
+                e0b[k] += v / s.t1 * e1b[r];
+                let vb = (self.set[k].e0 - s.e1) / s.t1 * e1b[r] + tb;
+                kb[f] += (self.across[f / 2] + g1) * vb;
+                gb += kappa * vb;
+            }
+            let zb = gamma_slope(s.z1) * gb;
+            for f in (0..6).filter(|&f| nbk[f] != usize::MAX) {
+                let k = nbk[f];
+                let kbar = kb[f] + self.across[f / 2] * zb;
+                add_s(s.nbr[f], self.set[k].mu * kbar);
+                mub[k] += s.s_nbr[f] * kbar;
             }
         }
+        // Layer 0: E₀ = Σ w·φₙ / T₀, w = (1 − s_n)·(a + γ), μ = min(1, T₀).
+        for (r, s) in self.set.iter().enumerate() {
+            if s.t0 <= 0.0 || (e0b[r] == 0.0 && mub[r] == 0.0) {
+                continue;
+            }
+            let tb = share(s.t0).1 * mub[r];
+            let g0 = gamma(s.z0);
+            let mut gb = 0.0;
+            let mut ob = [0.0; 6];
+            for f in 0..6 {
+                let o = 1.0 - s.s_nbr[f];
+                if s.nbr[f] == NONE || o <= 0.0 {
+                    continue;
+                }
+                let w = o * (self.across[f / 2] + g0);
+                phi_bar[s.nbr[f] as usize] += w / s.t0 * e0b[r];
+                let wb = (raw(s.nbr[f]) - s.e0) / s.t0 * e0b[r] + tb;
+                ob[f] += (self.across[f / 2] + g0) * wb;
+                gb += o * wb;
+            }
+            let zb = gamma_slope(s.z0) * gb;
+            for f in 0..6 {
+                if s.nbr[f] != NONE && s.s_nbr[f] < 1.0 {
+                    add_s(s.nbr[f], -(ob[f] + self.across[f / 2] * zb));
+                }
+            }
+        }
+        self.partial.iter().zip(sbar).filter(|(_, b)| *b != 0.0).map(|(p, b)| (*p, b)).collect()
     }
+}
+
+/// A layer's weights k_n·(a + γ) over the face neighbours (0 beyond the grid), γ from
+/// `z` = Σ k_n·a.
+fn weights(nbr: &[u32; 6], k: &[f64; 6], across: [f64; 3], z: f64) -> [f64; 6] {
+    let g = gamma(z);
+    std::array::from_fn(
+        |f| {
+            if nbr[f] != NONE && k[f] > 0.0 {
+                k[f] * (across[f / 2] + g)
+            } else {
+                0.0
+            }
+        },
+    )
 }
 
 #[cfg(test)]
@@ -152,62 +409,191 @@ mod tests {
     use crate::geometry::grid::Grid;
     use crate::math::Vec3;
 
-    fn ball_grid() -> (Grid, Vec<bool>) {
+    const R: f64 = 0.32;
+
+    /// A ball of radius `R` about `centre` on a 10³ grid: the cells whose centre is in it and
+    /// those partly so.
+    fn ball(centre: Vec3) -> (Grid, Vec<bool>, Vec<PartialSolid>) {
         let grid = Grid { n: [10, 10, 10], dx: 0.1 };
         let cells = grid.cells();
-        let centre = Vec3::new(0.5, 0.5, 0.5);
-        let solid = (0..grid.num_cells())
-            .map(|c| {
-                let [i, j, k] = cells.ijk(c);
-                (cells.position(i, j, k) - centre).length() < 0.32
-            })
+        let sdf = |c: usize| {
+            let [i, j, k] = cells.ijk(c);
+            (cells.position(i, j, k) - centre).length() - R
+        };
+        let solid = (0..grid.num_cells()).map(|c| sdf(c) < 0.0).collect();
+        let partial = (0..grid.num_cells())
+            .map(|c| (c, solidity(sdf(c), grid.dx)))
+            .filter(|&(_, s)| s > 0.0 && s < 1.0)
+            .map(|(c, s)| PartialSolid { cell: c as u32, body: 0, s })
             .collect();
-        (grid, solid)
+        (grid, solid, partial)
+    }
+
+    fn noise(n: usize, seed: u64) -> Vec<f64> {
+        let mut rng = seed;
+        (0..n)
+            .map(|_| {
+                rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (rng >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+            })
+            .collect()
+    }
+
+    fn height(grid: &Grid, c: usize) -> f64 {
+        let cells = grid.cells();
+        let [i, j, k] = cells.ijk(c);
+        cells.position(i, j, k).y
     }
 
     /// A flat free surface crosses a ball: inside the ball the extension puts it at the
     /// same height (to round-off) wherever a cell reads only neighbours at its own height, and
-    /// never makes a cell above the surface liquid.
+    /// never makes a cell above the surface liquid. Without the ramp (every solid cell fully
+    /// solid) and with it (the particles' φ there is the same flat surface).
     #[test]
     fn flat_surface_continues_through_a_ball() {
-        let (grid, solid) = ball_grid();
-        let cells = grid.cells();
+        let (grid, solid, partial) = ball(Vec3::new(0.5, 0.5, 0.5));
+        assert!(!partial.is_empty());
         let h = 0.52;
-        let height = |c: usize| {
-            let [i, j, k] = cells.ijk(c);
-            cells.position(i, j, k).y
-        };
-        let mut phi: Vec<f64> =
-            (0..grid.num_cells()).map(|c| if solid[c] { 1.0 } else { height(c) - h }).collect();
-        let ext = SolidExtension::new(&grid, &solid, [0.0, -9.81, 0.0]);
-        ext.apply(&mut phi);
-        assert!(!ext.cells().is_empty());
-        for &c in ext.cells() {
-            let c = c as usize;
-            let y = height(c);
-            assert_eq!(phi[c] < 0.0, y < h, "cell at height {y}: φ {}", phi[c]);
+        for partial in [&[][..], &partial[..]] {
+            let mut phi: Vec<f64> = (0..grid.num_cells())
+                .map(|c| if solid[c] { 1.0 } else { height(&grid, c) - h })
+                .collect();
+            if !partial.is_empty() {
+                partial
+                    .iter()
+                    .for_each(|p| phi[p.cell as usize] = height(&grid, p.cell as usize) - h);
+            }
+            let ext =
+                SolidExtension::apply_new(&grid, &solid, partial, [0.0, -9.81, 0.0], &mut phi);
+            assert!(ext.cells().count() > 0);
+            for c in ext.cells() {
+                let y = height(&grid, c);
+                assert_eq!(phi[c] < 0.0, y < h, "cell at height {y}: φ {}", phi[c]);
+            }
         }
     }
 
-    /// ⟨E·a, b⟩ = ⟨a, Eᵀ·b⟩ for random a and b.
+    /// Without partly solid cells the extension is linear in φ: ⟨E·a, b⟩ = ⟨a, Eᵀ·b⟩ for
+    /// random a and b.
     #[test]
     fn transpose_is_the_transpose() {
-        let (grid, solid) = ball_grid();
-        let ext = SolidExtension::new(&grid, &solid, [0.0, -9.81, 0.0]);
+        let (grid, solid, _) = ball(Vec3::new(0.5, 0.5, 0.5));
         let n = grid.num_cells();
-        let mut rng = 12345u64;
-        let mut next = || {
-            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (rng >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-        };
-        let a: Vec<f64> = (0..n).map(|_| next()).collect();
-        let b: Vec<f64> = (0..n).map(|_| next()).collect();
+        let (a, b) = (noise(n, 1), noise(n, 2));
         let mut ea = a.clone();
-        ext.apply(&mut ea);
+        let ext = SolidExtension::apply_new(&grid, &solid, &[], [0.0, -9.81, 0.0], &mut ea);
         let mut etb = b.clone();
-        ext.transpose(&mut etb);
+        assert!(ext.transpose(&ea, &mut etb).is_empty());
         let lhs: f64 = ea.iter().zip(&b).map(|(x, y)| x * y).sum();
         let rhs: f64 = a.iter().zip(&etb).map(|(x, y)| x * y).sum();
         assert!((lhs - rhs).abs() < 1e-12 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+    }
+
+    /// ⟨b, E(φ, s)⟩ with its transpose's ∂/∂φ and ∂/∂s against central differences (1e-6),
+    /// with partly solid cells of every kind (layer 0, layer 1, read by others), and gravity
+    /// along an axis and tilted.
+    #[test]
+    fn transpose_matches_central_differences_in_phi_and_solidity() {
+        for gravity in [[0.0, -9.81, 0.0], [3.0, -9.0, 1.0]] {
+            let (grid, solid, partial) = ball(Vec3::new(0.47, 0.52, 0.49));
+            let n = grid.num_cells();
+            let (phi0, b) = (noise(n, 3), noise(n, 4));
+            let loss = |phi: &[f64], partial: &[PartialSolid]| -> f64 {
+                let mut p = phi.to_vec();
+                SolidExtension::apply_new(&grid, &solid, partial, gravity, &mut p);
+                p.iter().zip(&b).map(|(x, y)| x * y).sum()
+            };
+            let mut ext_phi = phi0.clone();
+            let ext = SolidExtension::apply_new(&grid, &solid, &partial, gravity, &mut ext_phi);
+            let mut phi_bar = b.clone();
+            let sbar = ext.transpose(&ext_phi, &mut phi_bar);
+            let h = 1e-6;
+            let (mut checked, mut reached) = (0, 0);
+            for c in ext.cells().chain(partial.iter().map(|p| p.cell as usize + 1)).take(400) {
+                let (mut up, mut down) = (phi0.clone(), phi0.clone());
+                up[c] += h;
+                down[c] -= h;
+                let fd = (loss(&up, &partial) - loss(&down, &partial)) / (2.0 * h);
+                assert!(
+                    (fd - phi_bar[c]).abs() < 1e-8,
+                    "∂/∂φ at cell {c}: {} against fd {fd}",
+                    phi_bar[c]
+                );
+                checked += 1;
+            }
+            // (Away from the ramp's ends, where s is clamped.)
+            for (k, p) in partial.iter().enumerate().filter(|(_, p)| p.s > 1e-4 && p.s < 1.0 - 1e-4)
+            {
+                let (mut up, mut down) = (partial.clone(), partial.clone());
+                up[k].s += h;
+                down[k].s -= h;
+                let fd = (loss(&phi0, &up) - loss(&phi0, &down)) / (2.0 * h);
+                let adj = sbar.iter().find(|(q, _)| q.cell == p.cell).map_or(0.0, |(_, x)| *x);
+                assert!(
+                    (fd - adj).abs() < 1e-8,
+                    "∂/∂s at cell {} (s {}, gravity {gravity:?}): {adj} against fd {fd}",
+                    p.cell,
+                    p.s
+                );
+                reached += usize::from(fd.abs() > 1e-3);
+            }
+            assert!(checked > 100 && reached > 20, "{checked} φ and {reached} s derivatives");
+        }
+    }
+
+    /// As a ball moves, φ changes continuously: where a cell centre crosses the ball's
+    /// surface or the ramp's outer end, φ's largest change shrinks with the ball's move
+    /// (tenfold for a tenfold smaller move); with the yes/no rule a centre entering the ball
+    /// moves its φ by up to a cell at once, however small the move.
+    #[test]
+    fn phi_is_continuous_as_a_ball_moves() {
+        let grid = Grid { n: [10, 10, 10], dx: 0.1 };
+        let cells = grid.cells();
+        let phi0: Vec<f64> = noise(grid.num_cells(), 5).iter().map(|x| 0.2 * x).collect();
+        let extended = |x: f64, ramp: bool| {
+            let (grid, solid, partial) = ball(Vec3::new(x, 0.5, 0.5));
+            let mut phi = phi0.clone();
+            let partial = if ramp { partial } else { Vec::new() };
+            SolidExtension::apply_new(&grid, &solid, &partial, [0.0, -9.81, 0.0], &mut phi);
+            phi
+        };
+        // Where the ball's surface (or the ramp's end) crosses a centre as the ball's centre
+        // moves along x over 0.45–0.55.
+        let crossings = |r: f64| -> Vec<f64> {
+            (0..grid.num_cells())
+                .flat_map(|c| {
+                    let [i, j, k] = cells.ijk(c);
+                    let p = cells.position(i, j, k);
+                    let r2 = r * r - (p.y - 0.5).powi(2) - (p.z - 0.5).powi(2);
+                    let dx = if r2 > 0.0 { r2.sqrt() } else { f64::NAN };
+                    [p.x - dx, p.x + dx]
+                })
+                .filter(|x| (0.45..0.55).contains(x))
+                .collect()
+        };
+        let (surface, ramp_end) = (crossings(R), crossings(R + RAMP * grid.dx));
+        assert!(
+            surface.len() > 20 && ramp_end.len() > 20,
+            "{} and {}",
+            surface.len(),
+            ramp_end.len()
+        );
+        let largest_jump = |ramp: bool, h: f64| {
+            let at = if ramp { [&surface, &ramp_end] } else { [&surface, &surface] };
+            at.into_iter()
+                .flatten()
+                .map(|&x| {
+                    let (a, b) = (extended(x - h, ramp), extended(x + h, ramp));
+                    a.iter().zip(&b).map(|(p, q)| (p - q).abs()).fold(0.0, f64::max)
+                })
+                .fold(0.0, f64::max)
+        };
+        let (coarse, fine) = (largest_jump(true, 1e-8), largest_jump(true, 1e-9));
+        assert!(fine > 0.0 && fine < 0.15 * coarse, "with the ramp: {coarse} and {fine}");
+        // The steepest slope: the thresholds (1/0.05 each) on the ramp's 1/(RAMP·dx), over
+        // the φ differences of ±0.1 here; the yes/no rule's jump is over a thousand times it.
+        assert!(coarse < 1e-4, "with the ramp: {coarse}");
+        let (coarse, fine) = (largest_jump(false, 1e-8), largest_jump(false, 1e-9));
+        assert!(fine > 1e-2 && fine > 0.5 * coarse, "the yes/no rule jumps: {coarse} and {fine}");
     }
 }

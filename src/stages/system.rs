@@ -11,13 +11,13 @@ use crate::geometry::grid::{Grid, Mac};
 use crate::geometry::seal::Seal;
 use crate::geometry::weights::FaceWeights;
 use crate::math::par::for_each_keyed_mut;
-use crate::math::{twist, Twist};
+use crate::math::{twist, Twist, Vec3};
 use crate::stages::advect::{advect_into, needed_faces, FaceMask};
 use crate::stages::forces::add_gravity;
 use crate::stages::pressure::{
     BodyCoupling, Coupling, Entrained, PressureParams, PressureSystem, ProjectedFace, SystemMemory,
 };
-use crate::stages::solid_phi::SolidExtension;
+use crate::stages::solid_phi::{self, PartialSolid, SolidExtension};
 use rayon::prelude::*;
 
 /// Geometry that does not move: tank walls and obstacles.
@@ -45,6 +45,10 @@ pub struct Geometry {
     pub weights: FaceWeights,
     /// Cells whose centre is inside a static solid or a body.
     pub centre_in_solid: Vec<bool>,
+    /// Cells whose centre is less than [`solid_phi::RAMP`] cells outside a body (and in no
+    /// solid), in cell order: the extension into the solids ramps in over them. Empty
+    /// unless `solver.body_ramp`.
+    pub partial: Vec<PartialSolid>,
     /// Faces covered by each body.
     pub body_faces: Vec<BodyFaces>,
     /// The faces each body seals (empty for a body at least 2 cells thick somewhere).
@@ -58,14 +62,17 @@ pub fn body_faces(grid: &Grid, bodies: &[RigidBody]) -> Vec<BodyFaces> {
 }
 
 impl Geometry {
-    /// The static weights minus each body's fractions `faces` (one per body, in order).
+    /// The static weights minus each body's fractions `faces` (one per body, in order);
+    /// with `ramp`, the cells near the bodies that φ_L ramps into them over
+    /// ([`Geometry::partial`], `solver.body_ramp`).
     pub fn new(
         grid: &Grid,
         statics: &StaticGeometry,
         bodies: &[RigidBody],
         faces: Vec<BodyFaces>,
+        ramp: bool,
     ) -> Geometry {
-        Geometry::new_in(None, grid, statics, bodies, faces)
+        Geometry::new_in(None, grid, statics, bodies, faces, ramp)
     }
 
     /// [`Geometry::new`] into the arrays of a geometry no longer needed (the static weights
@@ -76,37 +83,48 @@ impl Geometry {
         statics: &StaticGeometry,
         bodies: &[RigidBody],
         faces: Vec<BodyFaces>,
+        ramp: bool,
     ) -> Geometry {
         assert_eq!(bodies.len(), faces.len());
-        let (mut weights, mut centre_in_solid) = match old {
-            Some(Geometry { mut weights, mut centre_in_solid, .. })
+        let (mut weights, mut centre_in_solid, mut partial) = match old {
+            Some(Geometry { mut weights, mut centre_in_solid, mut partial, .. })
                 if centre_in_solid.len() == statics.centre_in_solid.len() =>
             {
                 weights.copy_from(&statics.weights);
                 centre_in_solid.copy_from_slice(&statics.centre_in_solid);
-                (weights, centre_in_solid)
+                partial.clear();
+                (weights, centre_in_solid, partial)
             }
-            _ => (statics.weights.clone(), statics.centre_in_solid.clone()),
+            _ => (statics.weights.clone(), statics.centre_in_solid.clone(), Vec::new()),
         };
         let cells = grid.cells();
-        for (b, faces) in bodies.iter().zip(&faces) {
+        for (body, (b, faces)) in bodies.iter().zip(&faces).enumerate() {
             // β is already snapped to 0 or 1 where it is within round-off of them, so
             // w + β = 1 holds exactly on every face a body alone covers.
             weights.subtract(&faces.faces);
             let (lo, hi) = b.bounds();
-            grid.for_cells_in_box(lo, hi, |c, [i, j, k]| {
-                if b.sdf(cells.position(i, j, k)) < 0.0 {
+            let reach = Vec3::splat(if ramp { solid_phi::RAMP * grid.dx } else { 0.0 });
+            grid.for_cells_in_box(lo - reach, hi + reach, |c, [i, j, k]| {
+                let d = b.sdf(cells.position(i, j, k));
+                if d < 0.0 {
                     centre_in_solid[c] = true;
+                } else if ramp && d < solid_phi::RAMP * grid.dx {
+                    let s = solid_phi::solidity(d, grid.dx);
+                    partial.push(PartialSolid { cell: c as u32, body: body as u32, s });
                 }
             });
         }
+        // Per cell the nearest body's, and none in a solid.
+        partial.sort_unstable_by(|a, b| a.cell.cmp(&b.cell).then(b.s.total_cmp(&a.s)));
+        partial.dedup_by_key(|p| p.cell);
+        partial.retain(|p| p.s > 0.0 && !centre_in_solid[p.cell as usize]);
         // Thin bodies seal the faces they cut, once every body's fractions are off.
         let seals: Vec<Seal> =
             bodies.iter().zip(&faces).map(|(b, f)| Seal::new(grid, b, f, &weights)).collect();
         for seal in seals.iter().filter(|s| !s.is_empty()) {
             weights.subtract(&seal.closing());
         }
-        Geometry { weights, centre_in_solid, body_faces: faces, seals }
+        Geometry { weights, centre_in_solid, partial, body_faces: faces, seals }
     }
 
     /// The faces of body `i`'s columns of J: its fractions, and on the faces it seals and
@@ -202,8 +220,13 @@ impl StepSystem {
         params: StepParams,
         memory: SystemMemory,
     ) -> StepSystem {
-        let extension = SolidExtension::new(grid, &geometry.centre_in_solid, params.gravity);
-        extension.apply(&mut phi);
+        let extension = SolidExtension::apply_new(
+            grid,
+            &geometry.centre_in_solid,
+            &geometry.partial,
+            params.gravity,
+            &mut phi,
+        );
         let needed = needed_faces(grid, &phi, &geometry.body_faces);
         let build = if params.solves {
             PressureSystem::build_in

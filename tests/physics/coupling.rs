@@ -16,7 +16,7 @@ use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::Grid;
 use diffluid::geometry::weights::FaceWeights;
 use diffluid::math::Vec3;
-use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
+use diffluid::stages::pressure::{BodyCoupling, GhostFluid, PressureParams, PressureSystem};
 use diffluid::world::step::dt_minv;
 use diffluid::{Scene, Simulation};
 
@@ -70,7 +70,7 @@ fn coupled_operator_is_symmetric() {
         &grid,
         &phi,
         &weights,
-        PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
+        PressureParams { dt: 0.01, density: 1000.0, ghost: GhostFluid::clamped(0.01) },
     );
     let jac = body_jacobian(&grid, &faces, body.x, body.spin());
     sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&body, 0.01)));

@@ -15,7 +15,7 @@ use diffluid::geometry::fractions::face_weights;
 use diffluid::geometry::grid::{dot, Grid, Mac};
 use diffluid::geometry::weights::FaceWeights;
 use diffluid::solvers::{LinearSolve, Preconditioner};
-use diffluid::stages::pressure::{PressureParams, PressureSystem};
+use diffluid::stages::pressure::{GhostFluid, PressureParams, PressureSystem};
 
 fn rough_field(grid: &Grid) -> Mac {
     let mut u = Mac::zeros(grid);
@@ -52,7 +52,7 @@ fn projection_leaves_divergence_at_solver_tolerance() {
         let p = cells.position(i, j, k);
         p.y - (0.45 + 0.05 * (7.0 * p.x).sin() * (5.0 * p.z).cos())
     });
-    let params = PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 };
+    let params = PressureParams { dt: 0.01, density: 1000.0, ghost: GhostFluid::clamped(0.01) };
     let sys = PressureSystem::build(&grid, &phi, &weights, params);
     assert!(sys.has_air && sys.len() > 1000);
     let mut u = rough_field(&grid);

@@ -14,7 +14,7 @@ use diffluid::geometry::fractions::{body_jacobian, face_weights};
 use diffluid::geometry::grid::{Grid, Mac};
 use diffluid::geometry::weights::FaceWeights;
 use diffluid::solvers::{LinearSolve, Preconditioner};
-use diffluid::stages::pressure::{BodyCoupling, PressureParams, PressureSystem};
+use diffluid::stages::pressure::{BodyCoupling, GhostFluid, PressureParams, PressureSystem};
 use diffluid::world::step::{dt_minv, generalized_velocity};
 use diffluid::{Error, Scene, Solve};
 use nalgebra::{DMatrix, DVector};
@@ -41,7 +41,7 @@ fn system(n: [usize; 3], level: f64) -> (PressureSystem, FaceWeights) {
         &grid,
         &phi,
         &weights,
-        PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
+        PressureParams { dt: 0.01, density: 1000.0, ghost: GhostFluid::clamped(0.01) },
     );
     (sys, weights)
 }
@@ -204,7 +204,7 @@ fn coupled_system(n: usize) -> (PressureSystem, Vec<f64>) {
         &grid,
         &phi,
         &weights,
-        PressureParams { dt, density: 1000.0, theta_min: 0.01 },
+        PressureParams { dt, density: 1000.0, ghost: GhostFluid::clamped(0.01) },
     );
     let jac = body_jacobian(&grid, &faces, body.x, body.spin());
     sys.bodies.push(BodyCoupling::new(&sys.row_of_cell, &jac, dt_minv(&body, dt)));

@@ -128,6 +128,7 @@ fn scene() -> impl Strategy<Value = String> {
         2 => prop_oneof![Just(1u64), Just(8), Just(27), Just(5)]
             .prop_map(|v| format!("particles_per_cell = {v}")),
         2 => num(0.0, 0.6).prop_map(|v| format!("theta_min = {v}")),
+        1 => any::<bool>().prop_map(|v| format!("body_ramp = {v}")),
         2 => any::<bool>().prop_map(|v| format!("density_correction = {v}")),
         1 => num(1e-12, 0.5).prop_map(|v| format!("density_tolerance = {v}")),
         1 => hostile().prop_map(|v| format!("density_tolerance = {v}")),

@@ -62,17 +62,16 @@ impl PressureSystem {
                 let (m, pl) = (m.expect("an interior face"), pl.expect("an interior face"));
                 let (l, air) = if sign > 0.0 { (pl, m) } else { (m, pl) };
                 let (pl_, pa) = (phi[l], phi[air]);
-                let raw = pl_ / (pl_ - pa);
-                if raw <= self.params.theta_min {
+                let Some((dl, da)) = self.params.ghost.theta_gradient(pl_, pa) else {
                     continue;
-                }
-                let theta2 = raw * raw;
+                };
+                let theta = self.params.ghost.theta(pl_, pa);
+                let theta2 = theta * theta;
                 // u_f = û_f − k·sign·p_l/θ.
                 let theta_bar = s[r] * scale * weights.weight(a, pf.face as usize) * p[r] / theta2
                     + ubar.c[a][pf.face as usize] * sign * k * p[r] / theta2;
-                let den = (pl_ - pa) * (pl_ - pa);
-                out[l] += theta_bar * (-pa) / den;
-                out[air] += theta_bar * pl_ / den;
+                out[l] += theta_bar * dl;
+                out[air] += theta_bar * da;
             }
         }
         out

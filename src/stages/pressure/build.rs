@@ -124,7 +124,7 @@ impl PressureSystem {
                                     plus[a] = s * w;
                                 }
                             } else {
-                                diag += s * w / ghost_theta(phi[c], phi[n], params.theta_min);
+                                diag += s * w / params.ghost.theta(phi[c], phi[n]);
                                 air = true;
                             }
                         }

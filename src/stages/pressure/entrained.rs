@@ -23,7 +23,7 @@ use crate::geometry::seal::Seal;
 use crate::math::dual::Dual;
 use crate::math::{comp, unit, TwistParts, Vec3};
 
-use super::{ghost_theta, PressureParams};
+use super::{GhostFluid, PressureParams};
 
 /// One face whose liquid moves with the body.
 #[derive(Clone, Copy, Debug)]
@@ -141,7 +141,7 @@ impl Entrained {
             for sf in seal.faces[axis].iter().filter(|s| s.crossed) {
                 let ijk = lat.ijk(sf.face);
                 let (Some(m), Some(p)) = grid.face_cells(axis, ijk) else { continue };
-                let lambda = liquid_fraction(phi[m], phi[p], params.theta_min);
+                let lambda = liquid_fraction(phi[m], phi[p], params.ghost);
                 if lambda <= 0.0 {
                     continue;
                 }
@@ -273,7 +273,7 @@ impl Entrained {
         v_new: &[f64; 6],
         u: &Mac,
         phi: &[f64],
-        theta_min: f64,
+        ghost: GhostFluid,
         out: &mut [f64],
     ) {
         let dm = self.mass_adjoint(y, v_new, u);
@@ -286,14 +286,13 @@ impl Entrained {
                 _ => continue,
             };
             let (pl, pa) = (phi[l], phi[a]);
-            if pl / (pl - pa) <= theta_min {
+            let Some((dl, da)) = ghost.theta_gradient(pl, pa) else {
                 continue;
-            }
+            };
             // m = ρ·s·λ·dx³: ∂m/∂λ = m/λ (λ > 0 on every entrained face).
             let lbar = g * f.mass / f.lambda;
-            let den = (pl - pa) * (pl - pa);
-            out[l] += lbar * (-pa) / den;
-            out[a] += lbar * pl / den;
+            out[l] += lbar * dl;
+            out[a] += lbar * da;
         }
     }
 }
@@ -301,11 +300,11 @@ impl Entrained {
 /// The liquid fraction of a face between cells of φ_L `a` and `b`: 1 between liquid cells,
 /// the ghost-fluid θ (clamped below as the solve clamps it) from a liquid cell to air, 0
 /// between air cells.
-fn liquid_fraction(a: f64, b: f64, theta_min: f64) -> f64 {
+fn liquid_fraction(a: f64, b: f64, ghost: GhostFluid) -> f64 {
     match (a < 0.0, b < 0.0) {
         (true, true) => 1.0,
-        (true, false) => ghost_theta(a, b, theta_min),
-        (false, true) => ghost_theta(b, a, theta_min),
+        (true, false) => ghost.theta(a, b),
+        (false, true) => ghost.theta(b, a),
         (false, false) => 0.0,
     }
 }

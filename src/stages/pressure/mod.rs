@@ -108,8 +108,8 @@ pub struct PressureParams {
     pub dt: f64,
     /// Liquid density.
     pub density: f64,
-    /// Lower clamp on θ.
-    pub theta_min: f64,
+    /// The ghost-fluid θ at the free surface.
+    pub ghost: GhostFluid,
 }
 
 /// The assembled (matrix-free) pressure system of one step.
@@ -152,11 +152,45 @@ pub struct ProjectedFace {
 
 const _: () = assert!(std::mem::size_of::<ProjectedFace>() == 20);
 
-/// Ghost-fluid fraction of a liquid–air face: where φ_L crosses zero between the centres,
-/// measured from the liquid side, clamped below.
-#[inline]
-pub fn ghost_theta(phi_liquid: f64, phi_air: f64, theta_min: f64) -> f64 {
-    (phi_liquid / (phi_liquid - phi_air)).max(theta_min)
+/// The ghost-fluid fraction θ of a liquid–air face (Gibou et al. 2002): where φ_L crosses zero
+/// between the two centres, measured from the liquid side, θ = φ_l/(φ_l − φ_a), clamped below
+/// at `theta_min`. Its derivative in φ grows without bound as both cells near φ = 0; a floor
+/// on the denominator (max(φ_a − φ_l, dx/2)) bounds it, but made the surge rougher, not
+/// smoother (docs/gradients.md, "The density projection's interior").
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GhostFluid {
+    /// Lower clamp on θ.
+    pub theta_min: f64,
+}
+
+impl GhostFluid {
+    /// θ clamped at `theta_min`.
+    pub const fn clamped(theta_min: f64) -> GhostFluid {
+        GhostFluid { theta_min }
+    }
+
+    /// θ before its clamp.
+    #[inline]
+    fn raw(&self, phi_liquid: f64, phi_air: f64) -> f64 {
+        -phi_liquid / (phi_air - phi_liquid)
+    }
+
+    /// θ of a face from a liquid cell at `phi_liquid` (< 0) to an air cell at `phi_air`.
+    #[inline]
+    pub fn theta(&self, phi_liquid: f64, phi_air: f64) -> f64 {
+        self.raw(phi_liquid, phi_air).max(self.theta_min)
+    }
+
+    /// (∂θ/∂φ_l, ∂θ/∂φ_a), or `None` where θ sits at its clamp (no derivative).
+    #[inline]
+    pub fn theta_gradient(&self, phi_liquid: f64, phi_air: f64) -> Option<(f64, f64)> {
+        if self.raw(phi_liquid, phi_air) <= self.theta_min {
+            return None;
+        }
+        let den = phi_air - phi_liquid;
+        let den2 = den * den;
+        Some((-phi_air / den2, phi_liquid / den2))
+    }
 }
 
 /// Calls `visit(face, − cell, + cell)` for the open faces (weight > 0) of `axis` in slab k of
@@ -243,7 +277,7 @@ mod tests {
             &grid,
             &phi,
             &weights,
-            PressureParams { dt: 0.01, density: 1000.0, theta_min: 0.01 },
+            PressureParams { dt: 0.01, density: 1000.0, ghost: GhostFluid::clamped(0.01) },
         );
         (sys, phi, weights)
     }

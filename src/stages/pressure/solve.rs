@@ -204,15 +204,11 @@ impl PressureSystem {
         phi: &[f64],
     ) -> Option<FaceGradient> {
         let (rm, rp) = (self.row_of_cell[m], self.row_of_cell[pl]);
-        let tmin = self.params.theta_min;
+        let ghost = self.params.ghost;
         match (rm != NONE, rp != NONE) {
             (true, true) => Some(FaceGradient { rm, rp, c: 1.0 }),
-            (true, false) => {
-                Some(FaceGradient { rm, rp, c: 1.0 / ghost_theta(phi[m], phi[pl], tmin) })
-            }
-            (false, true) => {
-                Some(FaceGradient { rm, rp, c: 1.0 / ghost_theta(phi[pl], phi[m], tmin) })
-            }
+            (true, false) => Some(FaceGradient { rm, rp, c: 1.0 / ghost.theta(phi[m], phi[pl]) }),
+            (false, true) => Some(FaceGradient { rm, rp, c: 1.0 / ghost.theta(phi[pl], phi[m]) }),
             (false, false) => None,
         }
     }

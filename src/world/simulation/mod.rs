@@ -580,7 +580,8 @@ impl Simulation {
         bodies: &[RigidBody],
         faces: Vec<fractions::BodyFaces>,
     ) -> Geometry {
-        Geometry::new_in(self.spare.geometry(), &self.grid, &self.statics, bodies, faces)
+        let ramp = self.settings.solver.body_ramp;
+        Geometry::new_in(self.spare.geometry(), &self.grid, &self.statics, bodies, faces, ramp)
     }
 
     /// The arrays the last step (or step adjoint) left to build into.
