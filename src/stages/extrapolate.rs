@@ -207,8 +207,8 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
 /// indices `sources` lists in increasing order (as `key` reads an entry): the same bits as
 /// `extrapolate(field, valid, lat, 1)` followed by zeroing the faces `closed` holds, with
 /// only the sources' neighbours visited instead of passes over the lattice. A z-slab a task;
-/// each face of the front is written once, by its first valid neighbour in the order of
-/// [`neighbours`].
+/// each open face of the front is written once, by its first valid neighbour in the order
+/// of [`neighbours`] (a closed one is zero already).
 pub fn extrapolate_one_layer<E: Sync>(
     field: &mut [f64],
     valid: &[u8],
@@ -232,19 +232,17 @@ pub fn extrapolate_one_layer<E: Sync>(
                 (at(first.saturating_sub(slab)), at(first), at(last), at(last + slab));
             let mut front = Vec::new();
             // Face m of the slab next to source p, not valid: set from its valid neighbours, by
-            // the first.
+            // the first, unless it is closed (zero already).
             let mut visit = |p: usize, m: usize| {
-                let mut nb = [0usize; 6];
-                let n = neighbours(lat, m, |x| valid[x] != 0, &mut nb);
-                if nb[0] != p {
+                if closed(m) {
                     return;
                 }
-                let value = if closed(m) {
-                    0.0
-                } else {
-                    nb[..n].iter().map(|&x| src[x]).sum::<f64>() / n as f64
-                };
-                front.push((m - first, value));
+                let mut nb = [0usize; 6];
+                let n = neighbours(lat, m, |x| valid[x] != 0, &mut nb);
+                if nb[0] == p {
+                    let mean = nb[..n].iter().map(|&x| src[x]).sum::<f64>() / n as f64;
+                    front.push((m - first, mean));
+                }
             };
             // The sources of the slab below and above reach it along z only.
             for e in &sources[below..from] {
