@@ -286,8 +286,10 @@ pub fn update(
     let kept: Vec<u32> =
         (0..before as u32).into_par_iter().filter(|&p| !gone[p as usize]).collect();
     // In place (the kept indices increase, so each moves down or stays): a second vector
-    // of the particles would double their memory at the step's peak.
-    for (i, &p) in kept.iter().enumerate() {
+    // of the particles would double their memory at the step's peak. Those before the first
+    // one gone stay where they are.
+    let first_gone = gone.iter().position(|&g| g).unwrap_or(before);
+    for (i, &p) in kept.iter().enumerate().skip(first_gone) {
         particles[i] = particles[p as usize];
     }
     particles.truncate(kept.len());
