@@ -368,17 +368,42 @@ impl DensityProjection {
         };
         let extension = SolidExtension::new(grid, g.centre_in_solid, g.gravity);
         extension.apply(&mut phi);
-        let base = g.band.map(|b| b.density.as_slice());
-        let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
         let params = PressureParams { dt: 1.0, density: 1.0, theta_min: g.theta_min };
         let memory = g.systems.map(SystemPool::take).unwrap_or_default();
         let mut closed = g.band.filter(|b| b.deep.par_iter().any(|&d| d)).map(|b| {
             g.weights.close_faces(|a, kind, shut| closed_at_deep(grid, a, &b.deep, kind, shut))
         });
         let weights = closed.as_ref().unwrap_or(g.weights);
-        let mut sys = PressureSystem::build_in(memory, grid, &phi, weights, params);
-        let mut interior = interior_weights(&sys, &phi, g);
-        if closed.is_some() && !excess_reaches_air(&sys, weights, &phi, &dens, &interior, g) {
+        // The deposit beside the operator's build, which reads φ only: the deposit's loops
+        // keep two threads busy, the build's passes less so.
+        let base = g.band.map(|b| b.density.as_slice());
+        let (dens, mut sys) = rayon::join(
+            || surface::particle_density(particles, grid, g.particles_per_cell, base),
+            || PressureSystem::build_in(memory, grid, &phi, weights, params),
+        );
+        // When a row is over full the solve will come (unless the excess has no way to the
+        // air, rare): its preconditioner is factored beside the interior weights and that
+        // check, which do not read it (neither keeps two threads busy alone). The same
+        // factoring as the solve's own, so the same bits.
+        let over_full =
+            sys.cell_of_row.par_iter().with_min_len(crate::math::par::MIN_LEN).any(|&c| {
+                let c = c as usize;
+                g.counts_excess(c) && excess(dens[c], 0.0) > 0.0
+            });
+        let ((), (mut interior, reaches)) = rayon::join(
+            || {
+                if over_full {
+                    sys.prepare(&g.solve);
+                }
+            },
+            || {
+                let interior = interior_weights(&sys, &phi, g);
+                let reaches = closed.is_none()
+                    || excess_reaches_air(&sys, weights, &phi, &dens, &interior, g);
+                (interior, reaches)
+            },
+        );
+        if !reaches {
             // Some excess has no way to the air but through the deep cells: the whole liquid's
             // operator, as without a band.
             closed = None;
