@@ -258,42 +258,55 @@ pub fn update(
         .par_iter()
         .map(|&c| trade(c, band, &deep, &bins, particles, u, dt, grid, &off, unit, &admit))
         .collect();
-    // Deletions: everything in a deep cell, and what the deep cells take in, in cell order
-    // (a particle two cells would take goes to the first; the other keeps its debt).
-    let mut gone = vec![false; particles.len()];
-    for c in (0..deep.len()).filter(|&c| deep[c]) {
-        bins.cell(c).iter().for_each(|&p| gone[p as usize] = true);
-    }
-    let before = particles.len();
-    let mut added = 0;
-    let mut seeded = Vec::new();
-    for (&c, t) in trading.iter().zip(work) {
-        let mut owed = t.owed;
-        for p in t.take {
-            if owed > -0.5 * unit {
-                break;
+    // The particles' trades and their compaction beside the deep cells' deposit, which
+    // reads the new deep cells only (neither keeps two threads busy alone).
+    let (owed_of, sent_of, density) = (&mut band.owed, &mut band.sent, &mut band.density);
+    let deep_ref = &deep;
+    let ((before, kept, added), ()) = rayon::join(
+        || {
+            let deep = deep_ref;
+            // Deletions: everything in a deep cell, and what the deep cells take in, in cell
+            // order (a particle two cells would take goes to the first; the other keeps its
+            // debt).
+            let mut gone = vec![false; particles.len()];
+            for c in (0..deep.len()).filter(|&c| deep[c]) {
+                bins.cell(c).iter().for_each(|&p| gone[p as usize] = true);
             }
-            if !gone[p as usize] {
-                gone[p as usize] = true;
-                owed += unit;
+            let before = particles.len();
+            let mut added = 0;
+            let mut seeded = Vec::new();
+            for (&c, t) in trading.iter().zip(work) {
+                let mut owed = t.owed;
+                for p in t.take {
+                    if owed > -0.5 * unit {
+                        break;
+                    }
+                    if !gone[p as usize] {
+                        gone[p as usize] = true;
+                        owed += unit;
+                    }
+                }
+                owed_of[c] = owed;
+                sent_of[c] = t.sent;
+                added += t.add.len();
+                seeded.extend(t.add);
             }
-        }
-        band.owed[c] = owed;
-        band.sent[c] = t.sent;
-        added += t.add.len();
-        seeded.extend(t.add);
-    }
-    let kept: Vec<u32> =
-        (0..before as u32).into_par_iter().filter(|&p| !gone[p as usize]).collect();
-    // In place (the kept indices increase, so each moves down or stays): a second vector
-    // of the particles would double their memory at the step's peak.
-    for (i, &p) in kept.iter().enumerate() {
-        particles[i] = particles[p as usize];
-    }
-    particles.truncate(kept.len());
-    particles.reserve_exact(seeded.len());
-    particles.extend(seeded);
-    full_density_into(grid, &deep, m, &mut band.density);
+            let kept: Vec<u32> =
+                (0..before as u32).into_par_iter().filter(|&p| !gone[p as usize]).collect();
+            // In place (the kept indices increase, so each moves down or stays): a second
+            // vector of the particles would double their memory at the step's peak. Those
+            // before the first one gone stay where they are.
+            let first_gone = gone.iter().position(|&g| g).unwrap_or(before);
+            for (i, &p) in kept.iter().enumerate().skip(first_gone) {
+                particles[i] = particles[p as usize];
+            }
+            particles.truncate(kept.len());
+            particles.reserve_exact(seeded.len());
+            particles.extend(seeded);
+            (before, kept, added)
+        },
+        || full_density_into(grid, deep_ref, m, density),
+    );
     band.deep = deep;
     BandChange { before, kept, added }
 }

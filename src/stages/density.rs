@@ -52,7 +52,7 @@ use crate::math::{Twist, Vec3};
 use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
 use crate::stages::band::Band;
-use crate::stages::extrapolate::{correct_velocity, correct_velocity_adjoint};
+use crate::stages::extrapolate::{correct_velocity_adjoint, extrapolate_one_layer};
 use crate::stages::pressure::{
     has_open_face, GhostFluid, PressureParams, PressureSystem, SystemPool,
 };
@@ -372,17 +372,42 @@ impl DensityProjection {
         };
         let extension =
             SolidExtension::apply_new(grid, g.centre_in_solid, g.partial, g.gravity, &mut phi);
-        let base = g.band.map(|b| b.density.as_slice());
-        let dens = surface::particle_density(particles, grid, g.particles_per_cell, base);
         let params = PressureParams { dt: 1.0, density: 1.0, ghost: g.ghost };
         let memory = g.systems.map(SystemPool::take).unwrap_or_default();
         let mut closed = g.band.filter(|b| b.deep.par_iter().any(|&d| d)).map(|b| {
             g.weights.close_faces(|a, kind, shut| closed_at_deep(grid, a, &b.deep, kind, shut))
         });
         let weights = closed.as_ref().unwrap_or(g.weights);
-        let mut sys = PressureSystem::build_in(memory, grid, &phi, weights, params);
-        let mut interior = interior_weights(&sys, &phi, g);
-        if closed.is_some() && !excess_reaches_air(&sys, weights, &phi, &dens, &interior, g) {
+        // The deposit beside the operator's build, which reads φ only: the deposit's loops
+        // keep two threads busy, the build's passes less so.
+        let base = g.band.map(|b| b.density.as_slice());
+        let (dens, mut sys) = rayon::join(
+            || surface::particle_density(particles, grid, g.particles_per_cell, base),
+            || PressureSystem::build_in(memory, grid, &phi, weights, params),
+        );
+        // When a row is over full the solve will come (unless the excess has no way to the
+        // air, rare): its preconditioner is factored beside the interior weights and that
+        // check, which do not read it (neither keeps two threads busy alone). The same
+        // factoring as the solve's own, so the same bits.
+        let over_full =
+            sys.cell_of_row.par_iter().with_min_len(crate::math::par::MIN_LEN).any(|&c| {
+                let c = c as usize;
+                g.counts_excess(c) && excess(dens[c], 0.0) > 0.0
+            });
+        let ((), (mut interior, reaches)) = rayon::join(
+            || {
+                if over_full {
+                    sys.prepare(&g.solve);
+                }
+            },
+            || {
+                let interior = interior_weights(&sys, &phi, g);
+                let reaches = closed.is_none()
+                    || excess_reaches_air(&sys, weights, &phi, &dens, &interior, g);
+                (interior, reaches)
+            },
+        );
+        if !reaches {
             // Some excess has no way to the air but through the deep cells: the whole liquid's
             // operator, as without a band.
             closed = None;
@@ -463,14 +488,43 @@ impl DensityProjection {
 
     /// The displacement field of potential `q` and the faces it was projected on.
     pub fn displacement(&self, q: &[f64], g: &DensityInputs<'_>) -> Displacement {
-        // Every face is written: those of the rows by the update, the rest by the
-        // extrapolation (its layer, or zero), so the field need not be zeroed first.
+        // C(−G q) with one layer: zero, then the faces of the rows by the update, then the
+        // layer from their neighbours only, zero on the faces the operator is closed at (the
+        // inputs' closed faces, and every face of a deep cell: the closed weights' zeros,
+        // without reading them). The same bits as `correct_velocity` and `closed_at_deep`
+        // (`displacement_by_passes` in the tests), without their passes over the lattices.
+        let mut d = g.field();
+        for c in &mut d.c {
+            c.par_chunks_mut(crate::math::par::MIN_LEN).for_each(|c| c.fill(0.0));
+        }
+        let valid0 = self.sys.velocity_update_into(q, &mut d);
+        let grid = g.grid;
+        let deep = self
+            .deep_closed
+            .then(|| &g.band.expect("a projection closed at deep cells has a band").deep);
+        for (a, field) in d.c.iter_mut().enumerate() {
+            let lat = grid.faces(a);
+            let closed = |f: usize| {
+                g.weights.closed(a, f)
+                    || deep.is_some_and(|deep| {
+                        let (m, p) = grid.face_cells(a, lat.ijk(f));
+                        m.is_some_and(|c| deep[c]) || p.is_some_and(|c| deep[c])
+                    })
+            };
+            let face = |pf: &crate::stages::pressure::ProjectedFace| pf.face as usize;
+            extrapolate_one_layer(field, &valid0[a], &self.sys.faces[a], face, &lat, closed);
+        }
+        Displacement { d, valid0 }
+    }
+
+    /// [`DensityProjection::displacement`] as it was computed before (whole-lattice
+    /// passes): the reference its bits are checked against.
+    #[cfg(test)]
+    fn displacement_by_passes(&self, q: &[f64], g: &DensityInputs<'_>) -> Displacement {
         let mut d = g.field();
         let valid0 = self.sys.velocity_update_into(q, &mut d);
         let mut valid = valid0.clone();
-        // Zero on the faces the operator is closed at: the inputs' closed faces here, and
-        // every face of a deep cell next (the closed weights' zeros, without reading them).
-        correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
+        crate::stages::extrapolate::correct_velocity(&mut d, &mut valid, g.weights, g.grid, 1);
         if self.deep_closed {
             let deep = &g.band.expect("a projection closed at deep cells has a band").deep;
             for (a, field) in d.c.iter_mut().enumerate() {
@@ -934,6 +988,45 @@ mod tests {
             assert!(x.iter().zip(y).all(|(x, y)| x.to_bits() == y.to_bits()), "axis {a}");
         }
         assert_eq!(over.valid0, on_zeros.valid0);
+    }
+
+    /// The displacement by the sources' neighbours (`extrapolate_one_layer`) is the one by
+    /// passes over the lattices (`correct_velocity`, then `closed_at_deep`), to the bit:
+    /// without a band, closed at the deep cells, and sealed off by them (the whole liquid's
+    /// operator with a band), each over a kept field that holds NaN and garbage.
+    #[test]
+    fn displacement_is_the_one_by_passes() {
+        let bottom: fn([usize; 3]) -> bool =
+            |[i, j, k]| j == 0 && (1..7).contains(&i) && (1..5).contains(&k);
+        let layer: fn([usize; 3]) -> bool = |[_, j, _]| j == 1;
+        for (deep, closed) in [(None, false), (Some(bottom), true), (Some(layer), false)] {
+            let pool = SqueezedPool::new(deep);
+            let fresh = pool.inputs();
+            let proj = DensityProjection::build(&pool.particles, &fresh).expect("over full");
+            assert_eq!(proj.deep_closed, closed);
+            let (q, _) = proj.solve(&fresh, 1).unwrap();
+            let by_passes = proj.displacement_by_passes(&q, &fresh);
+            let systems = SystemPool::default();
+            let mut dirty = by_passes.d.clone();
+            for (a, c) in dirty.c.iter_mut().enumerate() {
+                c.iter_mut().enumerate().for_each(|(f, x)| {
+                    *x = if (f + a) % 3 == 0 { f64::NAN } else { 1e3 * *x - 1.0 }
+                });
+            }
+            systems.keep_field(dirty);
+            let kept = DensityInputs { systems: Some(&systems), ..pool.inputs() };
+            let sparse = proj.displacement(&q, &kept);
+            let layer: usize = (0..3)
+                .map(|a| {
+                    let (x, y) = (&sparse.d.c[a], &by_passes.d.c[a]);
+                    assert!(x.iter().zip(y).all(|(x, y)| x.to_bits() == y.to_bits()), "axis {a}");
+                    let v = &by_passes.valid0[a];
+                    x.iter().zip(v).filter(|&(&x, &v)| v == 0 && x != 0.0).count()
+                })
+                .sum();
+            assert!(layer > 10, "the layer is set ({layer} faces)");
+            assert_eq!(sparse.valid0, by_passes.valid0);
+        }
     }
 
     /// Deep cells that seal over-full band cells off from the air (a whole layer of them
