@@ -239,15 +239,8 @@ impl SolidExtension {
                     }
                 }
                 let outside = set.s_nbr.map(|s| 1.0 - s);
-                let w = weights(&set.nbr, &outside, across, set.z0);
-                set.t0 = w.iter().sum();
-                if set.t0 > 0.0 {
-                    set.mu = share(set.t0).0;
-                    set.e0 = (0..6)
-                        .filter(|&f| w[f] > 0.0)
-                        .map(|f| w[f] / set.t0 * phi_in[set.nbr[f] as usize])
-                        .sum();
-                }
+                let l = Layer::new(outside, set.z0, across, |f| phi_in[set.nbr[f] as usize]);
+                (set.t0, set.mu, set.e0) = (l.t, share(l.t).0, l.mean);
                 set
             })
             .collect();
@@ -266,15 +259,10 @@ impl SolidExtension {
                     }
                 });
                 set.z1 = (0..6).map(|f| kappa[f] * across[f / 2]).sum();
-                let v = weights(&set.nbr, &kappa, across, set.z1);
-                set.t1 = v.iter().sum();
-                if set.t1 > 0.0 {
-                    set.nu = share(set.t1).0;
-                    set.e1 = (0..6)
-                        .filter(|&f| v[f] > 0.0)
-                        .map(|f| v[f] / set.t1 * layer0[find(set.nbr[f]).expect("a solid cell")].e0)
-                        .sum();
-                }
+                let l = Layer::new(kappa, set.z1, across, |f| {
+                    layer0[find(set.nbr[f]).expect("a solid cell")].e0
+                });
+                (set.t1, set.nu, set.e1) = (l.t, share(l.t).0, l.mean);
                 set
             })
             .filter(|s| s.mu > 0.0 || s.nu > 0.0)
@@ -324,83 +312,94 @@ impl SolidExtension {
             e1b[r] += (1.0 - s.mu) * s.nu * xb;
             nub[r] += (1.0 - s.mu) * (s.e1 - s.raw) * xb;
         }
-        // Layer 1: E₁ = Σ v·E₀ₙ / T₁, v = κ·(a + γ₁), κ = s_n·μ_n, ν = min(1, T₁).
+        // Layer 1 (k = κ = s_n·μ_n of the neighbours' E₀), then layer 0 (k = 1 − s_n of
+        // their φ).
         for (r, s) in self.set.iter().enumerate() {
             if s.t1 <= 0.0 || (e1b[r] == 0.0 && nub[r] == 0.0) {
                 continue;
             }
-            let tb = share(s.t1).1 * nub[r];
-            let g1 = gamma(s.z1);
-            let mut gb = 0.0;
-            let mut kb = [0.0; 6];
-            let mut nbk = [usize::MAX; 6];
-            for f in 0..6 {
-                let Some(k) = (s.nbr[f] != NONE).then(|| find(s.nbr[f])).flatten() else {
-                    continue;
-                };
-                let kappa = s.s_nbr[f] * self.set[k].mu;
-                if kappa <= 0.0 {
-                    continue;
-                }
-                nbk[f] = k;
-                let v = kappa * (self.across[f / 2] + g1);
-                e0b[k] += v / s.t1 * e1b[r];
-                let vb = (self.set[k].e0 - s.e1) / s.t1 * e1b[r] + tb;
-                kb[f] += (self.across[f / 2] + g1) * vb;
-                gb += kappa * vb;
-            }
-            let zb = gamma_slope(s.z1) * gb;
-            for f in (0..6).filter(|&f| nbk[f] != usize::MAX) {
-                let k = nbk[f];
-                let kbar = kb[f] + self.across[f / 2] * zb;
-                add_s(s.nbr[f], self.set[k].mu * kbar);
-                mub[k] += s.s_nbr[f] * kbar;
+            let nbk: [Option<usize>; 6] =
+                std::array::from_fn(|f| (s.nbr[f] != NONE).then(|| find(s.nbr[f])).flatten());
+            let kappa =
+                std::array::from_fn(|f| nbk[f].map_or(0.0, |k| s.s_nbr[f] * self.set[k].mu));
+            let vals = std::array::from_fn(|f| nbk[f].map_or(0.0, |k| self.set[k].e0));
+            let layer = Layer { k: kappa, z: s.z1, t: s.t1, mean: s.e1 };
+            let (vb, kb) = layer.adjoint(self.across, &vals, e1b[r], nub[r]);
+            for f in (0..6).filter(|&f| kappa[f] > 0.0) {
+                let k = nbk[f].expect("a set cell");
+                e0b[k] += vb[f];
+                add_s(s.nbr[f], self.set[k].mu * kb[f]);
+                mub[k] += s.s_nbr[f] * kb[f];
             }
         }
-        // Layer 0: E₀ = Σ w·φₙ / T₀, w = (1 − s_n)·(a + γ), μ = min(1, T₀).
         for (r, s) in self.set.iter().enumerate() {
             if s.t0 <= 0.0 || (e0b[r] == 0.0 && mub[r] == 0.0) {
                 continue;
             }
-            let tb = share(s.t0).1 * mub[r];
-            let g0 = gamma(s.z0);
-            let mut gb = 0.0;
-            let mut ob = [0.0; 6];
-            for f in 0..6 {
-                let o = 1.0 - s.s_nbr[f];
-                if s.nbr[f] == NONE || o <= 0.0 {
-                    continue;
-                }
-                let w = o * (self.across[f / 2] + g0);
-                phi_bar[s.nbr[f] as usize] += w / s.t0 * e0b[r];
-                let wb = (raw(s.nbr[f]) - s.e0) / s.t0 * e0b[r] + tb;
-                ob[f] += (self.across[f / 2] + g0) * wb;
-                gb += o * wb;
-            }
-            let zb = gamma_slope(s.z0) * gb;
-            for f in 0..6 {
-                if s.nbr[f] != NONE && s.s_nbr[f] < 1.0 {
-                    add_s(s.nbr[f], -(ob[f] + self.across[f / 2] * zb));
-                }
+            let outside = s.s_nbr.map(|x| 1.0 - x);
+            let vals = std::array::from_fn(|f| if outside[f] > 0.0 { raw(s.nbr[f]) } else { 0.0 });
+            let layer = Layer { k: outside, z: s.z0, t: s.t0, mean: s.e0 };
+            let (vb, kb) = layer.adjoint(self.across, &vals, e0b[r], mub[r]);
+            for f in (0..6).filter(|&f| outside[f] > 0.0) {
+                phi_bar[s.nbr[f] as usize] += vb[f];
+                add_s(s.nbr[f], -kb[f]);
             }
         }
         self.partial.iter().zip(sbar).filter(|(_, b)| *b != 0.0).map(|(p, b)| (*p, b)).collect()
     }
 }
 
-/// A layer's weights k_n·(a + γ) over the face neighbours (0 beyond the grid), γ from
-/// `z` = Σ k_n·a.
-fn weights(nbr: &[u32; 6], k: &[f64; 6], across: [f64; 3], z: f64) -> [f64; 6] {
-    let g = gamma(z);
-    std::array::from_fn(
-        |f| {
-            if nbr[f] != NONE && k[f] > 0.0 {
-                k[f] * (across[f / 2] + g)
-            } else {
-                0.0
-            }
-        },
-    )
+/// One layer's mean of a cell: m = Σ w·v / T over the face neighbours with the weights
+/// w = k·(a + γ(z)) (k = 0 beyond the grid), z = Σ k·a, T = Σ w (m = 0 where T is), and its
+/// share from T.
+struct Layer {
+    k: [f64; 6],
+    z: f64,
+    t: f64,
+    mean: f64,
+}
+
+impl Layer {
+    /// The mean of the neighbours' values `v(face)`, read only where their weight is positive.
+    fn new(k: [f64; 6], z: f64, across: [f64; 3], v: impl Fn(usize) -> f64) -> Layer {
+        let g = gamma(z);
+        let w: [f64; 6] =
+            std::array::from_fn(|f| if k[f] > 0.0 { k[f] * (across[f / 2] + g) } else { 0.0 });
+        let t: f64 = w.iter().sum();
+        let mean = if t > 0.0 {
+            (0..6).filter(|&f| w[f] > 0.0).map(|f| w[f] / t * v(f)).sum()
+        } else {
+            0.0
+        };
+        Layer { k, z, t, mean }
+    }
+
+    /// Given ∂L/∂m (`mean_bar`) and ∂L/∂share (`share_bar`), ∂L/∂v and ∂L/∂k per face for
+    /// the neighbours' values `v`.
+    fn adjoint(
+        &self,
+        across: [f64; 3],
+        v: &[f64; 6],
+        mean_bar: f64,
+        share_bar: f64,
+    ) -> ([f64; 6], [f64; 6]) {
+        let tb = share(self.t).1 * share_bar;
+        let g = gamma(self.z);
+        let (mut vb, mut kb) = ([0.0; 6], [0.0; 6]);
+        let mut gb = 0.0;
+        for f in (0..6).filter(|&f| self.k[f] > 0.0) {
+            let a = across[f / 2] + g;
+            vb[f] = self.k[f] * a / self.t * mean_bar;
+            let wb = (v[f] - self.mean) / self.t * mean_bar + tb;
+            kb[f] = a * wb;
+            gb += self.k[f] * wb;
+        }
+        let zb = gamma_slope(self.z) * gb;
+        for f in (0..6).filter(|&f| self.k[f] > 0.0) {
+            kb[f] += across[f / 2] * zb;
+        }
+        (vb, kb)
+    }
 }
 
 #[cfg(test)]
