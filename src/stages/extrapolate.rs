@@ -208,7 +208,7 @@ pub fn extrapolate(field: &mut [f64], valid: &mut [u8], lat: &Lattice, layers: u
 /// `extrapolate(field, valid, lat, 1)` followed by zeroing the faces `closed` holds, with
 /// only the sources' neighbours visited instead of passes over the lattice. A z-slab a task;
 /// each open face of the front is written once, by its first valid neighbour in the order
-/// of [`neighbours`] (a closed one is zero already).
+/// of `neighbours` (a closed one is zero already).
 pub fn extrapolate_one_layer<E: Sync>(
     field: &mut [f64],
     valid: &[u8],
