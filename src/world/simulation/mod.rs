@@ -284,7 +284,13 @@ impl Simulation {
         let margin = self.push_margin();
         let admit =
             |x: Vec3| node_sdf.sample(&grid, x) > 0.0 && bodies.iter().all(|b| b.sdf(x) > margin);
-        let band = Arc::make_mut(self.band.as_mut()?);
+        // Shared with a step's undo: the update changes a copy (`Arc::make_mut` without
+        // copying the density the update makes anew).
+        let shared = self.band.as_mut()?;
+        if Arc::get_mut(shared).is_none() {
+            *shared = Arc::new(shared.for_update());
+        }
+        let band = Arc::get_mut(shared).expect("the band is not shared now");
         let u = &self.u;
         // Those the last step's φ_L was made of (when nothing else moved them since).
         let bins = self.surface_bins.take(&self.particles, self.step);
