@@ -28,6 +28,15 @@ pub(super) fn largest_magnitude(u: &Mac) -> f64 {
     u.max_abs_or_nan()
 }
 
+impl Simulation {
+    /// The largest |u| over the faces of the fluid velocity (NaN ignored): kept from the
+    /// step that made it ([`Mac::max_abs_or_nan`] there, which is this for a field without
+    /// NaN, the only kind a step leaves), else measured.
+    pub(super) fn largest_face_speed(&self) -> f64 {
+        self.largest_u.unwrap_or_else(|| self.u.max_abs())
+    }
+}
+
 /// What every failed step puts back (see [`Simulation::step_inner`]), rollback or not: the
 /// bodies, their fluid forces, the step count and the time. The marker particles and the
 /// narrow band are [`Undo`]'s, kept only when [`Simulation::rollback`] is on (their copy costs
@@ -333,7 +342,7 @@ impl Simulation {
         // Sizes as the largest component (a length would overflow first).
         let size = |v: Vec3| v.abs().max_element();
         let g = size(v3(self.settings.fluid.gravity));
-        let fluid = largest_magnitude(&self.u) + dt * g;
+        let fluid = self.largest_u.unwrap_or_else(|| largest_magnitude(&self.u)) + dt * g;
         if fluid.is_nan() {
             return blew("the fluid velocity is not finite".into());
         }
