@@ -257,6 +257,25 @@ impl FaceWeights {
         }
     }
 
+    /// [`FaceWeights::zero_closed`] that also zeroes, in the same pass, every face whose
+    /// byte in `marks` (one a face) is `mark`.
+    pub fn zero_closed_or(&self, axis: usize, field: &mut [f64], marks: &[u8], mark: u8) {
+        let ax = &self.axes[axis];
+        assert_eq!(field.len(), ax.kind.len(), "a value per face");
+        assert_eq!(marks.len(), ax.kind.len(), "a mark per face");
+        let (kind, marks) = (ax.kind.par_chunks(MIN_LEN), marks.par_chunks(MIN_LEN));
+        field.par_chunks_mut(MIN_LEN).zip(kind).zip(marks).for_each(|((x, k), m)| {
+            for ((x, &k), &m) in x.iter_mut().zip(k).zip(m) {
+                *x = if k == CLOSED || m == mark { 0.0 } else { *x };
+            }
+        });
+        for &(f, w) in &ax.cut {
+            if w <= 0.0 {
+                field[f as usize] = 0.0;
+            }
+        }
+    }
+
     /// The number of faces normal to `axis`.
     pub fn len(&self, axis: usize) -> usize {
         self.axes[axis].kind.len()

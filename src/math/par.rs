@@ -10,6 +10,12 @@ const CHUNK: usize = 4096;
 /// 10,000 cells take a hundred-odd such loops a step).
 pub const MIN_LEN: usize = 16_384;
 
+/// A copy of `v`, made in pieces of at least [`MIN_LEN`] elements in parallel (a whole-grid
+/// array or the marker particles: a copy on one thread leaves the other idle).
+pub fn copied<T: Copy + Send + Sync>(v: &[T]) -> Vec<T> {
+    v.par_iter().with_min_len(MIN_LEN).copied().collect()
+}
+
 /// For a loop over pieces of `piece` elements each: the fewest pieces to split off (see
 /// [`MIN_LEN`]).
 pub fn min_pieces(piece: usize) -> usize {

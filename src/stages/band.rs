@@ -31,7 +31,7 @@
 
 use crate::geometry::grid::{Grid, Mac};
 use crate::math::buffer::refill;
-use crate::math::par::min_pieces;
+use crate::math::par::{copied, min_pieces};
 use crate::math::Vec3;
 use crate::stages::surface;
 use rayon::prelude::*;
@@ -81,6 +81,14 @@ impl Band {
     /// The deep cells as φ_L reads them.
     pub fn deep(&self) -> surface::Deep<'_> {
         surface::Deep { cells: &self.deep, phi: self.phi }
+    }
+
+    /// A copy of the band for [`update`] to change while this one is kept (a step that may
+    /// be rolled back): the per-cell arrays the update reads, each copied in parallel, and
+    /// not [`Band::density`], which the update makes anew.
+    pub(crate) fn for_update(&self) -> Band {
+        let (deep, owed, sent) = (copied(&self.deep), copied(&self.owed), copied(&self.sent));
+        Band { deep, density: Vec::new(), phi: self.phi, owed, sent }
     }
 
     /// Deep cells.

@@ -370,13 +370,19 @@ impl DensityProjection {
                 (surface::liquid_sdf(particles, &bins, grid, &g.surface, deep), Vec::new())
             }
         };
-        let extension =
-            SolidExtension::apply_new(grid, g.centre_in_solid, g.partial, g.gravity, &mut phi);
+        // The weights closed at the deep cells beside φ's extension into the solids, which
+        // they do not read (neither keeps two threads busy alone).
+        let (extension, mut closed) = rayon::join(
+            || SolidExtension::apply_new(grid, g.centre_in_solid, g.partial, g.gravity, &mut phi),
+            || {
+                g.band.filter(|b| b.deep.par_iter().any(|&d| d)).map(|b| {
+                    g.weights
+                        .close_faces(|a, kind, shut| closed_at_deep(grid, a, &b.deep, kind, shut))
+                })
+            },
+        );
         let params = PressureParams { dt: 1.0, density: 1.0, ghost: g.ghost };
         let memory = g.systems.map(SystemPool::take).unwrap_or_default();
-        let mut closed = g.band.filter(|b| b.deep.par_iter().any(|&d| d)).map(|b| {
-            g.weights.close_faces(|a, kind, shut| closed_at_deep(grid, a, &b.deep, kind, shut))
-        });
         let weights = closed.as_ref().unwrap_or(g.weights);
         // The deposit beside the operator's build, which reads φ only: the deposit's loops
         // keep two threads busy, the build's passes less so.

@@ -281,6 +281,17 @@ pub fn extrapolate_one_layer<E: Sync>(
 
 /// [`extrapolate`] with its layers found (`lay`), the mask left as it is.
 fn extrapolate_layered(field: &mut [f64], lay: &Layers, lat: &Lattice) {
+    extrapolate_fronts(field, lay, lat);
+    field.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(f, &lev)| {
+        if lev == NEVER {
+            *f = 0.0;
+        }
+    });
+}
+
+/// [`extrapolate_layered`] without zeroing what stays invalid (the faces `lay` leaves at
+/// level [`NEVER`]): the layers' values only.
+fn extrapolate_fronts(field: &mut [f64], lay: &Layers, lat: &Lattice) {
     for (l, front) in lay.fronts.iter().enumerate() {
         // A face of this front reads only faces known before the layer, never another face
         // of the front: compute them all, then write.
@@ -295,11 +306,6 @@ fn extrapolate_layered(field: &mut [f64], lay: &Layers, lat: &Lattice) {
             .collect();
         for_each_keyed_mut(field, &values, |v| v.0, |_, v, x| *x = v.1);
     }
-    field.par_iter_mut().zip(lay.level.par_iter()).with_min_len(MIN_LEN).for_each(|(f, &lev)| {
-        if lev == NEVER {
-            *f = 0.0;
-        }
-    });
 }
 
 /// Extrapolates all three components and then sets every face `weights` closes (weight 0:
@@ -459,11 +465,12 @@ pub fn correct_with_bodies(
     }
     mix_body_velocities(u, bodies, faces, weights, grid, |a, f| !set(a, f));
     match layered {
-        // As correct_velocity.
+        // As correct_velocity: what stays invalid and the closed faces zeroed in one pass.
         Some(lay) => {
             for a in 0..3 {
-                extrapolate_layered(&mut u.c[a], &lay.axes[a], &grid.faces(a));
-                static_weights.zero_closed(a, &mut u.c[a]);
+                let axis = &lay.axes[a];
+                extrapolate_fronts(&mut u.c[a], axis, &grid.faces(a));
+                static_weights.zero_closed_or(a, &mut u.c[a], &axis.level, NEVER);
             }
         }
         None => {
@@ -535,11 +542,14 @@ fn mix_body_velocities(
 ) {
     let mut touched = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
     for (b, bf) in bodies.iter().zip(faces) {
+        // `RigidBody::liquid_velocity_at`, its spin found once a body, not at every face.
+        let w_liquid = b.spin().project(b.w);
         for a in 0..3 {
             let lat = grid.faces(a);
             for &(f, beta) in bf.faces[a].iter().filter(|&&(f, _)| on(a, f)) {
                 let [i, j, k] = lat.ijk(f);
-                let ub = crate::math::comp(b.liquid_velocity_at(lat.position(i, j, k)), a);
+                let p = lat.position(i, j, k);
+                let ub = crate::math::comp(b.v + w_liquid.cross(p - b.x), a);
                 let w = weights.weight(a, f);
                 if w <= 0.0 {
                     u.c[a][f] = ub;
@@ -755,7 +765,8 @@ fn mix_body_velocities_adjoint(
                     claimed[a][f] = true;
                     ubar.c[a][f] = 0.0;
                 } else {
-                    let ub = crate::math::comp(b.liquid_velocity_at(lat.position(ii, jj, kk)), a);
+                    let p = lat.position(ii, jj, kk);
+                    let ub = crate::math::comp(b.v + w_liquid.cross(p - b.x), a);
                     out[i].dbeta.push((a, f, (ub - u_old(a, f)) * g));
                     if !scaled[a][f] {
                         ubar.c[a][f] = weights.weight(a, f) * g;

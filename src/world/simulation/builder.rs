@@ -311,6 +311,7 @@ impl SimulationBuilder {
             rollback: true,
             measures: true,
             surface_bins: Default::default(),
+            largest_u: None,
         };
         // The particles the band does not need go before the first step.
         let geometry = sim.geometry();

@@ -105,6 +105,10 @@ pub struct Simulation {
     measures: bool,
     /// The particles' bins that a step's φ_L was made with, for the next step's band update.
     surface_bins: KeptBins,
+    /// The largest |u| over the faces of `u`, when the step that made `u` measured it (its
+    /// end checks it): what the next step's checks and its band read, without two more
+    /// passes over the field. None once `u` is set from outside.
+    largest_u: Option<f64>,
 }
 
 /// The bins of the particles as a step's surface stage (stage 3) left them, tagged with the
@@ -276,7 +280,7 @@ impl Simulation {
             .collect();
         let grid = self.grid;
         // A trilinear sample is at most √3 times the largest face velocity.
-        let reach = (3f64.sqrt() * self.u.max_abs() * dt / grid.dx).ceil() as usize;
+        let reach = (3f64.sqrt() * self.largest_face_speed() * dt / grid.dx).ceil() as usize;
         let width = self.settings.solver.narrow_band.width() + reach;
         let m = surface::per_axis(self.settings.solver.particles_per_cell);
         let node_sdf = &self.statics.node_sdf;
@@ -284,7 +288,13 @@ impl Simulation {
         let margin = self.push_margin();
         let admit =
             |x: Vec3| node_sdf.sample(&grid, x) > 0.0 && bodies.iter().all(|b| b.sdf(x) > margin);
-        let band = Arc::make_mut(self.band.as_mut()?);
+        // Shared with a step's undo: the update changes a copy (`Arc::make_mut` without
+        // copying the density the update makes anew).
+        let shared = self.band.as_mut()?;
+        if Arc::get_mut(shared).is_none() {
+            *shared = Arc::new(shared.for_update());
+        }
+        let band = Arc::get_mut(shared).expect("the band is not shared now");
         let u = &self.u;
         // Those the last step's φ_L was made of (when nothing else moved them since).
         let bins = self.surface_bins.take(&self.particles, self.step);
@@ -326,6 +336,7 @@ impl Simulation {
             }
         }
         self.u = u;
+        self.largest_u = None;
         Ok(())
     }
 

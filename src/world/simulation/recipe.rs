@@ -502,6 +502,7 @@ impl Simulation {
         self.step = step;
         self.time += dt;
         self.spare.keep_velocity(std::mem::replace(&mut self.u, u));
+        self.largest_u = Some(fluid);
         sys.pressure.scatter_into(&proj.p, &mut self.pressure);
         self.phi = sys.phi;
         let bodies = sys

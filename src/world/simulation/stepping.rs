@@ -28,6 +28,15 @@ pub(super) fn largest_magnitude(u: &Mac) -> f64 {
     u.max_abs_or_nan()
 }
 
+impl Simulation {
+    /// The largest |u| over the faces of the fluid velocity (NaN ignored): kept from the
+    /// step that made it ([`Mac::max_abs_or_nan`] there, which is this for a field without
+    /// NaN, the only kind a step leaves), else measured.
+    pub(super) fn largest_face_speed(&self) -> f64 {
+        self.largest_u.unwrap_or_else(|| self.u.max_abs())
+    }
+}
+
 /// What every failed step puts back (see [`Simulation::step_inner`]), rollback or not: the
 /// bodies, their fluid forces, the step count and the time. The marker particles and the
 /// narrow band are [`Undo`]'s, kept only when [`Simulation::rollback`] is on (their copy costs
@@ -83,14 +92,19 @@ struct Undo {
 }
 
 impl Undo {
-    /// What `sim`'s next step may change.
+    /// What `sim`'s next step may change. The two large copies side by side, each in
+    /// parallel pieces (run on the step's pool).
     fn take(sim: &Simulation) -> Undo {
         let moving = sim.frozen_phi.is_none();
+        let (particles, phi) = rayon::join(
+            || moving.then(|| crate::math::par::copied(&sim.particles)),
+            || crate::math::par::copied(&sim.phi),
+        );
         Undo {
-            particles: moving.then(|| sim.particles.clone()),
+            particles,
             // Shared until the band's update changes it, which then copies it.
             band: if moving { sim.band.clone() } else { None },
-            phi: sim.phi.clone(),
+            phi,
             bodies: sim.bodies.iter().map(RigidBody::state).collect(),
             fluid_forces: sim.fluid_forces.clone(),
             step: sim.step,
@@ -227,18 +241,13 @@ impl Simulation {
 
     /// A step of `dt` that [`Simulation::rollback`] rolls back if it fails.
     fn step_undoable(&mut self, dt: f64) -> Result<StepReport> {
-        let undo = self.rollback.then(|| Undo::take(self));
-        let report = self.step_inner(dt, None, Pressures::Solve, self.measures);
-        if let (Err(_), Some(undo)) = (&report, undo) {
-            undo.restore(self);
-        }
-        report
+        self.step_inner(dt, None, Pressures::Solve, self.measures, self.rollback)
     }
 
     /// Advances one step and records on `tape` what the backward pass needs.
     pub fn step_taped(&mut self, tape: &mut Tape) -> Result<StepReport> {
         let dt = self.settings.dt;
-        self.step_inner(dt, Some(tape), Pressures::Solve, true)
+        self.step_inner(dt, Some(tape), Pressures::Solve, true, false)
     }
 
     /// A step for a gradient's forward pass, recorded on `tape` when there is one. Its report
@@ -247,14 +256,14 @@ impl Simulation {
     /// failed step is not rolled back (the gradient fails with it).
     pub(crate) fn step_unreported(&mut self, tape: Option<&mut Tape>) -> Result<()> {
         let dt = self.settings.dt;
-        self.step_inner(dt, tape, Pressures::Solve, false).map(drop)
+        self.step_inner(dt, tape, Pressures::Solve, false, false).map(drop)
     }
 
     /// [`Simulation::step_unreported`] that keeps its pressure solves in `solves` (see
     /// [`Solves`]).
     pub(crate) fn step_recording(&mut self, solves: &mut Solves) -> Result<()> {
         let dt = self.settings.dt;
-        self.step_inner(dt, None, Pressures::Record(solves), false).map(drop)
+        self.step_inner(dt, None, Pressures::Record(solves), false, false).map(drop)
     }
 
     /// [`Simulation::step_taped`] that takes its pressures from `replay` instead of solving:
@@ -263,7 +272,7 @@ impl Simulation {
     /// fastest speed, the liquid volume) is not computed.
     pub(crate) fn step_replayed(&mut self, tape: &mut Tape, replay: &mut Replay) -> Result<()> {
         let dt = self.settings.dt;
-        self.step_inner(dt, Some(tape), Pressures::Replay(replay), false).map(drop)
+        self.step_inner(dt, Some(tape), Pressures::Replay(replay), false, false).map(drop)
     }
 
     /// What the step's system is assembled with for a step of `dt`.
@@ -289,17 +298,19 @@ impl Simulation {
     /// later (a solve that does not converge, a body leaving the tank) puts back the bodies,
     /// their fluid forces, the time, the step count and the tape; the velocity and pressure
     /// are only ever replaced by a step that succeeds. The marker particles (and a narrow
-    /// band) stay where the step's particle stages moved them, and φ_L follows them, unless the
-    /// caller's [`Simulation::rollback`] puts them back too: see [`BodyUndo`] and [`Undo`].
-    /// The warnings the step found are kept.
+    /// band) stay where the step's particle stages moved them, and φ_L follows them, unless
+    /// `rollback` puts them back too: see [`BodyUndo`] and [`Undo`] (taken on the step's
+    /// pool, whose threads its copies use). The warnings the step found are kept.
     fn step_inner(
         &mut self,
         dt: f64,
         mut tape: Option<&mut Tape>,
         pressures: Pressures,
         report: bool,
+        rollback: bool,
     ) -> Result<StepReport> {
         run_spread(self.spread(), || {
+            let full = rollback.then(|| Undo::take(self));
             self.check_state(dt)?;
             let undo = BodyUndo::of(self);
             let taped = tape.as_ref().map(|t| t.steps.len());
@@ -311,6 +322,9 @@ impl Simulation {
                 self.phi = self.particle_phi();
                 if let (Some(t), Some(n)) = (tape, taped) {
                     t.steps.truncate(n);
+                }
+                if let Some(full) = full {
+                    full.restore(self);
                 }
             }
             report
@@ -328,7 +342,7 @@ impl Simulation {
         // Sizes as the largest component (a length would overflow first).
         let size = |v: Vec3| v.abs().max_element();
         let g = size(v3(self.settings.fluid.gravity));
-        let fluid = largest_magnitude(&self.u) + dt * g;
+        let fluid = self.largest_u.unwrap_or_else(|| largest_magnitude(&self.u)) + dt * g;
         if fluid.is_nan() {
             return blew("the fluid velocity is not finite".into());
         }
