@@ -235,12 +235,11 @@ impl SolidExtension {
                     if let Some(nb) = cells.neighbour(ci, ijk, f / 2, f % 2) {
                         set.nbr[f] = nb as u32;
                         set.s_nbr[f] = s_of(nb);
-                        set.z0 += (1.0 - set.s_nbr[f]) * across[f / 2];
                     }
                 }
                 let outside = set.s_nbr.map(|s| 1.0 - s);
-                let l = Layer::new(outside, set.z0, across, |f| phi_in[set.nbr[f] as usize]);
-                (set.t0, set.mu, set.e0) = (l.t, share(l.t).0, l.mean);
+                let l = Layer::new(outside, across, |f| phi_in[set.nbr[f] as usize]);
+                (set.z0, set.t0, set.mu, set.e0) = (l.z, l.t, share(l.t).0, l.mean);
                 set
             })
             .collect();
@@ -258,11 +257,10 @@ impl SolidExtension {
                         None => 0.0,
                     }
                 });
-                set.z1 = (0..6).map(|f| kappa[f] * across[f / 2]).sum();
-                let l = Layer::new(kappa, set.z1, across, |f| {
+                let l = Layer::new(kappa, across, |f| {
                     layer0[find(set.nbr[f]).expect("a solid cell")].e0
                 });
-                (set.t1, set.nu, set.e1) = (l.t, share(l.t).0, l.mean);
+                (set.z1, set.t1, set.nu, set.e1) = (l.z, l.t, share(l.t).0, l.mean);
                 set
             })
             .filter(|s| s.mu > 0.0 || s.nu > 0.0)
@@ -361,7 +359,8 @@ struct Layer {
 
 impl Layer {
     /// The mean of the neighbours' values `v(face)`, read only where their weight is positive.
-    fn new(k: [f64; 6], z: f64, across: [f64; 3], v: impl Fn(usize) -> f64) -> Layer {
+    fn new(k: [f64; 6], across: [f64; 3], v: impl Fn(usize) -> f64) -> Layer {
+        let z: f64 = (0..6).map(|f| k[f] * across[f / 2]).sum();
         let g = gamma(z);
         let w: [f64; 6] =
             std::array::from_fn(|f| if k[f] > 0.0 { k[f] * (across[f / 2] + g) } else { 0.0 });
