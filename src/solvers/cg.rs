@@ -42,6 +42,25 @@ fn remove_mean(x: &mut [f64]) {
     x.par_iter_mut().for_each(|v| *v -= m);
 }
 
+/// A preconditioner `z = M·r` for [`pcg_from`]: any closure `Fn(&[f64], &mut [f64])`, or a
+/// type that can also take `r·z` as it writes `z`, which saves CG a pass over both.
+pub trait Precondition {
+    /// z = M·r.
+    fn precondition(&self, r: &[f64], z: &mut [f64]);
+
+    /// z = M·r, and `r·z` with the bits of [`dot`]`(r, z)`.
+    fn precondition_dot(&self, r: &[f64], z: &mut [f64]) -> f64 {
+        self.precondition(r, z);
+        dot(r, z)
+    }
+}
+
+impl<F: Fn(&[f64], &mut [f64])> Precondition for F {
+    fn precondition(&self, r: &[f64], z: &mut [f64]) {
+        self(r, z)
+    }
+}
+
 /// x += α·d and r −= α·q, and the new r·r, in one pass over the four vectors: in the chunks
 /// of [`dot`], each chunk's sum taken as `dot` takes it, so the same bits as the two updates
 /// followed by `dot(r, r)`, which read r a second time.
@@ -59,13 +78,29 @@ fn step_and_norm(x: &mut [f64], r: &mut [f64], d: &[f64], q: &[f64], alpha: f64)
     parts.iter().sum()
 }
 
+/// z = M·r with the constant removed when `project_constant`, and r·z.
+fn preconditioned_dot<M: Precondition>(
+    m: &M,
+    r: &[f64],
+    z: &mut [f64],
+    project_constant: bool,
+) -> f64 {
+    if project_constant {
+        m.precondition(r, z);
+        remove_mean(z);
+        dot(r, z)
+    } else {
+        m.precondition_dot(r, z)
+    }
+}
+
 /// Solves `A x = b` from `x = 0`. The convergence test uses the true residual: when the
 /// recurrence says converged, the residual is recomputed, and CG restarts from it if the
 /// two have drifted apart.
 pub fn pcg<A, M>(apply: A, precondition: M, b: &[f64], x: &mut [f64], s: &CgSettings) -> CgStats
 where
     A: Fn(&[f64], &mut [f64]),
-    M: Fn(&[f64], &mut [f64]),
+    M: Precondition,
 {
     x.iter_mut().for_each(|v| *v = 0.0);
     pcg_from(apply, precondition, b, x, s)
@@ -83,7 +118,7 @@ pub fn pcg_from<A, M>(
 ) -> CgStats
 where
     A: Fn(&[f64], &mut [f64]),
-    M: Fn(&[f64], &mut [f64]),
+    M: Precondition,
 {
     let n = b.len();
     // ‖b‖ with the constant removed (a copy of b only when there is one to remove).
@@ -132,12 +167,8 @@ where
     let mut confirmed = false;
     'restart: loop {
         let z = &mut q;
-        precondition(&r, z);
-        if s.project_constant {
-            remove_mean(z);
-        }
+        let mut rho = preconditioned_dot(&precondition, &r, z, s.project_constant);
         d.copy_from_slice(z);
-        let mut rho = dot(&r, z);
         while it < s.max_iterations {
             it += 1;
             apply(&d, &mut q);
@@ -162,11 +193,7 @@ where
                 continue 'restart;
             }
             let z = &mut q;
-            precondition(&r, z);
-            if s.project_constant {
-                remove_mean(z);
-            }
-            let rho_new = dot(&r, z);
+            let rho_new = preconditioned_dot(&precondition, &r, z, s.project_constant);
             let beta = rho_new / rho;
             rho = rho_new;
             d.par_iter_mut().zip(z.par_iter()).for_each(|(di, zi)| *di = zi + beta * *di);

@@ -115,6 +115,21 @@ fn one_and_two_threads_agree_bit_for_bit() {
     assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
 }
 
+/// `apply_dot` writes the bits `apply` writes and returns those of `dot(r, z)`, which CG
+/// takes them for.
+#[test]
+fn apply_dot_is_apply_then_dot() {
+    for (name, sys) in cases() {
+        let mg = Multigrid::new(sys.grid.n, &sys.cell_of_row, &sys.stencil);
+        let r = field(sys.len(), 5);
+        let (mut z, mut zd) = (vec![0.0; sys.len()], vec![1.0; sys.len()]);
+        mg.apply(&r, &mut z);
+        let rz = mg.apply_dot(&r, &mut zd);
+        assert!(z.iter().zip(&zd).all(|(x, y)| x.to_bits() == y.to_bits()), "{name}");
+        assert_eq!(rz.to_bits(), dot(&r, &z).to_bits(), "{name}");
+    }
+}
+
 /// The sweep and the residual over the runs of uniform entries (neighbours read as
 /// slices) give the same bits as entry by entry, and the runs are most of a deep box's
 /// fine level (so the comparison covers them).

@@ -116,9 +116,7 @@ impl PressureSystem {
                     &mut p,
                     &settings,
                 ),
-                Prepared::Multigrid(m) => {
-                    pcg_from(apply, |r: &[f64], z: &mut [f64]| m.apply(r, z), b, &mut p, &settings)
-                }
+                Prepared::Multigrid(m) => pcg_from(apply, m, b, &mut p, &settings),
                 Prepared::None => pcg_from(
                     apply,
                     |r: &[f64], z: &mut [f64]| z.copy_from_slice(r),
