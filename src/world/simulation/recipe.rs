@@ -95,9 +95,10 @@ impl Simulation {
         timed.lap(Stage::Forces);
 
         // The correction's extrapolation layers read the system's masks only: found beside
-        // the solve when a second thread is free.
+        // the solve, on a thread of their own when the step is serial, else in what the
+        // solve's short loops leave of the other worker.
         let layers = self.settings.solver.extrapolation_layers;
-        let (projected, layered) = pool::ahead(
+        let (projected, layered) = pool::alongside(
             || self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures),
             || {
                 let projected = sys.projected_mask();
