@@ -12,6 +12,7 @@ use crate::geometry::fractions::{BodyFaces, DualFaces};
 use crate::geometry::grid::{Grid, Lattice, Mac};
 use crate::geometry::weights::FaceWeights;
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
+use crate::math::Vec3;
 use rayon::prelude::*;
 
 /// Smallest piece of a face list handed to rayon.
@@ -441,10 +442,16 @@ pub fn correct_with_bodies(
     layers: usize,
 ) -> AirBodyFaces {
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
-    mix_body_velocities(u, bodies, faces, weights, grid, set);
-    let air: AirBodyFaces = std::array::from_fn(|a| {
+    // `RigidBody::liquid_velocity_at`, each body's spin found once, not at every face.
+    let spins: Vec<Vec3> = bodies.iter().map(|b| b.spin().project(b.w)).collect();
+    let mix = |a: usize, ua: &mut [f64], on: &dyn Fn(usize) -> bool| {
+        mix_body_velocities(a, ua, bodies, &spins, faces, weights, grid, on)
+    };
+    // Each part reads and writes one component of `u` only: the three run side by side.
+    let component = |a: usize, ua: &mut Vec<f64>| -> Vec<(u32, f64)> {
+        mix(a, ua, &|f| set(a, f));
         let lat = grid.faces(a);
-        air_faces(faces, a, |f| !set(a, f))
+        let air: Vec<(u32, f64)> = air_faces(faces, a, |f| !set(a, f))
             .into_iter()
             .map(|f| {
                 let mut nb = [0usize; 6];
@@ -452,34 +459,32 @@ pub fn correct_with_bodies(
                 let mean = if n == 0 {
                     0.0
                 } else {
-                    nb[..n].iter().map(|&m| u.c[a][m]).sum::<f64>() / n as f64
+                    nb[..n].iter().map(|&m| ua[m]).sum::<f64>() / n as f64
                 };
                 (f as u32, mean)
             })
-            .collect()
-    });
-    for (a, list) in air.iter().enumerate() {
-        for &(f, e) in list {
-            u.c[a][f as usize] = e;
+            .collect();
+        for &(f, e) in &air {
+            ua[f as usize] = e;
         }
-    }
-    mix_body_velocities(u, bodies, faces, weights, grid, |a, f| !set(a, f));
-    match layered {
+        mix(a, ua, &|f| !set(a, f));
         // As correct_velocity: what stays invalid and the closed faces zeroed in one pass.
-        Some(lay) => {
-            for a in 0..3 {
-                let axis = &lay.axes[a];
-                extrapolate_fronts(&mut u.c[a], axis, &grid.faces(a));
-                static_weights.zero_closed_or(a, &mut u.c[a], &axis.level, NEVER);
-            }
+        if let Some(lay) = layered {
+            let axis = &lay.axes[a];
+            extrapolate_fronts(ua, axis, &lat);
+            static_weights.zero_closed_or(a, ua, &axis.level, NEVER);
         }
-        None => {
-            let mut valid = projected.clone();
-            mark_body_faces(&mut valid, faces);
-            correct_velocity(u, &mut valid, static_weights, grid, layers);
-        }
+        air
+    };
+    let [ux, uy, uz] = &mut u.c;
+    let (ax, (ay, az)) =
+        rayon::join(|| component(0, ux), || rayon::join(|| component(1, uy), || component(2, uz)));
+    if layered.is_none() {
+        let mut valid = projected.clone();
+        mark_body_faces(&mut valid, faces);
+        correct_velocity(u, &mut valid, static_weights, grid, layers);
     }
-    air
+    [ax, ay, az]
 }
 
 /// The layers of [`correct_with_bodies`]'s extrapolation, per axis, from the faces the
@@ -530,36 +535,37 @@ fn mark_body_faces(valid: &mut [Vec<u8>; 3], faces: &[BodyFaces]) {
     }
 }
 
-/// The bodies' part of the faces `on(axis, face)` accepts: a closed face takes the rigid
-/// velocity, a face covered in part w·u + Σ_b β_b·u_b.
+/// The bodies' part of the faces of `axis` that `on(face)` accepts, in `u`, that axis's
+/// component: a closed face takes the rigid velocity, a face covered in part
+/// w·u + Σ_b β_b·u_b (`spins`: each body's angular velocity as the liquid sees it,
+/// `RigidBody::spin` projected).
+#[allow(clippy::too_many_arguments)]
 fn mix_body_velocities(
-    u: &mut Mac,
+    axis: usize,
+    u: &mut [f64],
     bodies: &[RigidBody],
+    spins: &[Vec3],
     faces: &[BodyFaces],
     weights: &FaceWeights,
     grid: &Grid,
-    on: impl Fn(usize, usize) -> bool,
+    on: &dyn Fn(usize) -> bool,
 ) {
-    let mut touched = [0, 1, 2].map(|a| vec![false; grid.faces(a).len()]);
-    for (b, bf) in bodies.iter().zip(faces) {
-        // `RigidBody::liquid_velocity_at`, its spin found once a body, not at every face.
-        let w_liquid = b.spin().project(b.w);
-        for a in 0..3 {
-            let lat = grid.faces(a);
-            for &(f, beta) in bf.faces[a].iter().filter(|&&(f, _)| on(a, f)) {
-                let [i, j, k] = lat.ijk(f);
-                let p = lat.position(i, j, k);
-                let ub = crate::math::comp(b.v + w_liquid.cross(p - b.x), a);
-                let w = weights.weight(a, f);
-                if w <= 0.0 {
-                    u.c[a][f] = ub;
-                } else {
-                    if !touched[a][f] {
-                        u.c[a][f] *= w;
-                        touched[a][f] = true;
-                    }
-                    u.c[a][f] += beta * ub;
+    let mut touched = vec![false; grid.faces(axis).len()];
+    let lat = grid.faces(axis);
+    for ((b, bf), &w_liquid) in bodies.iter().zip(faces).zip(spins) {
+        for &(f, beta) in bf.faces[axis].iter().filter(|&&(f, _)| on(f)) {
+            let [i, j, k] = lat.ijk(f);
+            let p = lat.position(i, j, k);
+            let ub = crate::math::comp(b.v + w_liquid.cross(p - b.x), axis);
+            let w = weights.weight(axis, f);
+            if w <= 0.0 {
+                u[f] = ub;
+            } else {
+                if !touched[f] {
+                    u[f] *= w;
+                    touched[f] = true;
                 }
+                u[f] += beta * ub;
             }
         }
     }
