@@ -151,7 +151,27 @@ pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
 /// once, so `f` never waits on a spinner. Nothing changes but when the work is taken:
 /// every loop's result is the same bits.
 pub fn on_pool_spinning<R: Send>(spin: bool, f: impl FnOnce() -> R + Send) -> R {
-    if !spin || rayon::current_num_threads() < 2 {
+    if !spin {
+        return on_pool(f);
+    }
+    with_workers_awake(std::hint::spin_loop, f)
+}
+
+/// [`on_pool`], with the pool's other workers kept awake while `f` runs, as
+/// [`on_pool_spinning`] keeps them, except that a worker with no work hands its core back to
+/// the operating system (`std::thread::yield_now`) instead of spinning on it: on a machine
+/// with nothing else to run it is taken back at once, on a busy one the other processes
+/// lose little. For a linear solve, dozens of short loops a millisecond: between two of
+/// them rayon would put the other worker to sleep, and the next would wait for it to wake.
+/// The same bits.
+pub fn on_pool_awake<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    with_workers_awake(std::thread::yield_now, f)
+}
+
+/// `f` on rayon's pool, each other worker taking pending work until `f` returns and calling
+/// `idle` when there is none (see [`on_pool_spinning`]).
+fn with_workers_awake<R: Send>(idle: fn(), f: impl FnOnce() -> R + Send) -> R {
+    if rayon::current_num_threads() < 2 {
         return on_pool(f);
     }
     let done = AtomicBool::new(false);
@@ -165,7 +185,7 @@ pub fn on_pool_spinning<R: Send>(spin: bool, f: impl FnOnce() -> R + Send) -> R 
                 }
                 while !done.load(Ordering::Acquire) {
                     if rayon::yield_now() != Some(rayon::Yield::Executed) {
-                        std::hint::spin_loop();
+                        idle();
                     }
                 }
             });
@@ -208,8 +228,8 @@ mod tests {
         }
     }
 
-    /// With spinning workers, a parallel sum on a pool of two threads is the same bits as
-    /// without, nested calls return, and a panic in the work reaches the caller instead of
+    /// With spinning (or awake) workers, a parallel sum on a pool of two threads is the same
+    /// bits as without, nested calls return, and a panic in the work reaches the caller instead of
     /// leaving the spinners running (the call would never return).
     #[test]
     fn spinning_workers_change_nothing_and_stop_on_a_panic() {
@@ -222,6 +242,8 @@ mod tests {
                 let nested = on_pool_spinning(spin, || on_pool_spinning(spin, || sum(&x)));
                 assert_eq!(nested, plain);
             }
+            let awake = on_pool_spinning(true, || on_pool_awake(|| on_pool_awake(|| sum(&x))));
+            assert_eq!(awake, plain);
         });
         // On a thread of its own, so that spinners left running fail the test, not hang it.
         let (tx, rx) = std::sync::mpsc::channel();

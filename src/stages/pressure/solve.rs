@@ -105,8 +105,9 @@ impl PressureSystem {
         let apply = |x: &[f64], y: &mut [f64]| self.apply(x, y);
         // The solve runs as one task on a rayon worker, so its many small parallel loops
         // (dozens per wavefront-scheduled MIC(0) or per V-cycle) are forked from inside the
-        // pool instead of each waking a worker from outside (two thread switches apiece).
-        let stats = rayon::scope(|_| {
+        // pool instead of each waking a worker from outside (two thread switches apiece), and
+        // the other workers stay awake through it instead of falling asleep between loops.
+        let stats = crate::math::pool::on_pool_awake(|| {
             let prepared = self.preconditioner.get(how.preconditioner.resolve(self.len()), self);
             match prepared.as_ref() {
                 Prepared::Mic0(m) => pcg_from(
