@@ -227,14 +227,33 @@ impl StepSystem {
             params.gravity,
             &mut phi,
         );
-        let needed = needed_faces(grid, &phi, &geometry.body_faces);
         let build = if params.solves {
             PressureSystem::build_in
         } else {
             PressureSystem::build_without_operator_in
         };
-        let mut pressure = build(memory, grid, &phi, &geometry.weights, params.pressure);
         let coupled: Vec<usize> = (0..bodies.len()).filter(|&i| bodies[i].moves()).collect();
+        let kinematic: Vec<usize> = (0..bodies.len())
+            .filter(|&i| bodies[i].motion == crate::geometry::body::Motion::Kinematic)
+            .collect();
+        let jacobian = |&i: &usize| {
+            let b = &bodies[i];
+            fractions::body_jacobian(grid, &geometry.coupling_faces(i), b.x, b.spin())
+        };
+        // The faces the advection fills and the bodies' Jacobians (a body at a time) beside
+        // the pressure system's build, which neither reads: none keeps two threads busy alone.
+        let ((needed, (jacobians, kinematic_jacobians)), mut pressure) = rayon::join(
+            || {
+                rayon::join(
+                    || needed_faces(grid, &phi, &geometry.body_faces),
+                    || {
+                        let coupled: Vec<_> = coupled.par_iter().map(jacobian).collect();
+                        (coupled, kinematic.iter().map(jacobian).collect::<Vec<_>>())
+                    },
+                )
+            },
+            || build(memory, grid, &phi, &geometry.weights, params.pressure),
+        );
         let dt = params.pressure.dt;
         let entrained: Vec<Entrained> = coupled
             .iter()
@@ -247,28 +266,23 @@ impl StepSystem {
                 }
             })
             .collect();
-        // A body at a time in parallel (each its own faces; collected in body order).
         let couplings: Vec<BodyCoupling> = coupled
-            .par_iter()
+            .iter()
+            .zip(&jacobians)
             .zip(&entrained)
-            .map(|(&i, ent)| {
-                let b = &bodies[i];
-                let faces = geometry.coupling_faces(i);
-                let jac = fractions::body_jacobian(grid, &faces, b.x, b.spin());
-                let mi = if ent.is_empty() { dt_minv(b, dt) } else { ent.dt_minv(dt) };
-                BodyCoupling::new(&pressure.row_of_cell, &jac, mi)
+            .map(|((&i, jac), ent)| {
+                let mi = if ent.is_empty() { dt_minv(&bodies[i], dt) } else { ent.dt_minv(dt) };
+                BodyCoupling::new(&pressure.row_of_cell, jac, mi)
             })
             .collect();
-        let kinematic = (0..bodies.len())
-            .filter(|&i| bodies[i].motion == crate::geometry::body::Motion::Kinematic)
-            .map(|i| {
-                let b = &bodies[i];
-                let faces = geometry.coupling_faces(i);
-                let jac = fractions::body_jacobian(grid, &faces, b.x, b.spin());
+        let kinematic = kinematic
+            .iter()
+            .zip(&kinematic_jacobians)
+            .map(|(&i, jac)| {
                 (
                     i,
-                    BodyCoupling::new(&pressure.row_of_cell, &jac, [[0.0; 6]; 6]),
-                    generalized_velocity(b),
+                    BodyCoupling::new(&pressure.row_of_cell, jac, [[0.0; 6]; 6]),
+                    generalized_velocity(&bodies[i]),
                 )
             })
             .collect();
