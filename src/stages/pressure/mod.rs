@@ -282,6 +282,37 @@ mod tests {
         (sys, phi, weights)
     }
 
+    /// The flux with (i, j, k) carried from row to row is, bit for bit, the sum over each
+    /// row's faces found from its cell's own (i, j, k), and the right-hand side its negative.
+    #[test]
+    fn fluid_flux_is_the_sum_over_each_rows_faces() {
+        let (sys, _, weights) = system_with_inputs();
+        let grid = sys.grid;
+        let mut u = Mac::zeros(&grid);
+        for (a, c) in u.c.iter_mut().enumerate() {
+            c.iter_mut().enumerate().for_each(|(f, x)| *x = ((f * 7 + a) % 11) as f64 - 4.9);
+        }
+        let w = weights.axes();
+        let want: Vec<f64> = sys
+            .cell_of_row
+            .iter()
+            .map(|&c| {
+                let ijk = grid.cells().ijk(c as usize);
+                let mut f = 0.0;
+                for a in 0..3 {
+                    let lo = cell_face(&grid, a, ijk, 0);
+                    let hi = cell_face(&grid, a, ijk, 1);
+                    f += w[a].weight(hi) * u.c[a][hi] - w[a].weight(lo) * u.c[a][lo];
+                }
+                f * (grid.dx * grid.dx)
+            })
+            .collect();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&sys.fluid_flux(&u, &weights)), bits(&want));
+        let minus: Vec<f64> = want.iter().map(|x| -x).collect();
+        assert_eq!(bits(&sys.rhs(&u, &weights, &[])), bits(&minus));
+    }
+
     #[test]
     fn projected_faces_are_every_face_with_a_gradient_once() {
         // The face list the velocity update walks must be exactly the faces where the

@@ -46,23 +46,39 @@ impl PressureSystem {
 
     /// Volume flux out of each liquid cell through its fluid faces, `Σ_f σ_if·dx²·w_f·u_f`.
     pub fn fluid_flux(&self, u: &Mac, weights: &FaceWeights) -> Vec<f64> {
+        let area = self.grid.dx * self.grid.dx;
+        self.flux_times(u, weights, area)
+    }
+
+    /// `Σ_f σ_if·w_f·u_f` times `scale` (`dx²`, or `−dx²` for minus the flux: the same bits
+    /// as negating it after, rounding being symmetric). A row's cell's (i, j, k) is the last
+    /// row's with i + 1 when the two cells are neighbours along x (most rows), so the loop
+    /// divides only at the start of a run of cells.
+    fn flux_times(&self, u: &Mac, weights: &FaceWeights, scale: f64) -> Vec<f64> {
         let grid = &self.grid;
-        let area = grid.dx * grid.dx;
         let cells = grid.cells();
         let w = weights.axes();
-        self.cell_of_row
-            .par_iter()
-            .map(|&c| {
-                let ijk = cells.ijk(c as usize);
+        let mut out = vec![0.0; self.cell_of_row.len()];
+        const ROWS: usize = 4096;
+        out.par_chunks_mut(ROWS).zip(self.cell_of_row.par_chunks(ROWS)).for_each(|(out, rows)| {
+            let mut last: Option<(usize, [usize; 3])> = None;
+            for (o, &c) in out.iter_mut().zip(rows) {
+                let c = c as usize;
+                let ijk = match last {
+                    Some((p, [i, j, k])) if c == p + 1 && i + 1 < grid.n[0] => [i + 1, j, k],
+                    _ => cells.ijk(c),
+                };
+                last = Some((c, ijk));
                 let mut f = 0.0;
                 for a in 0..3 {
                     let lo = cell_face(grid, a, ijk, 0);
                     let hi = cell_face(grid, a, ijk, 1);
                     f += w[a].weight(hi) * u.c[a][hi] - w[a].weight(lo) * u.c[a][lo];
                 }
-                f * area
-            })
-            .collect()
+                *o = f * scale;
+            }
+        });
+        out
     }
 
     /// Right-hand side `(1/ρ) Gᵀ M_F u − Jᵀ V`: minus the volume flux out of each cell,
@@ -70,8 +86,8 @@ impl PressureSystem {
     /// entry of `bodies`).
     pub fn rhs(&self, u: &Mac, weights: &FaceWeights, body_velocity: &[[f64; 6]]) -> Vec<f64> {
         assert_eq!(body_velocity.len(), self.bodies.len());
-        let mut b = self.fluid_flux(u, weights);
-        b.iter_mut().for_each(|x| *x = -*x);
+        let area = self.grid.dx * self.grid.dx;
+        let mut b = self.flux_times(u, weights, -area);
         for (body, v) in self.bodies.iter().zip(body_velocity) {
             let minus_v = v.map(|x| -x);
             body.add_jt(&minus_v, &mut b);
