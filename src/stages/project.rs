@@ -111,7 +111,7 @@ pub fn project(
     // The velocity update of the solve that stands (the field is not copied per contact
     // iteration).
     let mut u = u_hat;
-    sys.pressure.update_velocity(&proj.p, &mut u);
+    sys.pressure.subtract_pressure_gradient(&proj.p, &mut u);
     Ok((proj, u))
 }
 

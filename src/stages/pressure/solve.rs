@@ -152,6 +152,12 @@ impl PressureSystem {
         self.velocity_update_with(p, u, |x, du| *x -= du)
     }
 
+    /// [`PressureSystem::update_velocity`] without the mask, for a caller that does not read
+    /// it (three face-sized arrays fewer to clear and fill).
+    pub fn subtract_pressure_gradient(&self, p: &[f64], u: &mut Mac) {
+        self.velocity_apply(p, u, |x, du| *x -= du)
+    }
+
     /// [`PressureSystem::update_velocity`] of a zero field, written over those faces of `u`
     /// (its other faces left as they are, whatever they hold).
     pub fn velocity_update_into(&self, p: &[f64], u: &mut Mac) -> [Vec<u8>; 3] {
@@ -165,17 +171,26 @@ impl PressureSystem {
         u: &mut Mac,
         apply: impl Fn(&mut f64, f64) + Sync,
     ) -> [Vec<u8>; 3] {
-        let grid = &self.grid;
-        let k = self.params.dt / (self.params.density * grid.dx);
-        let mut valid = [0, 1, 2].map(|a| vec![0u8; grid.faces(a).len()]);
-        for a in 0..3 {
-            let face = |pf: &ProjectedFace| pf.face as usize;
-            for_each_keyed_mut(&mut u.c[a], &self.faces[a], face, |_, pf, x| {
+        self.velocity_apply(p, u, apply);
+        let face = |pf: &ProjectedFace| pf.face as usize;
+        [0, 1, 2].map(|a| {
+            let mut valid = vec![0u8; self.grid.faces(a).len()];
+            for_each_keyed_mut(&mut valid, &self.faces[a], face, |_, _, v| *v = 1);
+            valid
+        })
+    }
+
+    /// `apply(u_f, (Δt/ρ) ∇p)` on the faces the update acts on, the three axes side by side.
+    fn velocity_apply(&self, p: &[f64], u: &mut Mac, apply: impl Fn(&mut f64, f64) + Sync) {
+        let k = self.params.dt / (self.params.density * self.grid.dx);
+        let face = |pf: &ProjectedFace| pf.face as usize;
+        let axis = |a: usize, ua: &mut Vec<f64>| {
+            for_each_keyed_mut(ua, &self.faces[a], face, |_, pf, x| {
                 apply(x, k * pf.gradient.apply(p))
             });
-            for_each_keyed_mut(&mut valid[a], &self.faces[a], face, |_, _, v| *v = 1);
-        }
-        valid
+        };
+        let [ux, uy, uz] = &mut u.c;
+        rayon::join(|| axis(0, ux), || rayon::join(|| axis(1, uy), || axis(2, uz)));
     }
 
     /// What [`PressureSystem::update_velocity`] subtracts from face `f` of `axis` for the
