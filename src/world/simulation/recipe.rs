@@ -14,7 +14,9 @@ use crate::solvers::cg::CgStats;
 use crate::stages::band::Band;
 use crate::stages::contact::contact_possible;
 use crate::stages::density::DensityStats;
-use crate::stages::extrapolate::{correct_with_bodies, AirBodyFaces, ExtrapolationLayers};
+use crate::stages::extrapolate::{
+    correct_with_bodies, surface_faces, AirBodyFaces, ExtrapolationLayers, SurfaceFaces,
+};
 use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
 use crate::stages::project::{project, HeldContact, Projection};
@@ -96,14 +98,16 @@ impl Simulation {
 
         // The correction's extrapolation layers read the system's masks only: found beside
         // the solve when a second thread is free.
-        let layers = self.settings.solver.extrapolation_layers;
+        let (layers, blend) =
+            (self.settings.solver.extrapolation_layers, self.settings.solver.blend());
         let (projected, layered) = pool::ahead(
             || self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures),
             || {
                 let projected = sys.projected_mask();
-                let layered =
-                    ExtrapolationLayers::new(&projected, &sys.geometry.body_faces, &grid, layers);
-                (projected, layered)
+                let faces = &sys.geometry.body_faces;
+                let layered = ExtrapolationLayers::new(&projected, faces, &grid, layers);
+                let surface = surface_faces(&sys.pressure, &sys.phi, faces, blend);
+                (projected, layered, surface)
             },
         );
         let (proj, mut u, contact) = projected?;
@@ -162,13 +166,14 @@ impl Simulation {
         &self,
         sys: &StepSystem,
         u: &mut Mac,
-        layered: ([Vec<u8>; 3], ExtrapolationLayers),
+        layered: ([Vec<u8>; 3], ExtrapolationLayers, SurfaceFaces),
     ) -> AirBodyFaces {
-        let (projected, layers) = layered;
+        let (projected, layers, surface) = layered;
         correct_with_bodies(
             u,
             &projected,
             Some(&layers),
+            &surface,
             &self.bodies,
             &sys.geometry.body_faces,
             &sys.geometry.weights,

@@ -14,6 +14,9 @@ use crate::geometry::weights::FaceWeights;
 use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use rayon::prelude::*;
 
+mod blend;
+pub use blend::{surface_faces, SurfaceBlend, SurfaceFace, SurfaceFaces};
+
 /// Smallest piece of a face list handed to rayon.
 const CHUNK: usize = 4096;
 
@@ -415,7 +418,9 @@ pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 ///    takes the same mixture with, for its fluid velocity, the mean of its lattice
 ///    neighbours that step 1 set (projected or closed; zero if none);
 /// 3. with every face a body covers and every projected face known, extrapolation into air
-///    and zero in static solids and walls ([`correct_velocity`]).
+///    and zero in static solids and walls ([`correct_velocity`]); the projected faces of
+///    `surface` (`solver.surface_blend`, empty for the yes/no rule) known only in part (see
+///    [`SurfaceBlend`]).
 ///
 /// The mixture is continuous as w → 0 and as β → 0 (a nearly closed face otherwise kept the
 /// full pressure update of its sliver of fluid and jumped to the body's velocity when it
@@ -433,12 +438,45 @@ pub fn correct_with_bodies(
     u: &mut Mac,
     projected: &[Vec<u8>; 3],
     layered: Option<&ExtrapolationLayers>,
+    surface: &SurfaceFaces,
     bodies: &[RigidBody],
     faces: &[BodyFaces],
     weights: &FaceWeights,
     static_weights: &FaceWeights,
     grid: &Grid,
     layers: usize,
+) -> AirBodyFaces {
+    let air = body_sources(u, projected, bodies, faces, weights, grid);
+    let found;
+    let lay = match layered {
+        Some(lay) => lay,
+        None => {
+            found = ExtrapolationLayers::new(projected, faces, grid, layers);
+            &found
+        }
+    };
+    // As correct_velocity: what stays invalid and the closed faces zeroed in one pass.
+    for a in 0..3 {
+        let (axis, lat) = (&lay.axes[a], grid.faces(a));
+        if surface[a].is_empty() {
+            extrapolate_fronts(&mut u.c[a], axis, &lat);
+        } else {
+            blend::extrapolate_blended(&mut u.c[a], axis, &surface[a], &lat, None);
+        }
+        static_weights.zero_closed_or(a, &mut u.c[a], &axis.level, NEVER);
+    }
+    air
+}
+
+/// Steps 1 and 2 of [`correct_with_bodies`]: the bodies' velocities mixed into the faces
+/// they cover, the air faces among them given their neighbours' mean first; returns those.
+fn body_sources(
+    u: &mut Mac,
+    projected: &[Vec<u8>; 3],
+    bodies: &[RigidBody],
+    faces: &[BodyFaces],
+    weights: &FaceWeights,
+    grid: &Grid,
 ) -> AirBodyFaces {
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
     mix_body_velocities(u, bodies, faces, weights, grid, set);
@@ -464,21 +502,6 @@ pub fn correct_with_bodies(
         }
     }
     mix_body_velocities(u, bodies, faces, weights, grid, |a, f| !set(a, f));
-    match layered {
-        // As correct_velocity: what stays invalid and the closed faces zeroed in one pass.
-        Some(lay) => {
-            for a in 0..3 {
-                let axis = &lay.axes[a];
-                extrapolate_fronts(&mut u.c[a], axis, &grid.faces(a));
-                static_weights.zero_closed_or(a, &mut u.c[a], &axis.level, NEVER);
-            }
-        }
-        None => {
-            let mut valid = projected.clone();
-            mark_body_faces(&mut valid, faces);
-            correct_velocity(u, &mut valid, static_weights, grid, layers);
-        }
-    }
     air
 }
 
@@ -635,6 +658,7 @@ pub fn correct_with_bodies_adjoint(
         static_weights,
         grid,
     )
+    .bodies
 }
 
 /// What [`correct_with_bodies_adjoint`] reads of the step but the adjoint and the fields: the
@@ -644,6 +668,9 @@ pub fn correct_with_bodies_adjoint(
 pub struct CorrectionPlan {
     projected: [Vec<u8>; 3],
     axes: Vec<AxisPlan>,
+    /// The faces known in part (`solver.surface_blend`) and the field the extrapolation
+    /// started from, when there are any.
+    blended: Option<(SurfaceFaces, Mac)>,
 }
 
 impl CorrectionPlan {
@@ -662,8 +689,37 @@ impl CorrectionPlan {
             .enumerate()
             .map(|(a, lay)| AxisPlan::of(lay, &grid.faces(a)))
             .collect();
-        CorrectionPlan { projected, axes }
+        CorrectionPlan { projected, axes, blended: None }
     }
+
+    /// The plan with the faces known in part (`surface`, see [`SurfaceBlend`]), given the
+    /// field after the pressure update (`updated`) and the bodies as the correction saw them
+    /// (their velocities after the solve): the extrapolation's transpose reads the field it
+    /// started from.
+    #[allow(clippy::too_many_arguments)]
+    pub fn blended(
+        mut self,
+        surface: SurfaceFaces,
+        mut updated: Mac,
+        bodies: &[RigidBody],
+        faces: &[BodyFaces],
+        weights: &FaceWeights,
+        grid: &Grid,
+    ) -> CorrectionPlan {
+        if surface.iter().any(|s| !s.is_empty()) {
+            body_sources(&mut updated, &self.projected, bodies, faces, weights, grid);
+            self.blended = Some((surface, updated));
+        }
+        self
+    }
+}
+
+/// What [`correct_with_bodies_adjoint_planned`] returns besides the adjoint of the field.
+pub struct CorrectionAdjoint {
+    /// Each body's part.
+    pub bodies: Vec<BodyVelocityAdjoint>,
+    /// (cell, ∂L/∂φ_L) through the shares of the faces known in part (empty without them).
+    pub phi: Vec<(usize, f64)>,
 }
 
 /// [`correct_with_bodies_adjoint`] with its masks and layers found (`plan`).
@@ -678,13 +734,27 @@ pub fn correct_with_bodies_adjoint_planned(
     weights: &FaceWeights,
     static_weights: &FaceWeights,
     grid: &Grid,
-) -> Vec<BodyVelocityAdjoint> {
+) -> CorrectionAdjoint {
     let projected = &plan.projected;
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
-    // 3ᵀ: as correct_velocity_adjoint.
+    // 3ᵀ: as correct_velocity_adjoint; the blended layers' transpose where faces were known
+    // in part, each share's ∂L/∂c to φ_L of the two cells it was measured between.
+    let mut phi = Vec::new();
     for a in 0..3 {
         static_weights.zero_closed(a, &mut ubar.c[a]);
-        extrapolate_adjoint_planned(&mut ubar.c[a], &plan.axes[a], &grid.faces(a));
+        let lat = grid.faces(a);
+        match &plan.blended {
+            Some((surface, sources)) if !surface[a].is_empty() => {
+                let (axis, adj) = (&plan.axes[a].lay, &mut ubar.c[a]);
+                let cbar =
+                    blend::extrapolate_blended_adjoint(adj, &sources.c[a], axis, &surface[a], &lat);
+                for (sf, c) in surface[a].iter().zip(cbar) {
+                    phi.push((sf.liquid as usize, c * sf.gradient[0]));
+                    phi.push((sf.air as usize, c * sf.gradient[1]));
+                }
+            }
+            _ => extrapolate_adjoint_planned(&mut ubar.c[a], &plan.axes[a], &lat),
+        }
     }
     // 2ᵀ: the mixture, then each air face's mean back to the faces it read.
     let extrapolated = |a: usize, f: usize| {
@@ -712,7 +782,7 @@ pub fn correct_with_bodies_adjoint_planned(
     for (o, f) in out.iter_mut().zip(first) {
         o.add(f);
     }
-    out
+    CorrectionAdjoint { bodies: out, phi }
 }
 
 /// Adjoint of [`mix_body_velocities`] on the faces `on` accepts, in place on `ubar`:
@@ -922,8 +992,9 @@ mod tests {
         };
         let (x, y) = (val(1), val(2));
         let mut cx = x.clone();
+        let none = SurfaceFaces::default();
         let air = correct_with_bodies(
-            &mut cx, &projected, None, &bodies, &faces, &weights, &statics, &grid, 3,
+            &mut cx, &projected, None, &none, &bodies, &faces, &weights, &statics, &grid, 3,
         );
         let mut cty = y.clone();
         let u_old = |a: usize, f: usize| x.c[a][f];
