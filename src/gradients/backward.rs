@@ -338,12 +338,12 @@ fn rebuild(initial: &Simulation, rec: &StepRecord, options: &GradientOptions) ->
     if blend.theta > 0.0 {
         // The blended layers' transpose reads the field they started from: the forward
         // step's, from û on every face it advected and the step's pressure.
-        let surface = surface_faces(&sys.pressure, &sys.phi, faces, blend);
+        let (weights, statics) = (&sys.geometry.weights, &initial.statics().weights);
+        let surface = surface_faces(&sys.pressure, &sys.phi, faces, weights, statics, blend);
         let mut updated =
             predicted_velocity(&rec.u, &grid, dt, gravity, &sys.needed, Mac::zeros(&grid));
         sys.pressure.update_velocity(&rec.p, &mut updated);
         let after = bodies_after(&bodies, rec);
-        let weights = &sys.geometry.weights;
         correction = correction.blended(surface, updated, &after, faces, weights, &grid);
     }
     clock.lap(Stage::CorrectVelocity, times);

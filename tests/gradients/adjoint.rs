@@ -228,16 +228,17 @@ fn body_ramp_gradient_matches_central_differences() {
 
 /// The floating box with the liquid–air faces blended into the extrapolation
 /// (`solver.surface_blend = 1`): every face between a liquid and an air cell starts the
-/// extrapolation with a share θ of its projected velocity (θ its ghost-fluid fraction), and
-/// the layers weigh what they read by those shares. The backward pass replays the layers
-/// from the field they started from and carries each share's derivative to φ_L of its two
-/// cells as the projection's θ does. Every parameter within 1e-4 of central differences of
-/// the same map: under a frozen surface (measured 4.8e-8 at worst), and under a moving one in
+/// extrapolation with a share θ of its projected velocity (θ its ghost-fluid fraction), a
+/// face the box covers in part with the box's part known and its fluid part by that share,
+/// and the layers weigh what they read by those shares. The backward pass replays the layers
+/// from the field they started from and carries each share to φ_L of the two cells its θ was
+/// measured between (as the projection's θ does) and to the box's fractions β. Every
+/// parameter within 1e-4 of central differences of the same map: under a frozen surface
+/// (measured 2.2e-7 at worst; 0.95 without the fractions' path), and under a moving one in
 /// the settings whose surface adjoint is exact (no density projection, no sparse-cell rule;
-/// measured 1.5e-5, x₀). Without the shares' path to φ_L the moving box was off by 1e-3 to
-/// 2e-2 in 12 of its 13 parameters. With the density projection and the sparse-cell rule
-/// the moving box's worst is 2.4e-3 (8e-5 without the blend): the blend leans harder on
-/// φ_L, whose adjoint those two approximate.
+/// measured 1.4e-5; 1e-3 to 2e-2 in 12 of the 13 parameters without the path to φ_L). With
+/// the density projection and the sparse-cell rule the moving box's worst is 2.4e-3 (8e-5
+/// without the blend): the blend leans harder on φ_L, whose adjoint those two approximate.
 #[test]
 fn surface_blend_gradient_matches_central_differences() {
     for frozen in [true, false] {

@@ -5,11 +5,14 @@
 //! liquid to air (φ_L crossing zero at its centre), its faces to air stop being projected
 //! and take their neighbours' mean instead: the step jumps by the difference.
 //!
-//! Here a face whose liquid side meets air nearer than θ₁ (ghost-fluid fraction θ < θ₁)
-//! starts with only a share c = θ/θ₁ of its projected velocity, and every face carries a
-//! share m ∈ [0, 1] of what it knows and w = m·(its velocity). Each layer updates, from the
-//! values before it, the faces it reaches and those still known in part: with
-//! z = Σ m and s = Σ w over the face's lattice neighbours and k = 1 − m,
+//! Here every face carries a share m ∈ [0, 1] of what it knows and w = m·(its velocity).
+//! A face whose liquid side meets air nearer than θ₁ (ghost-fluid fraction θ < θ₁) knows
+//! only a share c = θ/θ₁ of its projected velocity; a face a body covers in part knows the
+//! body's part of it wholly and its fluid part by that part's share (c on a liquid–air face,
+//! 1 on one between liquid cells, 0 on one in air), so a face a body starts to cover starts
+//! with a share near zero. Each layer updates, from the values before it, the faces it
+//! reaches and those still known in part: with z = Σ m and s = Σ w over the face's lattice
+//! neighbours and k = 1 − m,
 //!
 //! ```text
 //!   z ≥ 1:  m' = 1,          w' = w + k·s/z   (the rest taken from the neighbours' mean)
@@ -17,13 +20,14 @@
 //! ```
 //!
 //! and after the last layer the velocity is w (a face known in part fades to zero with its
-//! share). Every operation is continuous in c and in the velocities, and c → 0 is the face
-//! not projected at all. With every share 0 or 1 it is the yes/no rule to the bit (each
-//! face set by the mean of its known neighbours, in the same order).
+//! share). Every operation is continuous in the shares and the velocities, and a share → 0
+//! is the face not known at all. With every share 0 or 1 it is the yes/no rule to the bit
+//! (each face set by the mean of its known neighbours, in the same order).
 
 use super::{neighbours, Layers, CHUNK};
 use crate::geometry::fractions::BodyFaces;
 use crate::geometry::grid::{Grid, Lattice, NONE};
+use crate::geometry::weights::FaceWeights;
 use crate::stages::pressure::{GhostFluid, PressureSystem};
 use rayon::prelude::*;
 
@@ -54,31 +58,65 @@ impl SurfaceBlend {
     }
 }
 
-/// A face the projection updated that starts the extrapolation with a share below one.
+/// A face that starts the extrapolation known in part: a liquid–air face whose θ is below
+/// θ₁, or a face a body covers in part (not wholly) whose fluid part is not wholly known.
+/// It starts with share m⁰ = 1 − (1 − c)·fluid/open and w⁰ = u − (1 − c)·fluid·u_fl, u its
+/// value after the bodies' velocities were mixed in (w·u_fl + Σ β·u_b where a body covers
+/// it, u_fl where none does) and u_fl its fluid velocity.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SurfaceFace {
     /// Face index on its axis's lattice.
     pub face: u32,
-    /// Its share c ∈ (0, 1) of the projected velocity.
+    /// c, the share of its fluid velocity known: θ/θ₁ (below one) on a liquid–air face, 1 on
+    /// a face between liquid cells, 0 on a face in air.
     pub share: f64,
-    /// The liquid cell beside it.
+    /// The weight of the fluid velocity in its value: its fluid weight w where a body
+    /// covers it, 1 where none does.
+    pub fluid: f64,
+    /// Its open area before the bodies (the static weight) where a body covers it, 1 where
+    /// none does.
+    pub open: f64,
+    /// Whether the projection updated it (its fluid velocity is the projected one; else the
+    /// mean its neighbours gave it, see `correct_with_bodies`).
+    pub projected: bool,
+    /// Whether a body covers it in part.
+    pub covered: bool,
+    /// The liquid cell its θ is measured from ([`NONE`] off a liquid–air face).
     pub liquid: u32,
-    /// The air cell beside it.
+    /// The air cell its θ is measured to ([`NONE`] off a liquid–air face).
     pub air: u32,
     /// (∂c/∂φ_L of the liquid cell, of the air cell).
     pub gradient: [f64; 2],
 }
 
+impl SurfaceFace {
+    /// The share it starts the layers with, m⁰.
+    #[inline]
+    pub(super) fn start_share(&self) -> f64 {
+        1.0 - (1.0 - self.share) * self.fluid / self.open
+    }
+
+    /// Where it starts the layers, from its value `u` and fluid velocity `u_fluid`.
+    #[inline]
+    pub(super) fn start(&self, u: f64, u_fluid: f64) -> Start {
+        let w = u - (1.0 - self.share) * self.fluid * u_fluid;
+        Start { face: self.face as usize, m: self.start_share(), w }
+    }
+}
+
 /// Per axis, the faces known in part, sorted by face.
 pub type SurfaceFaces = [Vec<SurfaceFace>; 3];
 
-/// The faces of `sys` between a liquid cell and an air cell (by `phi`, φ_L as the system was
-/// built from) whose share under `blend` is below one, but those a body covers (the bodies'
-/// velocities are known there whatever the liquid does). None when `blend` is off.
+/// The faces of `sys` known in part under `blend` (none when it is off): the liquid–air
+/// faces (by `phi`, φ_L as the system was built from) whose share is below one, and the
+/// faces `bodies` cover in part (combined weights `weights`, static ones `statics`) but
+/// those between liquid cells.
 pub fn surface_faces(
     sys: &PressureSystem,
     phi: &[f64],
     bodies: &[BodyFaces],
+    weights: &FaceWeights,
+    statics: &FaceWeights,
     blend: SurfaceBlend,
 ) -> SurfaceFaces {
     std::array::from_fn(|a| {
@@ -90,29 +128,78 @@ pub fn surface_faces(
         let mut covered: Vec<u32> =
             bodies.iter().flat_map(|bf| bf.faces[a].iter().map(|&(f, _)| f as u32)).collect();
         covered.sort_unstable();
-        sys.faces[a]
+        covered.dedup();
+        let is_covered = |f: u32| covered.binary_search(&f).is_ok();
+        let part = |f: u32| {
+            if is_covered(f) {
+                (weights.weight(a, f as usize), statics.weight(a, f as usize), true)
+            } else {
+                (1.0, 1.0, false)
+            }
+        };
+        let projected = &sys.faces[a];
+        let mut out: Vec<SurfaceFace> = projected
             .par_iter()
             .with_min_len(CHUNK)
             .filter_map(|pf| {
-                let g = pf.gradient;
-                let (rm, rp) = (g.rm, g.rp);
-                if (rm == NONE) == (rp == NONE) {
-                    return None;
-                }
-                let (minus, plus) = grid.face_cells(a, lat.ijk(pf.face as usize));
-                let (liquid, air) = if rm != NONE { (minus?, plus?) } else { (plus?, minus?) };
-                let share = blend.share(phi[liquid], phi[air]);
-                let (dl, da) = blend.share_gradient(phi[liquid], phi[air]);
-                (share < 1.0 && covered.binary_search(&pf.face).is_err()).then_some(SurfaceFace {
-                    face: pf.face,
+                let (rm, rp) = (pf.gradient.rm, pf.gradient.rp);
+                let (face, cells) = (pf.face, grid.face_cells(a, lat.ijk(pf.face as usize)));
+                let (share, liquid, air, gradient) = if (rm == NONE) != (rp == NONE) {
+                    let (minus, plus) = cells;
+                    let (l, g) = if rm != NONE { (minus?, plus?) } else { (plus?, minus?) };
+                    let (dl, da) = blend.share_gradient(phi[l], phi[g]);
+                    (blend.share(phi[l], phi[g]), l as u32, g as u32, [dl, da])
+                } else {
+                    (1.0, NONE, NONE, [0.0; 2])
+                };
+                let (fluid, open, covered) = part(face);
+                let sf = SurfaceFace {
+                    face,
                     share,
-                    liquid: liquid as u32,
-                    air: air as u32,
-                    gradient: [dl, da],
-                })
+                    fluid,
+                    open,
+                    projected: true,
+                    covered,
+                    liquid,
+                    air,
+                    gradient,
+                };
+                (sf.start_share() < 1.0).then_some(sf)
             })
-            .collect()
+            .collect();
+        // The faces of air a body covers in part: their fluid part unknown.
+        let before = out.len();
+        for &f in &covered {
+            let projected_face = projected.binary_search_by_key(&f, |pf| pf.face).is_ok();
+            if projected_face || weights.closed(a, f as usize) {
+                continue;
+            }
+            let (fluid, open, _) = part(f);
+            out.push(SurfaceFace {
+                face: f,
+                share: 0.0,
+                fluid,
+                open,
+                projected: false,
+                covered: true,
+                liquid: NONE,
+                air: NONE,
+                gradient: [0.0; 2],
+            });
+        }
+        if out.len() > before {
+            out.sort_unstable_by_key(|sf| sf.face);
+        }
+        out
     })
+}
+
+/// Where a face starts the layers: its share m⁰ and w⁰.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Start {
+    pub face: usize,
+    pub m: f64,
+    pub w: f64,
 }
 
 /// One face's update in a layer: its share m before it and the sums z = Σ m, s = Σ w over
@@ -139,11 +226,11 @@ impl Update {
 }
 
 /// The blended layers on `field` (one component, its known faces those of level 0 in `lay`,
-/// `surface` those known in part), in place; with `trace`, each layer's updates.
+/// `starts` those known in part, sorted), in place; with `trace`, each layer's updates.
 pub(super) fn extrapolate_blended(
     field: &mut [f64],
     lay: &Layers,
-    surface: &[SurfaceFace],
+    starts: &[Start],
     lat: &Lattice,
     mut trace: Option<&mut Vec<Vec<Update>>>,
 ) {
@@ -154,12 +241,10 @@ pub(super) fn extrapolate_blended(
             *x = 0.0;
         }
     });
-    let mut partial: Vec<usize> = Vec::with_capacity(surface.len());
-    for sf in surface {
-        let f = sf.face as usize;
-        m[f] = sf.share;
-        field[f] *= sf.share;
-        partial.push(f);
+    let mut partial: Vec<usize> = Vec::with_capacity(starts.len());
+    for st in starts {
+        (m[st.face], field[st.face]) = (st.m, st.w);
+        partial.push(st.face);
     }
     for front in &lay.fronts {
         let set = merge(&partial, front);
@@ -212,19 +297,20 @@ fn merge(a: &[usize], b: &[usize]) -> Vec<usize> {
 /// and ∂L/∂m of each of its n lattice neighbours (face, to w, to m).
 type UpdateAdjoint = (f64, [(usize, f64, f64); 6], usize);
 
-/// The transpose of [`extrapolate_blended`] from the field it started from (`input`): `adj`,
-/// ∂L/∂(the extrapolated field), becomes ∂L/∂`input` in place (zero on the faces it does not
-/// read); returns ∂L/∂c of each face of `surface`.
+/// The transpose of [`extrapolate_blended`] from the field it started from (`input`, with
+/// `starts`): `adj`, ∂L/∂(the extrapolated field), becomes ∂L/∂`input` in place on the
+/// faces of level 0 (∂L/∂w⁰ on those of `starts`) and zero elsewhere; returns ∂L/∂m⁰ of
+/// each start.
 pub(super) fn extrapolate_blended_adjoint(
     adj: &mut [f64],
     input: &[f64],
     lay: &Layers,
-    surface: &[SurfaceFace],
+    starts: &[Start],
     lat: &Lattice,
 ) -> Vec<f64> {
     let mut replay = input.to_vec();
     let mut trace = Vec::with_capacity(lay.fronts.len());
-    extrapolate_blended(&mut replay, lay, surface, lat, Some(&mut trace));
+    extrapolate_blended(&mut replay, lay, starts, lat, Some(&mut trace));
     let level = &lay.level;
     adj.par_iter_mut().zip(level.par_iter()).for_each(|(a, &l)| {
         if l == super::NEVER {
@@ -269,22 +355,12 @@ pub(super) fn extrapolate_blended_adjoint(
             }
         }
     }
-    let cbar: Vec<f64> = surface
-        .iter()
-        .map(|sf| {
-            let f = sf.face as usize;
-            input[f] * adj[f] + mbar[f]
-        })
-        .collect();
-    for sf in surface {
-        adj[sf.face as usize] *= sf.share;
-    }
     adj.par_iter_mut().zip(level.par_iter()).for_each(|(a, &l)| {
         if l != 0 {
             *a = 0.0;
         }
     });
-    cbar
+    starts.iter().map(|st| mbar[st.face]).collect()
 }
 
 #[cfg(test)]
@@ -298,36 +374,34 @@ mod tests {
 
     /// A mask with scattered known faces and a block of them (fronts that meet), values, and
     /// the known faces at the block's edge known in part.
-    fn case(lat: &Lattice) -> (Vec<u8>, Vec<f64>, Vec<SurfaceFace>) {
+    fn case(lat: &Lattice) -> (Vec<u8>, Vec<f64>, Vec<Start>) {
         let valid: Vec<u8> = (0..lat.len())
             .map(|f| {
                 let [i, j, k] = lat.ijk(f);
                 u8::from((f * 37) % 11 == 0 || (i + j < 4 && k > 1))
             })
             .collect();
-        let value = (0..lat.len()).map(|f| ((f * 7919) % 97) as f64 / 48.0 - 1.0).collect();
-        let surface = (0..lat.len())
+        let value: Vec<f64> =
+            (0..lat.len()).map(|f| ((f * 7919) % 97) as f64 / 48.0 - 1.0).collect();
+        let starts = (0..lat.len())
             .filter(|&f| {
                 let [i, j, k] = lat.ijk(f);
                 valid[f] != 0 && (i + j == 3 || (f * 37) % 11 == 0) && k != 3
             })
             .enumerate()
-            .map(|(n, f)| SurfaceFace {
-                face: f as u32,
+            .map(|(n, face)| {
                 // Irrational steps: no two shares sum to a whole number (the layers' kink
                 // at z = 1).
-                share: 0.03 + 0.9 * (n as f64 * 0.618_033_988_7).fract(),
-                liquid: 0,
-                air: 0,
-                gradient: [0.0; 2],
+                let m = 0.03 + 0.9 * (n as f64 * 0.618_033_988_7).fract();
+                Start { face, m, w: m * value[face] }
             })
             .collect();
-        (valid, value, surface)
+        (valid, value, starts)
     }
 
-    fn blended(value: &[f64], lay: &Layers, surface: &[SurfaceFace], lat: &Lattice) -> Vec<f64> {
+    fn blended(value: &[f64], lay: &Layers, starts: &[Start], lat: &Lattice) -> Vec<f64> {
         let mut out = value.to_vec();
-        extrapolate_blended(&mut out, lay, surface, lat, None);
+        extrapolate_blended(&mut out, lay, starts, lat, None);
         out
     }
 
@@ -339,10 +413,8 @@ mod tests {
         let lay = Layers::new(&valid, &lat, 3);
         let mut old = value.clone();
         extrapolate_fronts(&mut old, &lay, &lat);
-        old.iter_mut()
-            .zip(&lay.level)
-            .filter(|(_, &l)| l == super::super::NEVER)
-            .for_each(|(x, _)| *x = 0.0);
+        let never = |l: &u8| *l == super::super::NEVER;
+        old.iter_mut().zip(&lay.level).filter(|(_, l)| never(l)).for_each(|(x, _)| *x = 0.0);
         let new = blended(&value, &lay, &[], &lat);
         let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<u64>>();
         assert_eq!(bits(&new), bits(&old));
@@ -354,56 +426,57 @@ mod tests {
     #[test]
     fn a_share_near_zero_is_the_face_unknown() {
         let lat = lattice();
-        let (valid, value, surface) = case(&lat);
-        let f = surface[3].face as usize;
+        let (valid, value, starts) = case(&lat);
+        let f = starts[3].face;
         let mut valid_without = valid.clone();
         valid_without[f] = 0;
-        let rest: Vec<SurfaceFace> =
-            surface.iter().copied().filter(|s| s.face as usize != f).collect();
+        let rest: Vec<Start> = starts.iter().copied().filter(|s| s.face != f).collect();
         let without = blended(&value, &Layers::new(&valid_without, &lat, 3), &rest, &lat);
-        let gap = |share: f64| {
-            let mut faint = surface.clone();
-            faint[3].share = share;
+        let gap = |m: f64| {
+            let mut faint = starts.clone();
+            faint[3] = Start { face: f, m, w: m * value[f] };
             let with = blended(&value, &Layers::new(&valid, &lat, 3), &faint, &lat);
             with.iter().zip(&without).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max)
         };
         let (near, nearer) = (gap(1e-9), gap(1e-12));
         assert!(near < 1e-7 && nearer < 2e-3 * near, "{near}, {nearer}");
-        let whole = blended(&value, &Layers::new(&valid, &lat, 3), &surface, &lat);
+        let whole = blended(&value, &Layers::new(&valid, &lat, 3), &starts, &lat);
         let moved = whole.iter().zip(&without).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
         assert!(moved > 0.1, "the face's share matters: {moved}");
     }
 
-    /// The transpose against central differences of the layers in the values and in each
-    /// share, and the dot-product test in the values.
+    /// The transpose against central differences of the layers in each start's share, and
+    /// the dot-product test in the values (the field and the starts' w⁰).
     #[test]
     fn transpose_matches_central_differences() {
         let lat = lattice();
-        let (valid, value, surface) = case(&lat);
-        assert!(surface.len() > 10, "{} faces known in part", surface.len());
+        let (valid, value, starts) = case(&lat);
+        assert!(starts.len() > 10, "{} faces known in part", starts.len());
         let lay = Layers::new(&valid, &lat, 3);
         let weight: Vec<f64> = (0..lat.len()).map(|f| ((f * 31) % 17) as f64 / 8.0 - 1.0).collect();
-        let loss = |v: &[f64], s: &[SurfaceFace]| -> f64 {
+        let loss = |v: &[f64], s: &[Start]| -> f64 {
             blended(v, &lay, s, &lat).iter().zip(&weight).map(|(a, b)| a * b).sum()
         };
         let mut adj = weight.clone();
-        let cbar = extrapolate_blended_adjoint(&mut adj, &value, &lay, &surface, &lat);
-        // Linear in the values for fixed shares: the dot-product test.
-        let lin = loss(&value, &surface);
-        let dot: f64 = adj.iter().zip(&value).map(|(a, b)| a * b).sum();
+        let mbar = extrapolate_blended_adjoint(&mut adj, &value, &lay, &starts, &lat);
+        // Linear in the values and the starts' w⁰ for fixed shares: the dot-product test.
+        let lin = loss(&value, &starts);
+        let mut input = value.clone();
+        starts.iter().for_each(|st| input[st.face] = st.w);
+        let dot: f64 = adj.iter().zip(&input).map(|(a, b)| a * b).sum();
         assert!((lin - dot).abs() <= 1e-12 * lin.abs().max(1.0), "{lin} vs {dot}");
         let h = 1e-6;
         let mut worst: f64 = 0.0;
-        for (i, sf) in surface.iter().enumerate() {
+        for (i, st) in starts.iter().enumerate() {
             let at = |d: f64| {
-                let mut s = surface.clone();
-                s[i].share = sf.share + d;
+                let mut s = starts.clone();
+                s[i].m = st.m + d;
                 loss(&value, &s)
             };
             let fd = (at(h) - at(-h)) / (2.0 * h);
-            worst = worst.max((fd - cbar[i]).abs() / fd.abs().max(1.0));
+            worst = worst.max((fd - mbar[i]).abs() / fd.abs().max(1.0));
         }
         assert!(worst < 1e-7, "shares: {worst}");
-        assert!(cbar.iter().filter(|c| c.abs() > 1e-3).count() > surface.len() / 2);
+        assert!(mbar.iter().filter(|c| c.abs() > 1e-3).count() > starts.len() / 2);
     }
 }

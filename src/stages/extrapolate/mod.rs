@@ -15,6 +15,7 @@ use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use rayon::prelude::*;
 
 mod blend;
+use blend::Start;
 pub use blend::{surface_faces, SurfaceBlend, SurfaceFace, SurfaceFaces};
 
 /// Smallest piece of a face list handed to rayon.
@@ -446,6 +447,10 @@ pub fn correct_with_bodies(
     grid: &Grid,
     layers: usize,
 ) -> AirBodyFaces {
+    // The fluid velocities of the faces known in part that the projection updated, before
+    // the bodies' are mixed in (the others' are the means step 2 gives them).
+    let before: [Vec<f64>; 3] =
+        std::array::from_fn(|a| surface[a].iter().map(|sf| u.c[a][sf.face as usize]).collect());
     let air = body_sources(u, projected, bodies, faces, weights, grid);
     let found;
     let lay = match layered {
@@ -461,11 +466,36 @@ pub fn correct_with_bodies(
         if surface[a].is_empty() {
             extrapolate_fronts(&mut u.c[a], axis, &lat);
         } else {
-            blend::extrapolate_blended(&mut u.c[a], axis, &surface[a], &lat, None);
+            let fluid = fluid_velocities(&surface[a], &before[a], &air[a]);
+            let starts = starts(&surface[a], &u.c[a], &fluid);
+            blend::extrapolate_blended(&mut u.c[a], axis, &starts, &lat, None);
         }
         static_weights.zero_closed_or(a, &mut u.c[a], &axis.level, NEVER);
     }
     air
+}
+
+/// The fluid velocity of each face of `surface` (one axis): what the projection gave it
+/// (`before`, read before the bodies' velocities were mixed in), or on a face of air the mean
+/// of its neighbours in `air`.
+fn fluid_velocities(surface: &[SurfaceFace], before: &[f64], air: &[(u32, f64)]) -> Vec<f64> {
+    surface
+        .iter()
+        .zip(before)
+        .map(|(sf, &b)| {
+            if sf.projected {
+                b
+            } else {
+                air.binary_search_by_key(&sf.face, |e| e.0).map_or(0.0, |i| air[i].1)
+            }
+        })
+        .collect()
+}
+
+/// Where the faces of `surface` start the blended layers, from the field after the bodies'
+/// velocities were mixed in (`u`) and their fluid velocities.
+fn starts(surface: &[SurfaceFace], u: &[f64], fluid: &[f64]) -> Vec<Start> {
+    surface.iter().zip(fluid).map(|(sf, &v)| sf.start(u[sf.face as usize], v)).collect()
 }
 
 /// Steps 1 and 2 of [`correct_with_bodies`]: the bodies' velocities mixed into the faces
@@ -668,9 +698,17 @@ pub fn correct_with_bodies_adjoint(
 pub struct CorrectionPlan {
     projected: [Vec<u8>; 3],
     axes: Vec<AxisPlan>,
-    /// The faces known in part (`solver.surface_blend`) and the field the extrapolation
-    /// started from, when there are any.
-    blended: Option<(SurfaceFaces, Mac)>,
+    /// The faces known in part (`solver.surface_blend`), their fluid velocities and the
+    /// field the extrapolation started from, when there are any.
+    blended: Option<Blended>,
+}
+
+/// What the blended layers' transpose reads: per axis the faces known in part and their
+/// fluid velocities, and the field after the bodies' velocities were mixed in.
+struct Blended {
+    surface: SurfaceFaces,
+    fluid: [Vec<f64>; 3],
+    sources: Mac,
 }
 
 impl CorrectionPlan {
@@ -707,8 +745,12 @@ impl CorrectionPlan {
         grid: &Grid,
     ) -> CorrectionPlan {
         if surface.iter().any(|s| !s.is_empty()) {
-            body_sources(&mut updated, &self.projected, bodies, faces, weights, grid);
-            self.blended = Some((surface, updated));
+            let before: [Vec<f64>; 3] = std::array::from_fn(|a| {
+                surface[a].iter().map(|sf| updated.c[a][sf.face as usize]).collect()
+            });
+            let air = body_sources(&mut updated, &self.projected, bodies, faces, weights, grid);
+            let fluid = std::array::from_fn(|a| fluid_velocities(&surface[a], &before[a], &air[a]));
+            self.blended = Some(Blended { surface, fluid, sources: updated });
         }
         self
     }
@@ -738,19 +780,38 @@ pub fn correct_with_bodies_adjoint_planned(
     let projected = &plan.projected;
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
     // 3ᵀ: as correct_velocity_adjoint; the blended layers' transpose where faces were known
-    // in part, each share's ∂L/∂c to φ_L of the two cells it was measured between.
+    // in part, then each start's w⁰ and m⁰ back to its fluid velocity (`fluid_bar`, added
+    // below where that velocity is the field's), its share c (to φ_L of the two cells its θ
+    // was measured between) and the bodies' fractions β (through its fluid weight).
     let mut phi = Vec::new();
+    let mut fluid_bar: [Vec<(usize, bool, f64)>; 3] = Default::default();
+    let mut beta_bar: [std::collections::HashMap<usize, f64>; 3] = Default::default();
     for a in 0..3 {
         static_weights.zero_closed(a, &mut ubar.c[a]);
         let lat = grid.faces(a);
         match &plan.blended {
-            Some((surface, sources)) if !surface[a].is_empty() => {
-                let (axis, adj) = (&plan.axes[a].lay, &mut ubar.c[a]);
-                let cbar =
-                    blend::extrapolate_blended_adjoint(adj, &sources.c[a], axis, &surface[a], &lat);
-                for (sf, c) in surface[a].iter().zip(cbar) {
-                    phi.push((sf.liquid as usize, c * sf.gradient[0]));
-                    phi.push((sf.air as usize, c * sf.gradient[1]));
+            Some(b) if !b.surface[a].is_empty() => {
+                let (surface, fluid) = (&b.surface[a], &b.fluid[a]);
+                let starts = starts(surface, &b.sources.c[a], fluid);
+                let adj = &mut ubar.c[a];
+                let lay = &plan.axes[a].lay;
+                let mbar =
+                    blend::extrapolate_blended_adjoint(adj, &b.sources.c[a], lay, &starts, &lat);
+                for ((sf, &u_fl), m_bar) in surface.iter().zip(fluid).zip(mbar) {
+                    let f = sf.face as usize;
+                    let w_bar = adj[f];
+                    let unknown = 1.0 - sf.share;
+                    fluid_bar[a].push((f, sf.projected, -unknown * sf.fluid * w_bar));
+                    let c_bar = sf.fluid * u_fl * w_bar + m_bar * sf.fluid / sf.open;
+                    if sf.liquid != crate::geometry::grid::NONE {
+                        phi.push((sf.liquid as usize, c_bar * sf.gradient[0]));
+                        phi.push((sf.air as usize, c_bar * sf.gradient[1]));
+                    }
+                    if sf.covered {
+                        // fluid = open − Σβ: ∂w⁰/∂β = (1 − c)·u_fl, ∂m⁰/∂β = (1 − c)/open.
+                        let g = unknown * (u_fl * w_bar + m_bar / sf.open);
+                        beta_bar[a].insert(f, g);
+                    }
                 }
             }
             _ => extrapolate_adjoint_planned(&mut ubar.c[a], &plan.axes[a], &lat),
@@ -765,6 +826,11 @@ pub fn correct_with_bodies_adjoint_planned(
         mix_body_velocities_adjoint(ubar, extrapolated, bodies, faces, weights, grid, |a, f| {
             !set(a, f)
         });
+    for (a, list) in fluid_bar.iter().enumerate() {
+        for &(f, _, g) in list.iter().filter(|e| !e.1) {
+            ubar.c[a][f] += g;
+        }
+    }
     for (a, list) in air.iter().enumerate() {
         let lat = grid.faces(a);
         for &(f, _) in list {
@@ -781,6 +847,17 @@ pub fn correct_with_bodies_adjoint_planned(
     let first = mix_body_velocities_adjoint(ubar, u_projected, bodies, faces, weights, grid, set);
     for (o, f) in out.iter_mut().zip(first) {
         o.add(f);
+    }
+    for (a, list) in fluid_bar.iter().enumerate() {
+        for &(f, _, g) in list.iter().filter(|e| e.1) {
+            ubar.c[a][f] += g;
+        }
+    }
+    for (o, bf) in out.iter_mut().zip(faces) {
+        for (a, bars) in beta_bar.iter().enumerate() {
+            let on = bf.faces[a].iter().filter_map(|&(f, _)| bars.get(&f).map(|&g| (a, f, g)));
+            o.dbeta.extend(on);
+        }
     }
     CorrectionAdjoint { bodies: out, phi }
 }

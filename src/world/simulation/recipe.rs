@@ -100,14 +100,17 @@ impl Simulation {
         // the solve when a second thread is free.
         let (layers, blend) =
             (self.settings.solver.extrapolation_layers, self.settings.solver.blend());
+        // The faces the extrapolation knows in part (none unless `solver.surface_blend`).
+        let (weights, statics) = (&sys.geometry.weights, &self.statics.weights);
+        let faces = &sys.geometry.body_faces;
+        let surface = surface_faces(&sys.pressure, &sys.phi, faces, weights, statics, blend);
         let (projected, layered) = pool::ahead(
             || self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures),
             || {
                 let projected = sys.projected_mask();
                 let faces = &sys.geometry.body_faces;
                 let layered = ExtrapolationLayers::new(&projected, faces, &grid, layers);
-                let surface = surface_faces(&sys.pressure, &sys.phi, faces, blend);
-                (projected, layered, surface)
+                (projected, layered)
             },
         );
         let (proj, mut u, contact) = projected?;
@@ -115,7 +118,7 @@ impl Simulation {
         let (max_divergence, kinetic_energy) = self.projected_measures(&sys, &u, &proj, report);
         timed.lap(Stage::Pressure);
 
-        let air_body_faces = self.correct_velocity(&sys, &mut u, layered);
+        let air_body_faces = self.correct_velocity(&sys, &mut u, layered, &surface);
         timed.lap(Stage::CorrectVelocity);
 
         // Whether rapier integrates the bodies: contact possible at their new velocities.
@@ -160,20 +163,21 @@ impl Simulation {
     }
 
     /// [`Stage::CorrectVelocity`] on `u` (`layered`: the faces the projection updated and
-    /// the extrapolation's layers, found beside the solve); returns what the backward pass
-    /// needs of it.
+    /// the extrapolation's layers, found beside the solve; `surface`: the faces it knows in
+    /// part); returns what the backward pass needs of it.
     fn correct_velocity(
         &self,
         sys: &StepSystem,
         u: &mut Mac,
-        layered: ([Vec<u8>; 3], ExtrapolationLayers, SurfaceFaces),
+        layered: ([Vec<u8>; 3], ExtrapolationLayers),
+        surface: &SurfaceFaces,
     ) -> AirBodyFaces {
-        let (projected, layers, surface) = layered;
+        let (projected, layers) = layered;
         correct_with_bodies(
             u,
             &projected,
             Some(&layers),
-            &surface,
+            surface,
             &self.bodies,
             &sys.geometry.body_faces,
             &sys.geometry.weights,
