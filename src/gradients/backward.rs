@@ -26,7 +26,7 @@ use crate::stages::advect::{
 };
 use crate::stages::band::Band;
 use crate::stages::extrapolate::{
-    correct_with_bodies_adjoint_planned, surface_faces, CorrectionPlan,
+    correct_with_bodies_adjoint_planned, surface_faces, Correction, CorrectionPlan,
 };
 use crate::stages::forces::body_velocity_adjoint;
 use crate::stages::particles::ParticleStage;
@@ -344,7 +344,9 @@ fn rebuild(initial: &Simulation, rec: &StepRecord, options: &GradientOptions) ->
             predicted_velocity(&rec.u, &grid, dt, gravity, &sys.needed, Mac::zeros(&grid));
         sys.pressure.update_velocity(&rec.p, &mut updated);
         let after = bodies_after(&bodies, rec);
-        correction = correction.blended(surface, updated, &after, faces, weights, &grid);
+        let step =
+            Correction { bodies: &after, faces, weights, static_weights: statics, grid: &grid };
+        correction = correction.blended(surface, updated, step);
     }
     clock.lap(Stage::CorrectVelocity, times);
     let traces = (initial.spread() == Spread::Serial)
@@ -507,17 +509,14 @@ fn correct_velocity_adjoint(
 ) -> Vec<(usize, f64)> {
     let after = bodies_after(bodies, rec);
     let grid = initial.grid();
-    let bva = correct_with_bodies_adjoint_planned(
-        ubar,
-        u_corr,
-        &rec.air_body_faces,
-        plan,
-        &after,
-        &sys.geometry.body_faces,
-        &sys.geometry.weights,
-        &initial.statics().weights,
+    let step = Correction {
+        bodies: &after,
+        faces: &sys.geometry.body_faces,
+        weights: &sys.geometry.weights,
+        static_weights: &initial.statics().weights,
         grid,
-    );
+    };
+    let bva = correct_with_bodies_adjoint_planned(ubar, u_corr, &rec.air_body_faces, plan, step);
     for (i, r) in bva.bodies.iter().enumerate() {
         // A fixed body's pose and velocity are constants; a kinematic one's are the
         // prescribed motion's (a control's).

@@ -408,6 +408,23 @@ pub fn correct_velocity_adjoint(
 /// pass reads those values for ∂u/∂β; the tape keeps them.
 pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 
+/// What the velocity correction reads of a step besides the field: the bodies (with their
+/// velocities after the solve), the faces each covers, the face weights with the bodies and
+/// without them (the static solids and walls), and the grid.
+#[derive(Clone, Copy)]
+pub struct Correction<'a> {
+    /// The bodies.
+    pub bodies: &'a [RigidBody],
+    /// The faces each body covers, with their fractions β.
+    pub faces: &'a [BodyFaces],
+    /// The combined face weights.
+    pub weights: &'a FaceWeights,
+    /// The static face weights.
+    pub static_weights: &'a FaceWeights,
+    /// The grid.
+    pub grid: &'a Grid,
+}
+
 /// The velocity correction with bodies, on `u` after the pressure update
 /// (`projected`: the faces the update acted on):
 ///
@@ -434,24 +451,20 @@ pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 /// `layered`: step 3's layers found beforehand (for `projected`, `faces` and `layers`,
 /// [`ExtrapolationLayers::new`], for example beside the solve), or None to find them here;
 /// the same bits either way.
-#[allow(clippy::too_many_arguments)]
 pub fn correct_with_bodies(
     u: &mut Mac,
     projected: &[Vec<u8>; 3],
     layered: Option<&ExtrapolationLayers>,
     surface: &SurfaceFaces,
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    static_weights: &FaceWeights,
-    grid: &Grid,
+    step: Correction,
     layers: usize,
 ) -> AirBodyFaces {
+    let Correction { faces, static_weights, grid, .. } = step;
     // The fluid velocities of the faces known in part that the projection updated, before
     // the bodies' are mixed in (the others' are the means step 2 gives them).
     let before: [Vec<f64>; 3] =
         std::array::from_fn(|a| surface[a].iter().map(|sf| u.c[a][sf.face as usize]).collect());
-    let air = body_sources(u, projected, bodies, faces, weights, grid);
+    let air = body_sources(u, projected, step);
     let found;
     let lay = match layered {
         Some(lay) => lay,
@@ -500,14 +513,8 @@ fn starts(surface: &[SurfaceFace], u: &[f64], fluid: &[f64]) -> Vec<Start> {
 
 /// Steps 1 and 2 of [`correct_with_bodies`]: the bodies' velocities mixed into the faces
 /// they cover, the air faces among them given their neighbours' mean first; returns those.
-fn body_sources(
-    u: &mut Mac,
-    projected: &[Vec<u8>; 3],
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    grid: &Grid,
-) -> AirBodyFaces {
+fn body_sources(u: &mut Mac, projected: &[Vec<u8>; 3], step: Correction) -> AirBodyFaces {
+    let Correction { bodies, faces, weights, grid, .. } = step;
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
     mix_body_velocities(u, bodies, faces, weights, grid, set);
     let air: AirBodyFaces = std::array::from_fn(|a| {
@@ -663,32 +670,16 @@ impl BodyVelocityAdjoint {
 /// field becomes that of the field after the pressure update): `u_projected(axis, face)` is
 /// the field after the update on the projected faces the bodies cover (for ∂/∂β), `air` what
 /// the forward step returned. Returns each body's part.
-#[allow(clippy::too_many_arguments)]
 pub fn correct_with_bodies_adjoint(
     ubar: &mut Mac,
     u_projected: impl Fn(usize, usize) -> f64,
     air: &AirBodyFaces,
     projected: &[Vec<u8>; 3],
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    static_weights: &FaceWeights,
-    grid: &Grid,
+    step: Correction,
     layers: usize,
 ) -> Vec<BodyVelocityAdjoint> {
-    let plan = CorrectionPlan::new(projected.clone(), faces, grid, layers);
-    correct_with_bodies_adjoint_planned(
-        ubar,
-        u_projected,
-        air,
-        &plan,
-        bodies,
-        faces,
-        weights,
-        static_weights,
-        grid,
-    )
-    .bodies
+    let plan = CorrectionPlan::new(projected.clone(), step.faces, step.grid, layers);
+    correct_with_bodies_adjoint_planned(ubar, u_projected, air, &plan, step).bodies
 }
 
 /// What [`correct_with_bodies_adjoint`] reads of the step but the adjoint and the fields: the
@@ -734,21 +725,17 @@ impl CorrectionPlan {
     /// field after the pressure update (`updated`) and the bodies as the correction saw them
     /// (their velocities after the solve): the extrapolation's transpose reads the field it
     /// started from.
-    #[allow(clippy::too_many_arguments)]
     pub fn blended(
         mut self,
         surface: SurfaceFaces,
         mut updated: Mac,
-        bodies: &[RigidBody],
-        faces: &[BodyFaces],
-        weights: &FaceWeights,
-        grid: &Grid,
+        step: Correction,
     ) -> CorrectionPlan {
         if surface.iter().any(|s| !s.is_empty()) {
             let before: [Vec<f64>; 3] = std::array::from_fn(|a| {
                 surface[a].iter().map(|sf| updated.c[a][sf.face as usize]).collect()
             });
-            let air = body_sources(&mut updated, &self.projected, bodies, faces, weights, grid);
+            let air = body_sources(&mut updated, &self.projected, step);
             let fluid = std::array::from_fn(|a| fluid_velocities(&surface[a], &before[a], &air[a]));
             self.blended = Some(Blended { surface, fluid, sources: updated });
         }
@@ -765,18 +752,14 @@ pub struct CorrectionAdjoint {
 }
 
 /// [`correct_with_bodies_adjoint`] with its masks and layers found (`plan`).
-#[allow(clippy::too_many_arguments)]
 pub fn correct_with_bodies_adjoint_planned(
     ubar: &mut Mac,
     u_projected: impl Fn(usize, usize) -> f64,
     air: &AirBodyFaces,
     plan: &CorrectionPlan,
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    static_weights: &FaceWeights,
-    grid: &Grid,
+    step: Correction,
 ) -> CorrectionAdjoint {
+    let Correction { bodies, faces, weights, static_weights, grid } = step;
     let projected = &plan.projected;
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
     // 3ᵀ: as correct_velocity_adjoint; the blended layers' transpose where faces were known
@@ -930,6 +913,17 @@ fn mix_body_velocities_adjoint(
 mod tests {
     use super::*;
 
+    /// A field of values in [−1, 1) that differ from face to face, one for each `seed`.
+    fn field(grid: &Grid, seed: usize) -> Mac {
+        let mut m = Mac::zeros(grid);
+        for a in 0..3 {
+            for (f, x) in m.c[a].iter_mut().enumerate() {
+                *x = ((f * 7919 + a * 13 + seed) % 97) as f64 / 48.0 - 1.0;
+            }
+        }
+        m
+    }
+
     #[test]
     fn adjoint_is_the_transpose() {
         // C is linear for fixed masks: ⟨C x, y⟩ = ⟨x, Cᵀ y⟩.
@@ -941,16 +935,7 @@ mod tests {
         let valid = [0, 1, 2].map(|a| {
             (0..grid.faces(a).len()).map(|f| u8::from((f * 37 + a) % 5 == 0)).collect::<Vec<u8>>()
         });
-        let val = |s: usize| {
-            let mut m = Mac::zeros(&grid);
-            for a in 0..3 {
-                for (f, x) in m.c[a].iter_mut().enumerate() {
-                    *x = ((f * 7919 + a * 13 + s) % 97) as f64 / 48.0 - 1.0;
-                }
-            }
-            m
-        };
-        let (x, y) = (val(1), val(2));
+        let (x, y) = (field(&grid, 1), field(&grid, 2));
         let mut cx = x.clone();
         let mut v = valid.clone();
         correct_velocity(&mut cx, &mut v, &weights, &grid, 3);
@@ -1058,26 +1043,20 @@ mod tests {
         assert!(kinds(&|a, f| projected[a][f] != 0 && !weights.closed(a, f)) > 10);
         assert!(kinds(&|a, f| projected[a][f] == 0 && !weights.closed(a, f)) > 10);
         assert!(kinds(&|a, f| weights.closed(a, f)) > 10);
-        let val = |s: usize| {
-            let mut m = Mac::zeros(&grid);
-            for a in 0..3 {
-                for (f, x) in m.c[a].iter_mut().enumerate() {
-                    *x = ((f * 7919 + a * 13 + s) % 97) as f64 / 48.0 - 1.0;
-                }
-            }
-            m
-        };
-        let (x, y) = (val(1), val(2));
+        let (x, y) = (field(&grid, 1), field(&grid, 2));
         let mut cx = x.clone();
         let none = SurfaceFaces::default();
-        let air = correct_with_bodies(
-            &mut cx, &projected, None, &none, &bodies, &faces, &weights, &statics, &grid, 3,
-        );
+        let step = Correction {
+            bodies: &bodies,
+            faces: &faces,
+            weights: &weights,
+            static_weights: &statics,
+            grid: &grid,
+        };
+        let air = correct_with_bodies(&mut cx, &projected, None, &none, step, 3);
         let mut cty = y.clone();
         let u_old = |a: usize, f: usize| x.c[a][f];
-        let bva = correct_with_bodies_adjoint(
-            &mut cty, u_old, &air, &projected, &bodies, &faces, &weights, &statics, &grid, 3,
-        );
+        let bva = correct_with_bodies_adjoint(&mut cty, u_old, &air, &projected, step, 3);
         let gen = |b: &RigidBody| crate::math::twist(b.v, b.w);
         let l = cx.dot(&y);
         let r = x.dot(&cty)

@@ -15,7 +15,7 @@ use crate::stages::band::Band;
 use crate::stages::contact::contact_possible;
 use crate::stages::density::DensityStats;
 use crate::stages::extrapolate::{
-    correct_with_bodies, surface_faces, AirBodyFaces, ExtrapolationLayers, SurfaceFaces,
+    correct_with_bodies, surface_faces, AirBodyFaces, Correction, ExtrapolationLayers, SurfaceFaces,
 };
 use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
@@ -173,18 +173,15 @@ impl Simulation {
         surface: &SurfaceFaces,
     ) -> AirBodyFaces {
         let (projected, layers) = layered;
-        correct_with_bodies(
-            u,
-            &projected,
-            Some(&layers),
-            surface,
-            &self.bodies,
-            &sys.geometry.body_faces,
-            &sys.geometry.weights,
-            &self.statics.weights,
-            &self.grid,
-            self.settings.solver.extrapolation_layers,
-        )
+        let step = Correction {
+            bodies: &self.bodies,
+            faces: &sys.geometry.body_faces,
+            weights: &sys.geometry.weights,
+            static_weights: &self.statics.weights,
+            grid: &self.grid,
+        };
+        let layer_count = self.settings.solver.extrapolation_layers;
+        correct_with_bodies(u, &projected, Some(&layers), surface, step, layer_count)
     }
 
     /// The step's record for the backward pass, from its start (`start`: the fluid velocity
