@@ -9,7 +9,8 @@
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
-//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `body-ramp`, and
+//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `body-ramp`,
+//! `surface-blend=T`, and
 //! `along=P` (the coordinate moved: `v0` … `q2`, default `v0`). The sweep runs the scene at
 //! that coordinate + t for 41 values of t over ±`HALF` (in parallel) and prints the median slope, the net slope and the roughness: the sum of
 //! the 40 steps' deviations from the median step over the net change (0 for a line, about 1
@@ -46,6 +47,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         match key {
             "default" => {}
             "body-ramp" => s.body_ramp = true,
+            "surface-blend" => s.surface_blend = value.parse()?,
             "along" => along = parse_along(value)?,
             "no-density" => s.density_correction = false,
             "no-sparse" => s.sparse_cells = false,

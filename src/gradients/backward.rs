@@ -25,7 +25,9 @@ use crate::stages::advect::{
     advect_adjoint_into, advect_adjoint_traced, needed_faces, AdvectionTraces,
 };
 use crate::stages::band::Band;
-use crate::stages::extrapolate::{correct_with_bodies_adjoint_planned, CorrectionPlan};
+use crate::stages::extrapolate::{
+    correct_with_bodies_adjoint_planned, surface_faces, Correction, CorrectionPlan,
+};
 use crate::stages::forces::body_velocity_adjoint;
 use crate::stages::particles::ParticleStage;
 use crate::stages::pressure::Coupling;
@@ -331,7 +333,21 @@ fn rebuild(initial: &Simulation, rec: &StepRecord, options: &GradientOptions) ->
     clock.lap(Stage::Pressure, times);
     let faces = &sys.geometry.body_faces;
     let layers = settings.solver.extrapolation_layers;
-    let correction = CorrectionPlan::new(sys.projected_mask(), faces, &grid, layers);
+    let mut correction = CorrectionPlan::new(sys.projected_mask(), faces, &grid, layers);
+    let blend = settings.solver.blend();
+    if blend.theta > 0.0 {
+        // The blended layers' transpose reads the field they started from: the forward
+        // step's, from û on every face it advected and the step's pressure.
+        let (weights, statics) = (&sys.geometry.weights, &initial.statics().weights);
+        let surface = surface_faces(&sys.pressure, &sys.phi, faces, weights, statics, blend);
+        let mut updated =
+            predicted_velocity(&rec.u, &grid, dt, gravity, &sys.needed, Mac::zeros(&grid));
+        sys.pressure.update_velocity(&rec.p, &mut updated);
+        let after = bodies_after(&bodies, rec);
+        let step =
+            Correction { bodies: &after, faces, weights, static_weights: statics, grid: &grid };
+        correction = correction.blended(surface, updated, step);
+    }
     clock.lap(Stage::CorrectVelocity, times);
     let traces = (initial.spread() == Spread::Serial)
         .then(|| AdvectionTraces::new(&rec.u, &grid, dt, Some(&sys.needed)));
@@ -368,7 +384,7 @@ fn step_adjoint(
     let mut ubar = adj.u;
     let dual = full.then_some(dual_faces.as_slice());
     let u_corr = |a: usize, f: usize| u_hat.c[a][f] - sys.pressure.velocity_update_at(a, f, &rec.p);
-    correct_velocity_adjoint(
+    let shares_phi = correct_velocity_adjoint(
         initial,
         rec,
         &sys,
@@ -402,7 +418,13 @@ fn step_adjoint(
         dt,
         step,
     };
-    let projected = project_adjoint(&inputs, ubar, &mut vbar, &mut mass, &mut pose)?;
+    let mut projected = project_adjoint(&inputs, ubar, &mut vbar, &mut mass, &mut pose)?;
+    // The blended faces' shares read φ_L as the projection's θ does.
+    if let Some(g) = projected.phi.as_mut() {
+        for (c, v) in shares_phi {
+            g[c] += v;
+        }
+    }
     clock.lap(Stage::Pressure, times);
 
     for &i in &sys.coupled {
@@ -470,7 +492,8 @@ fn step_adjoint(
 /// after the projection (`u_corr` gives that field where it is read, `plan` the masks and
 /// layers of the correction); the bodies' ∂L/∂[v; ω] after the solve are added to `vbar`,
 /// and with `dual` (each body's dual fractions, the full gradient) their ∂L/∂[δx; δθ] to
-/// `pose`.
+/// `pose`. Returns (cell, ∂L/∂φ_L) through the shares of the faces blended into the
+/// extrapolation (`solver.surface_blend`).
 #[allow(clippy::too_many_arguments)]
 fn correct_velocity_adjoint(
     initial: &Simulation,
@@ -483,24 +506,18 @@ fn correct_velocity_adjoint(
     ubar: &mut Mac,
     vbar: &mut [Twist],
     pose: &mut [Twist],
-) {
-    let mut after = bodies.to_vec();
-    for (b, va) in after.iter_mut().zip(&rec.v_after) {
-        (b.v, b.w) = (va.linear(), va.angular());
-    }
+) -> Vec<(usize, f64)> {
+    let after = bodies_after(bodies, rec);
     let grid = initial.grid();
-    let bva = correct_with_bodies_adjoint_planned(
-        ubar,
-        u_corr,
-        &rec.air_body_faces,
-        plan,
-        &after,
-        &sys.geometry.body_faces,
-        &sys.geometry.weights,
-        &initial.statics().weights,
+    let step = Correction {
+        bodies: &after,
+        faces: &sys.geometry.body_faces,
+        weights: &sys.geometry.weights,
+        static_weights: &initial.statics().weights,
         grid,
-    );
-    for (i, r) in bva.iter().enumerate() {
+    };
+    let bva = correct_with_bodies_adjoint_planned(ubar, u_corr, &rec.air_body_faces, plan, step);
+    for (i, r) in bva.bodies.iter().enumerate() {
         // A fixed body's pose and velocity are constants; a kinematic one's are the
         // prescribed motion's (a control's).
         if !(bodies[i].moves() || bodies[i].motion == Motion::Kinematic) {
@@ -511,6 +528,17 @@ fn correct_velocity_adjoint(
             add_twist(&mut pose[i], &r.pose(&dual[i]));
         }
     }
+    bva.phi
+}
+
+/// The bodies of a step as its velocity correction saw them: with their velocities after
+/// the solve.
+fn bodies_after(bodies: &[RigidBody], rec: &StepRecord) -> Vec<RigidBody> {
+    let mut after = bodies.to_vec();
+    for (b, va) in after.iter_mut().zip(&rec.v_after) {
+        (b.v, b.w) = (va.linear(), va.angular());
+    }
+    after
 }
 
 /// What the particle stages' adjoints read of the step besides the record.

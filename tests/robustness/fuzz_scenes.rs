@@ -129,6 +129,8 @@ fn scene() -> impl Strategy<Value = String> {
             .prop_map(|v| format!("particles_per_cell = {v}")),
         2 => num(0.0, 0.6).prop_map(|v| format!("theta_min = {v}")),
         1 => any::<bool>().prop_map(|v| format!("body_ramp = {v}")),
+        1 => num(0.0, 1.2).prop_map(|v| format!("surface_blend = {v}")),
+        1 => hostile().prop_map(|v| format!("surface_blend = {v}")),
         2 => any::<bool>().prop_map(|v| format!("density_correction = {v}")),
         1 => num(1e-12, 0.5).prop_map(|v| format!("density_tolerance = {v}")),
         1 => hostile().prop_map(|v| format!("density_tolerance = {v}")),

@@ -169,27 +169,34 @@ impl GhostFluid {
         GhostFluid { theta_min }
     }
 
-    /// θ before its clamp.
+    /// θ before its clamp: the share of the way from the liquid cell's centre to the air
+    /// cell's where φ_L crosses zero.
     #[inline]
-    fn raw(&self, phi_liquid: f64, phi_air: f64) -> f64 {
+    pub fn fraction(phi_liquid: f64, phi_air: f64) -> f64 {
         -phi_liquid / (phi_air - phi_liquid)
+    }
+
+    /// (∂/∂φ_l, ∂/∂φ_a) of [`GhostFluid::fraction`].
+    #[inline]
+    pub fn fraction_gradient(phi_liquid: f64, phi_air: f64) -> (f64, f64) {
+        let den = phi_air - phi_liquid;
+        let den2 = den * den;
+        (-phi_air / den2, phi_liquid / den2)
     }
 
     /// θ of a face from a liquid cell at `phi_liquid` (< 0) to an air cell at `phi_air`.
     #[inline]
     pub fn theta(&self, phi_liquid: f64, phi_air: f64) -> f64 {
-        self.raw(phi_liquid, phi_air).max(self.theta_min)
+        GhostFluid::fraction(phi_liquid, phi_air).max(self.theta_min)
     }
 
     /// (∂θ/∂φ_l, ∂θ/∂φ_a), or `None` where θ sits at its clamp (no derivative).
     #[inline]
     pub fn theta_gradient(&self, phi_liquid: f64, phi_air: f64) -> Option<(f64, f64)> {
-        if self.raw(phi_liquid, phi_air) <= self.theta_min {
+        if GhostFluid::fraction(phi_liquid, phi_air) <= self.theta_min {
             return None;
         }
-        let den = phi_air - phi_liquid;
-        let den2 = den * den;
-        Some((-phi_air / den2, phi_liquid / den2))
+        Some(GhostFluid::fraction_gradient(phi_liquid, phi_air))
     }
 }
 

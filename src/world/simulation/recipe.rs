@@ -14,7 +14,9 @@ use crate::solvers::cg::CgStats;
 use crate::stages::band::Band;
 use crate::stages::contact::contact_possible;
 use crate::stages::density::DensityStats;
-use crate::stages::extrapolate::{correct_with_bodies, AirBodyFaces, ExtrapolationLayers};
+use crate::stages::extrapolate::{
+    correct_with_bodies, surface_faces, AirBodyFaces, Correction, ExtrapolationLayers, SurfaceFaces,
+};
 use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
 use crate::stages::project::{project, HeldContact, Projection};
@@ -97,13 +99,18 @@ impl Simulation {
         // The correction's extrapolation layers read the system's masks only: found beside
         // the solve, on a thread of their own when the step is serial, else in what the
         // solve's short loops leave of the other worker.
-        let layers = self.settings.solver.extrapolation_layers;
+        let (layers, blend) =
+            (self.settings.solver.extrapolation_layers, self.settings.solver.blend());
+        // The faces the extrapolation knows in part (none unless `solver.surface_blend`).
+        let (weights, statics) = (&sys.geometry.weights, &self.statics.weights);
+        let faces = &sys.geometry.body_faces;
+        let surface = surface_faces(&sys.pressure, &sys.phi, faces, weights, statics, blend);
         let (projected, layered) = pool::alongside(
             || self.pressure_stage(&sys, u_hat, &v_hat, dt, &mut pressures),
             || {
                 let projected = sys.projected_mask();
-                let layered =
-                    ExtrapolationLayers::new(&projected, &sys.geometry.body_faces, &grid, layers);
+                let faces = &sys.geometry.body_faces;
+                let layered = ExtrapolationLayers::new(&projected, faces, &grid, layers);
                 (projected, layered)
             },
         );
@@ -112,7 +119,7 @@ impl Simulation {
         let (max_divergence, kinetic_energy) = self.projected_measures(&sys, &u, &proj, report);
         timed.lap(Stage::Pressure);
 
-        let air_body_faces = self.correct_velocity(&sys, &mut u, layered);
+        let air_body_faces = self.correct_velocity(&sys, &mut u, layered, &surface);
         timed.lap(Stage::CorrectVelocity);
 
         // Whether rapier integrates the bodies: contact possible at their new velocities.
@@ -157,26 +164,25 @@ impl Simulation {
     }
 
     /// [`Stage::CorrectVelocity`] on `u` (`layered`: the faces the projection updated and
-    /// the extrapolation's layers, found beside the solve); returns what the backward pass
-    /// needs of it.
+    /// the extrapolation's layers, found beside the solve; `surface`: the faces it knows in
+    /// part); returns what the backward pass needs of it.
     fn correct_velocity(
         &self,
         sys: &StepSystem,
         u: &mut Mac,
         layered: ([Vec<u8>; 3], ExtrapolationLayers),
+        surface: &SurfaceFaces,
     ) -> AirBodyFaces {
         let (projected, layers) = layered;
-        correct_with_bodies(
-            u,
-            &projected,
-            Some(&layers),
-            &self.bodies,
-            &sys.geometry.body_faces,
-            &sys.geometry.weights,
-            &self.statics.weights,
-            &self.grid,
-            self.settings.solver.extrapolation_layers,
-        )
+        let step = Correction {
+            bodies: &self.bodies,
+            faces: &sys.geometry.body_faces,
+            weights: &sys.geometry.weights,
+            static_weights: &self.statics.weights,
+            grid: &self.grid,
+        };
+        let layer_count = self.settings.solver.extrapolation_layers;
+        correct_with_bodies(u, &projected, Some(&layers), surface, step, layer_count)
     }
 
     /// The step's record for the backward pass, from its start (`start`: the fluid velocity

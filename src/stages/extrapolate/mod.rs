@@ -15,6 +15,10 @@ use crate::math::par::{for_each_keyed_mut, MIN_LEN};
 use crate::math::Vec3;
 use rayon::prelude::*;
 
+mod blend;
+use blend::Start;
+pub use blend::{surface_faces, SurfaceBlend, SurfaceFace, SurfaceFaces};
+
 /// Smallest piece of a face list handed to rayon.
 const CHUNK: usize = 4096;
 
@@ -405,6 +409,23 @@ pub fn correct_velocity_adjoint(
 /// pass reads those values for ∂u/∂β; the tape keeps them.
 pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 
+/// What the velocity correction reads of a step besides the field: the bodies (with their
+/// velocities after the solve), the faces each covers, the face weights with the bodies and
+/// without them (the static solids and walls), and the grid.
+#[derive(Clone, Copy)]
+pub struct Correction<'a> {
+    /// The bodies.
+    pub bodies: &'a [RigidBody],
+    /// The faces each body covers, with their fractions β.
+    pub faces: &'a [BodyFaces],
+    /// The combined face weights.
+    pub weights: &'a FaceWeights,
+    /// The static face weights.
+    pub static_weights: &'a FaceWeights,
+    /// The grid.
+    pub grid: &'a Grid,
+}
+
 /// The velocity correction with bodies, on `u` after the pressure update
 /// (`projected`: the faces the update acted on):
 ///
@@ -416,7 +437,9 @@ pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 ///    takes the same mixture with, for its fluid velocity, the mean of its lattice
 ///    neighbours that step 1 set (projected or closed; zero if none);
 /// 3. with every face a body covers and every projected face known, extrapolation into air
-///    and zero in static solids and walls ([`correct_velocity`]).
+///    and zero in static solids and walls ([`correct_velocity`]); the projected faces of
+///    `surface` (`solver.surface_blend`, empty for the yes/no rule) known only in part (see
+///    [`SurfaceBlend`]).
 ///
 /// The mixture is continuous as w → 0 and as β → 0 (a nearly closed face otherwise kept the
 /// full pressure update of its sliver of fluid and jumped to the body's velocity when it
@@ -429,62 +452,109 @@ pub type AirBodyFaces = [Vec<(u32, f64)>; 3];
 /// `layered`: step 3's layers found beforehand (for `projected`, `faces` and `layers`,
 /// [`ExtrapolationLayers::new`], for example beside the solve), or None to find them here;
 /// the same bits either way.
-#[allow(clippy::too_many_arguments)]
 pub fn correct_with_bodies(
     u: &mut Mac,
     projected: &[Vec<u8>; 3],
     layered: Option<&ExtrapolationLayers>,
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    static_weights: &FaceWeights,
-    grid: &Grid,
+    surface: &SurfaceFaces,
+    step: Correction,
     layers: usize,
 ) -> AirBodyFaces {
-    let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
-    // `RigidBody::liquid_velocity_at`, each body's spin found once, not at every face.
-    let spins: Vec<Vec3> = bodies.iter().map(|b| b.spin().project(b.w)).collect();
-    let mix = |a: usize, ua: &mut [f64], on: &dyn Fn(usize) -> bool| {
-        mix_body_velocities(a, ua, bodies, &spins, faces, weights, grid, on)
+    let Correction { bodies, faces, static_weights, grid, .. } = step;
+    let found;
+    let lay = match layered {
+        Some(lay) => lay,
+        None => {
+            found = ExtrapolationLayers::new(projected, faces, grid, layers);
+            &found
+        }
     };
+    let spins = liquid_spins(bodies);
     // Each part reads and writes one component of `u` only: the three run side by side.
     let component = |a: usize, ua: &mut Vec<f64>| -> Vec<(u32, f64)> {
-        mix(a, ua, &|f| set(a, f));
-        let lat = grid.faces(a);
-        let air: Vec<(u32, f64)> = air_faces(faces, a, |f| !set(a, f))
-            .into_iter()
-            .map(|f| {
-                let mut nb = [0usize; 6];
-                let n = neighbours(&lat, f, |m| set(a, m), &mut nb);
-                let mean = if n == 0 {
-                    0.0
-                } else {
-                    nb[..n].iter().map(|&m| ua[m]).sum::<f64>() / n as f64
-                };
-                (f as u32, mean)
-            })
-            .collect();
-        for &(f, e) in &air {
-            ua[f as usize] = e;
-        }
-        mix(a, ua, &|f| !set(a, f));
+        // The fluid velocities of the faces known in part that the projection updated,
+        // before the bodies' are mixed in (the others' are the means step 2 gives them).
+        let before: Vec<f64> = surface[a].iter().map(|sf| ua[sf.face as usize]).collect();
+        let air = body_sources(a, ua, projected, step, &spins);
         // As correct_velocity: what stays invalid and the closed faces zeroed in one pass.
-        if let Some(lay) = layered {
-            let axis = &lay.axes[a];
+        let (axis, lat) = (&lay.axes[a], grid.faces(a));
+        if surface[a].is_empty() {
             extrapolate_fronts(ua, axis, &lat);
-            static_weights.zero_closed_or(a, ua, &axis.level, NEVER);
+        } else {
+            let fluid = fluid_velocities(&surface[a], &before, &air);
+            let starts = starts(&surface[a], ua, &fluid);
+            blend::extrapolate_blended(ua, axis, &starts, &lat, None);
         }
+        static_weights.zero_closed_or(a, ua, &axis.level, NEVER);
         air
     };
     let [ux, uy, uz] = &mut u.c;
     let (ax, (ay, az)) =
         rayon::join(|| component(0, ux), || rayon::join(|| component(1, uy), || component(2, uz)));
-    if layered.is_none() {
-        let mut valid = projected.clone();
-        mark_body_faces(&mut valid, faces);
-        correct_velocity(u, &mut valid, static_weights, grid, layers);
-    }
     [ax, ay, az]
+}
+
+/// The fluid velocity of each face of `surface` (one axis): what the projection gave it
+/// (`before`, read before the bodies' velocities were mixed in), or on a face of air the mean
+/// of its neighbours in `air`.
+fn fluid_velocities(surface: &[SurfaceFace], before: &[f64], air: &[(u32, f64)]) -> Vec<f64> {
+    surface
+        .iter()
+        .zip(before)
+        .map(|(sf, &b)| {
+            if sf.projected {
+                b
+            } else {
+                air.binary_search_by_key(&sf.face, |e| e.0).map_or(0.0, |i| air[i].1)
+            }
+        })
+        .collect()
+}
+
+/// Where the faces of `surface` start the blended layers, from the field after the bodies'
+/// velocities were mixed in (`u`) and their fluid velocities.
+fn starts(surface: &[SurfaceFace], u: &[f64], fluid: &[f64]) -> Vec<Start> {
+    surface.iter().zip(fluid).map(|(sf, &v)| sf.start(u[sf.face as usize], v)).collect()
+}
+
+/// Each body's angular velocity as the liquid sees it (`RigidBody::liquid_velocity_at`, its
+/// spin found once, not at every face).
+fn liquid_spins(bodies: &[RigidBody]) -> Vec<Vec3> {
+    bodies.iter().map(|b| b.spin().project(b.w)).collect()
+}
+
+/// Steps 1 and 2 of [`correct_with_bodies`] on component `a` of the field (`ua`): the
+/// bodies' velocities mixed into the faces they cover, the air faces among them given their
+/// neighbours' mean first; returns those (`spins`: [`liquid_spins`]).
+fn body_sources(
+    a: usize,
+    ua: &mut [f64],
+    projected: &[Vec<u8>; 3],
+    step: Correction,
+    spins: &[Vec3],
+) -> Vec<(u32, f64)> {
+    let Correction { bodies, faces, weights, grid, .. } = step;
+    let set = |f: usize| projected[a][f] != 0 || weights.closed(a, f);
+    let mix = |ua: &mut [f64], on: &dyn Fn(usize) -> bool| {
+        mix_body_velocities(a, ua, bodies, spins, faces, weights, grid, on)
+    };
+    mix(ua, &set);
+    let lat = grid.faces(a);
+    let air: Vec<(u32, f64)> = air_faces(faces, a, |f| !set(f))
+        .into_iter()
+        .map(|f| {
+            let mut nb = [0usize; 6];
+            let n = neighbours(&lat, f, set, &mut nb);
+            let mean =
+                if n == 0 { 0.0 } else { nb[..n].iter().map(|&m| ua[m]).sum::<f64>() / n as f64 };
+            (f as u32, mean)
+        })
+        .collect();
+    for &(f, e) in &air {
+        ua[f as usize] = e;
+    }
+    mix(ua, &|f| !set(f));
+    air
 }
 
 /// The layers of [`correct_with_bodies`]'s extrapolation, per axis, from the faces the
@@ -616,31 +686,16 @@ impl BodyVelocityAdjoint {
 /// field becomes that of the field after the pressure update): `u_projected(axis, face)` is
 /// the field after the update on the projected faces the bodies cover (for ∂/∂β), `air` what
 /// the forward step returned. Returns each body's part.
-#[allow(clippy::too_many_arguments)]
 pub fn correct_with_bodies_adjoint(
     ubar: &mut Mac,
     u_projected: impl Fn(usize, usize) -> f64,
     air: &AirBodyFaces,
     projected: &[Vec<u8>; 3],
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    static_weights: &FaceWeights,
-    grid: &Grid,
+    step: Correction,
     layers: usize,
 ) -> Vec<BodyVelocityAdjoint> {
-    let plan = CorrectionPlan::new(projected.clone(), faces, grid, layers);
-    correct_with_bodies_adjoint_planned(
-        ubar,
-        u_projected,
-        air,
-        &plan,
-        bodies,
-        faces,
-        weights,
-        static_weights,
-        grid,
-    )
+    let plan = CorrectionPlan::new(projected.clone(), step.faces, step.grid, layers);
+    correct_with_bodies_adjoint_planned(ubar, u_projected, air, &plan, step).bodies
 }
 
 /// What [`correct_with_bodies_adjoint`] reads of the step but the adjoint and the fields: the
@@ -650,6 +705,17 @@ pub fn correct_with_bodies_adjoint(
 pub struct CorrectionPlan {
     projected: [Vec<u8>; 3],
     axes: Vec<AxisPlan>,
+    /// The faces known in part (`solver.surface_blend`), their fluid velocities and the
+    /// field the extrapolation started from, when there are any.
+    blended: Option<Blended>,
+}
+
+/// What the blended layers' transpose reads: per axis the faces known in part and their
+/// fluid velocities, and the field after the bodies' velocities were mixed in.
+struct Blended {
+    surface: SurfaceFaces,
+    fluid: [Vec<f64>; 3],
+    sources: Mac,
 }
 
 impl CorrectionPlan {
@@ -668,29 +734,90 @@ impl CorrectionPlan {
             .enumerate()
             .map(|(a, lay)| AxisPlan::of(lay, &grid.faces(a)))
             .collect();
-        CorrectionPlan { projected, axes }
+        CorrectionPlan { projected, axes, blended: None }
+    }
+
+    /// The plan with the faces known in part (`surface`, see [`SurfaceBlend`]), given the
+    /// field after the pressure update (`updated`) and the bodies as the correction saw them
+    /// (their velocities after the solve): the extrapolation's transpose reads the field it
+    /// started from.
+    pub fn blended(
+        mut self,
+        surface: SurfaceFaces,
+        mut updated: Mac,
+        step: Correction,
+    ) -> CorrectionPlan {
+        if surface.iter().any(|s| !s.is_empty()) {
+            let before: [Vec<f64>; 3] = std::array::from_fn(|a| {
+                surface[a].iter().map(|sf| updated.c[a][sf.face as usize]).collect()
+            });
+            let spins = liquid_spins(step.bodies);
+            let air: AirBodyFaces = std::array::from_fn(|a| {
+                body_sources(a, &mut updated.c[a], &self.projected, step, &spins)
+            });
+            let fluid = std::array::from_fn(|a| fluid_velocities(&surface[a], &before[a], &air[a]));
+            self.blended = Some(Blended { surface, fluid, sources: updated });
+        }
+        self
     }
 }
 
+/// What [`correct_with_bodies_adjoint_planned`] returns besides the adjoint of the field.
+pub struct CorrectionAdjoint {
+    /// Each body's part.
+    pub bodies: Vec<BodyVelocityAdjoint>,
+    /// (cell, ∂L/∂φ_L) through the shares of the faces known in part (empty without them).
+    pub phi: Vec<(usize, f64)>,
+}
+
 /// [`correct_with_bodies_adjoint`] with its masks and layers found (`plan`).
-#[allow(clippy::too_many_arguments)]
 pub fn correct_with_bodies_adjoint_planned(
     ubar: &mut Mac,
     u_projected: impl Fn(usize, usize) -> f64,
     air: &AirBodyFaces,
     plan: &CorrectionPlan,
-    bodies: &[RigidBody],
-    faces: &[BodyFaces],
-    weights: &FaceWeights,
-    static_weights: &FaceWeights,
-    grid: &Grid,
-) -> Vec<BodyVelocityAdjoint> {
+    step: Correction,
+) -> CorrectionAdjoint {
+    let Correction { bodies, faces, weights, static_weights, grid } = step;
     let projected = &plan.projected;
     let set = |a: usize, f: usize| projected[a][f] != 0 || weights.closed(a, f);
-    // 3ᵀ: as correct_velocity_adjoint.
+    // 3ᵀ: as correct_velocity_adjoint; the blended layers' transpose where faces were known
+    // in part, then each start's w⁰ and m⁰ back to its fluid velocity (`fluid_bar`, added
+    // below where that velocity is the field's), its share c (to φ_L of the two cells its θ
+    // was measured between) and the bodies' fractions β (through its fluid weight).
+    let mut phi = Vec::new();
+    let mut fluid_bar: [Vec<(usize, bool, f64)>; 3] = Default::default();
+    let mut beta_bar: [std::collections::HashMap<usize, f64>; 3] = Default::default();
     for a in 0..3 {
         static_weights.zero_closed(a, &mut ubar.c[a]);
-        extrapolate_adjoint_planned(&mut ubar.c[a], &plan.axes[a], &grid.faces(a));
+        let lat = grid.faces(a);
+        match &plan.blended {
+            Some(b) if !b.surface[a].is_empty() => {
+                let (surface, fluid) = (&b.surface[a], &b.fluid[a]);
+                let starts = starts(surface, &b.sources.c[a], fluid);
+                let adj = &mut ubar.c[a];
+                let lay = &plan.axes[a].lay;
+                let mbar =
+                    blend::extrapolate_blended_adjoint(adj, &b.sources.c[a], lay, &starts, &lat);
+                for ((sf, &u_fl), m_bar) in surface.iter().zip(fluid).zip(mbar) {
+                    let f = sf.face as usize;
+                    let w_bar = adj[f];
+                    let unknown = 1.0 - sf.share;
+                    fluid_bar[a].push((f, sf.projected, -unknown * sf.fluid * w_bar));
+                    let c_bar = sf.fluid * u_fl * w_bar + m_bar * sf.fluid / sf.open;
+                    if sf.liquid != crate::geometry::grid::NONE {
+                        phi.push((sf.liquid as usize, c_bar * sf.gradient[0]));
+                        phi.push((sf.air as usize, c_bar * sf.gradient[1]));
+                    }
+                    if sf.covered {
+                        // fluid = open − Σβ: ∂w⁰/∂β = (1 − c)·u_fl, ∂m⁰/∂β = (1 − c)/open.
+                        let g = unknown * (u_fl * w_bar + m_bar / sf.open);
+                        beta_bar[a].insert(f, g);
+                    }
+                }
+            }
+            _ => extrapolate_adjoint_planned(&mut ubar.c[a], &plan.axes[a], &lat),
+        }
     }
     // 2ᵀ: the mixture, then each air face's mean back to the faces it read.
     let extrapolated = |a: usize, f: usize| {
@@ -701,6 +828,11 @@ pub fn correct_with_bodies_adjoint_planned(
         mix_body_velocities_adjoint(ubar, extrapolated, bodies, faces, weights, grid, |a, f| {
             !set(a, f)
         });
+    for (a, list) in fluid_bar.iter().enumerate() {
+        for &(f, _, g) in list.iter().filter(|e| !e.1) {
+            ubar.c[a][f] += g;
+        }
+    }
     for (a, list) in air.iter().enumerate() {
         let lat = grid.faces(a);
         for &(f, _) in list {
@@ -718,7 +850,18 @@ pub fn correct_with_bodies_adjoint_planned(
     for (o, f) in out.iter_mut().zip(first) {
         o.add(f);
     }
-    out
+    for (a, list) in fluid_bar.iter().enumerate() {
+        for &(f, _, g) in list.iter().filter(|e| e.1) {
+            ubar.c[a][f] += g;
+        }
+    }
+    for (o, bf) in out.iter_mut().zip(faces) {
+        for (a, bars) in beta_bar.iter().enumerate() {
+            let on = bf.faces[a].iter().filter_map(|&(f, _)| bars.get(&f).map(|&g| (a, f, g)));
+            o.dbeta.extend(on);
+        }
+    }
+    CorrectionAdjoint { bodies: out, phi }
 }
 
 /// Adjoint of [`mix_body_velocities`] on the faces `on` accepts, in place on `ubar`:
@@ -789,6 +932,17 @@ fn mix_body_velocities_adjoint(
 mod tests {
     use super::*;
 
+    /// A field of values in [−1, 1) that differ from face to face, one for each `seed`.
+    fn field(grid: &Grid, seed: usize) -> Mac {
+        let mut m = Mac::zeros(grid);
+        for a in 0..3 {
+            for (f, x) in m.c[a].iter_mut().enumerate() {
+                *x = ((f * 7919 + a * 13 + seed) % 97) as f64 / 48.0 - 1.0;
+            }
+        }
+        m
+    }
+
     #[test]
     fn adjoint_is_the_transpose() {
         // C is linear for fixed masks: ⟨C x, y⟩ = ⟨x, Cᵀ y⟩.
@@ -800,16 +954,7 @@ mod tests {
         let valid = [0, 1, 2].map(|a| {
             (0..grid.faces(a).len()).map(|f| u8::from((f * 37 + a) % 5 == 0)).collect::<Vec<u8>>()
         });
-        let val = |s: usize| {
-            let mut m = Mac::zeros(&grid);
-            for a in 0..3 {
-                for (f, x) in m.c[a].iter_mut().enumerate() {
-                    *x = ((f * 7919 + a * 13 + s) % 97) as f64 / 48.0 - 1.0;
-                }
-            }
-            m
-        };
-        let (x, y) = (val(1), val(2));
+        let (x, y) = (field(&grid, 1), field(&grid, 2));
         let mut cx = x.clone();
         let mut v = valid.clone();
         correct_velocity(&mut cx, &mut v, &weights, &grid, 3);
@@ -917,25 +1062,20 @@ mod tests {
         assert!(kinds(&|a, f| projected[a][f] != 0 && !weights.closed(a, f)) > 10);
         assert!(kinds(&|a, f| projected[a][f] == 0 && !weights.closed(a, f)) > 10);
         assert!(kinds(&|a, f| weights.closed(a, f)) > 10);
-        let val = |s: usize| {
-            let mut m = Mac::zeros(&grid);
-            for a in 0..3 {
-                for (f, x) in m.c[a].iter_mut().enumerate() {
-                    *x = ((f * 7919 + a * 13 + s) % 97) as f64 / 48.0 - 1.0;
-                }
-            }
-            m
-        };
-        let (x, y) = (val(1), val(2));
+        let (x, y) = (field(&grid, 1), field(&grid, 2));
         let mut cx = x.clone();
-        let air = correct_with_bodies(
-            &mut cx, &projected, None, &bodies, &faces, &weights, &statics, &grid, 3,
-        );
+        let none = SurfaceFaces::default();
+        let step = Correction {
+            bodies: &bodies,
+            faces: &faces,
+            weights: &weights,
+            static_weights: &statics,
+            grid: &grid,
+        };
+        let air = correct_with_bodies(&mut cx, &projected, None, &none, step, 3);
         let mut cty = y.clone();
         let u_old = |a: usize, f: usize| x.c[a][f];
-        let bva = correct_with_bodies_adjoint(
-            &mut cty, u_old, &air, &projected, &bodies, &faces, &weights, &statics, &grid, 3,
-        );
+        let bva = correct_with_bodies_adjoint(&mut cty, u_old, &air, &projected, step, 3);
         let gen = |b: &RigidBody| crate::math::twist(b.v, b.w);
         let l = cx.dot(&y);
         let r = x.dot(&cty)
