@@ -6,6 +6,7 @@
 //! ⟨∇L, d⟩ = (L(x + εd) − L(x − εd)) / 2ε.
 
 use crate::common::tank_toml;
+use diffluid::geometry::body::BodyState;
 use diffluid::geometry::grid::Mac;
 use diffluid::gradients::backward::SurfaceGradient;
 use diffluid::gradients::{
@@ -113,6 +114,18 @@ fn fluid_velocity_gradient_matches_central_differences() {
 /// issue asked for 1e-3; measured 3e-7 to 3e-5.
 fn check(name: &str, scene: &Scene) {
     check_with(name, scene, 1e-4);
+}
+
+/// Body 0's state after `steps` steps of each of two scenes (to check a setting changes the
+/// run).
+fn final_states(a: &Scene, b: &Scene, steps: usize) -> (BodyState, BodyState) {
+    let (mut a, mut b) = (a.build().unwrap(), b.build().unwrap());
+    for _ in 0..steps {
+        a.step().unwrap();
+        b.step().unwrap();
+    }
+    let state = |s: &Simulation| s.bodies()[0].state();
+    (state(&a), state(&b))
 }
 
 /// The loss the checks use: body 0's final position, orientation and velocity.
@@ -249,12 +262,7 @@ fn surface_blend_gradient_matches_central_differences() {
         }
         let plain = scene.clone();
         scene.solver.surface_blend = 1.0;
-        let (mut a, mut b) = (plain.build().unwrap(), scene.build().unwrap());
-        for _ in 0..20 {
-            a.step().unwrap();
-            b.step().unwrap();
-        }
-        let (sa, sb) = (a.bodies()[0].state(), b.bodies()[0].state());
+        let (sa, sb) = final_states(&plain, &scene, 20);
         assert!((sa.v - sb.v).length() > 1e-4, "the blend should change the run");
         let name = if frozen { "blend, frozen surface" } else { "blend, moving surface" };
         check_with(name, &scene, 1e-4);
@@ -295,12 +303,7 @@ fn closed_pockets_gradient_matches_central_differences() {
     scene.solver.sparse_cells = false;
     let open = scene.clone();
     scene.solver.close_pockets = Some(0.5);
-    let (mut a, mut b) = (open.build().unwrap(), scene.build().unwrap());
-    for _ in 0..25 {
-        a.step().unwrap();
-        b.step().unwrap();
-    }
-    let (sa, sb) = (a.bodies()[0].state(), b.bodies()[0].state());
+    let (sa, sb) = final_states(&open, &scene, 25);
     assert!((sa.x - sb.x).length() > 1e-6, "the closing should change the run");
     // The zero components' central differences are rounding (2e-10 of a loss near 1): the
     // command line's absolute tolerance.
