@@ -142,10 +142,9 @@ pub fn surface_faces(
             .par_iter()
             .with_min_len(CHUNK)
             .filter_map(|pf| {
-                let (rm, rp) = (pf.gradient.rm, pf.gradient.rp);
-                let (face, cells) = (pf.face, grid.face_cells(a, lat.ijk(pf.face as usize)));
+                let (face, rm, rp) = (pf.face, pf.gradient.rm, pf.gradient.rp);
                 let (share, liquid, air, gradient) = if (rm == NONE) != (rp == NONE) {
-                    let (minus, plus) = cells;
+                    let (minus, plus) = grid.face_cells(a, lat.ijk(face as usize));
                     let (l, g) = if rm != NONE { (minus?, plus?) } else { (plus?, minus?) };
                     let (dl, da) = blend.share_gradient(phi[l], phi[g]);
                     (blend.share(phi[l], phi[g]), l as u32, g as u32, [dl, da])
@@ -311,12 +310,9 @@ pub(super) fn extrapolate_blended_adjoint(
     let mut replay = input.to_vec();
     let mut trace = Vec::with_capacity(lay.fronts.len());
     extrapolate_blended(&mut replay, lay, starts, lat, Some(&mut trace));
+    // Nothing flows back from a face never reached (zero whatever it read): no update reads
+    // its adjoint, and the last pass zeroes it with every face not of level 0.
     let level = &lay.level;
-    adj.par_iter_mut().zip(level.par_iter()).for_each(|(a, &l)| {
-        if l == super::NEVER {
-            *a = 0.0;
-        }
-    });
     // ∂L/∂m, zero after the last layer (nothing reads the shares).
     let mut mbar = vec![0.0; adj.len()];
     for updates in trace.iter().rev() {

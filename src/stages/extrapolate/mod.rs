@@ -437,8 +437,8 @@ pub struct Correction<'a> {
 ///    takes the same mixture with, for its fluid velocity, the mean of its lattice
 ///    neighbours that step 1 set (projected or closed; zero if none);
 /// 3. with every face a body covers and every projected face known, extrapolation into air
-///    and zero in static solids and walls ([`correct_velocity`]); the projected faces of
-///    `surface` (`solver.surface_blend`, empty for the yes/no rule) known only in part (see
+///    and zero in static solids and walls ([`correct_velocity`]); the faces of `surface`
+///    (`solver.surface_blend`, empty for the yes/no rule) known only in part (see
 ///    [`SurfaceBlend`]).
 ///
 /// The mixture is continuous as w → 0 and as β → 0 (a nearly closed face otherwise kept the
@@ -472,16 +472,12 @@ pub fn correct_with_bodies(
     let spins = liquid_spins(bodies);
     // Each part reads and writes one component of `u` only: the three run side by side.
     let component = |a: usize, ua: &mut Vec<f64>| -> Vec<(u32, f64)> {
-        // The fluid velocities of the faces known in part that the projection updated,
-        // before the bodies' are mixed in (the others' are the means step 2 gives them).
-        let before: Vec<f64> = surface[a].iter().map(|sf| ua[sf.face as usize]).collect();
-        let air = body_sources(a, ua, projected, step, &spins);
+        let (air, fluid) = sources_and_fluid(a, ua, projected, step, &spins, &surface[a]);
         // As correct_velocity: what stays invalid and the closed faces zeroed in one pass.
         let (axis, lat) = (&lay.axes[a], grid.faces(a));
         if surface[a].is_empty() {
             extrapolate_fronts(ua, axis, &lat);
         } else {
-            let fluid = fluid_velocities(&surface[a], &before, &air);
             let starts = starts(&surface[a], ua, &fluid);
             blend::extrapolate_blended(ua, axis, &starts, &lat, None);
         }
@@ -494,21 +490,31 @@ pub fn correct_with_bodies(
     [ax, ay, az]
 }
 
-/// The fluid velocity of each face of `surface` (one axis): what the projection gave it
-/// (`before`, read before the bodies' velocities were mixed in), or on a face of air the mean
-/// of its neighbours in `air`.
-fn fluid_velocities(surface: &[SurfaceFace], before: &[f64], air: &[(u32, f64)]) -> Vec<f64> {
-    surface
+/// [`body_sources`] on component `a` (`ua`), and the fluid velocity of each face of
+/// `surface` (that axis's faces known in part): what the projection gave it, read before the
+/// bodies' velocities are mixed in, or on a face of air the mean step 2 gives it.
+fn sources_and_fluid(
+    a: usize,
+    ua: &mut [f64],
+    projected: &[Vec<u8>; 3],
+    step: Correction,
+    spins: &[Vec3],
+    surface: &[SurfaceFace],
+) -> (Vec<(u32, f64)>, Vec<f64>) {
+    let before: Vec<f64> = surface.iter().map(|sf| ua[sf.face as usize]).collect();
+    let air = body_sources(a, ua, projected, step, spins);
+    let fluid = surface
         .iter()
         .zip(before)
-        .map(|(sf, &b)| {
+        .map(|(sf, b)| {
             if sf.projected {
                 b
             } else {
                 air.binary_search_by_key(&sf.face, |e| e.0).map_or(0.0, |i| air[i].1)
             }
         })
-        .collect()
+        .collect();
+    (air, fluid)
 }
 
 /// Where the faces of `surface` start the blended layers, from the field after the bodies'
@@ -748,14 +754,11 @@ impl CorrectionPlan {
         step: Correction,
     ) -> CorrectionPlan {
         if surface.iter().any(|s| !s.is_empty()) {
-            let before: [Vec<f64>; 3] = std::array::from_fn(|a| {
-                surface[a].iter().map(|sf| updated.c[a][sf.face as usize]).collect()
-            });
             let spins = liquid_spins(step.bodies);
-            let air: AirBodyFaces = std::array::from_fn(|a| {
-                body_sources(a, &mut updated.c[a], &self.projected, step, &spins)
+            let fluid = std::array::from_fn(|a| {
+                let ua = &mut updated.c[a];
+                sources_and_fluid(a, ua, &self.projected, step, &spins, &surface[a]).1
             });
-            let fluid = std::array::from_fn(|a| fluid_velocities(&surface[a], &before[a], &air[a]));
             self.blended = Some(Blended { surface, fluid, sources: updated });
         }
         self
