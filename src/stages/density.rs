@@ -52,7 +52,10 @@ use crate::math::{Twist, Vec3};
 use crate::solvers::cg::CgStats;
 use crate::solvers::LinearSolve;
 use crate::stages::band::Band;
-use crate::stages::extrapolate::{correct_velocity_adjoint, extrapolate_one_layer};
+use crate::stages::extrapolate::{
+    correct_velocity_adjoint, extrapolate_one_layer, extrapolate_one_layer_blended,
+    extrapolate_one_layer_blended_adjoint, surface_faces, SurfaceBlend, SurfaceFaces,
+};
 use crate::stages::pressure::{
     has_open_face, GhostFluid, PressureParams, PressureSystem, SystemPool,
 };
@@ -279,6 +282,9 @@ pub struct DensityInputs<'a> {
     pub particles_per_cell: usize,
     /// The ghost-fluid θ of the projection's operator.
     pub ghost: GhostFluid,
+    /// How the displacement's liquid–air faces blend into its extrapolation layer (see
+    /// [`SurfaceBlend`]; off, the yes/no rule, when its θ₁ is 0).
+    pub blend: SurfaceBlend,
     /// How to solve it.
     pub solve: LinearSolve,
     /// The narrow band's deep cells (full liquid without particles), if the liquid has one.
@@ -335,6 +341,9 @@ pub struct DensityProjection {
     /// Those weights, when [`DensityProjection::deep_closed`], for the adjoint (a forward
     /// projection drops them before its solve).
     pub closed: Option<FaceWeights>,
+    /// The displacement's liquid–air faces known in part under the inputs' blend (none when
+    /// it is off; see [`SurfaceBlend`]).
+    pub surface: SurfaceFaces,
 }
 
 impl DensityProjection {
@@ -435,6 +444,8 @@ impl DensityProjection {
             })
             .collect();
         let deep_closed = closed.is_some();
+        // No body covers a face here: the weights are not read.
+        let surface = surface_faces(&sys, &phi, &[], g.weights, g.weights, g.blend);
         let proj = DensityProjection {
             phi,
             extension,
@@ -445,6 +456,7 @@ impl DensityProjection {
             b,
             deep_closed,
             closed,
+            surface,
         };
         if proj.b.par_iter().all(|&x| x == 0.0) {
             proj.give_back(g);
@@ -504,23 +516,40 @@ impl DensityProjection {
             c.par_chunks_mut(crate::math::par::MIN_LEN).for_each(|c| c.fill(0.0));
         }
         let valid0 = self.sys.velocity_update_into(q, &mut d);
+        let surface = &self.surface;
+        for (a, field) in d.c.iter_mut().enumerate() {
+            let lat = g.grid.faces(a);
+            let closed = self.closed(g, a);
+            if surface[a].is_empty() {
+                let face = |pf: &crate::stages::pressure::ProjectedFace| pf.face as usize;
+                extrapolate_one_layer(field, &valid0[a], &self.sys.faces[a], face, &lat, closed);
+            } else {
+                extrapolate_one_layer_blended(field, &valid0[a], &surface[a], &lat, closed);
+            }
+        }
+        Displacement { d, valid0 }
+    }
+
+    /// Whether the operator is closed at face `f` of `axis`: the inputs' closed faces, and
+    /// every face of a deep cell when [`DensityProjection::deep_closed`] (the closed
+    /// weights' zeros, without reading them).
+    fn closed<'g>(
+        &self,
+        g: &'g DensityInputs<'_>,
+        axis: usize,
+    ) -> impl Fn(usize) -> bool + Sync + 'g {
         let grid = g.grid;
+        let lat = grid.faces(axis);
         let deep = self
             .deep_closed
             .then(|| &g.band.expect("a projection closed at deep cells has a band").deep);
-        for (a, field) in d.c.iter_mut().enumerate() {
-            let lat = grid.faces(a);
-            let closed = |f: usize| {
-                g.weights.closed(a, f)
-                    || deep.is_some_and(|deep| {
-                        let (m, p) = grid.face_cells(a, lat.ijk(f));
-                        m.is_some_and(|c| deep[c]) || p.is_some_and(|c| deep[c])
-                    })
-            };
-            let face = |pf: &crate::stages::pressure::ProjectedFace| pf.face as usize;
-            extrapolate_one_layer(field, &valid0[a], &self.sys.faces[a], face, &lat, closed);
+        move |f: usize| {
+            g.weights.closed(axis, f)
+                || deep.is_some_and(|deep| {
+                    let (m, p) = grid.face_cells(axis, lat.ijk(f));
+                    m.is_some_and(|c| deep[c]) || p.is_some_and(|c| deep[c])
+                })
         }
-        Displacement { d, valid0 }
     }
 
     /// [`DensityProjection::displacement`] as it was computed before (whole-lattice
@@ -621,8 +650,26 @@ impl DensityProjection {
                     *read = (*x, vbar);
                 });
         });
-        // d = C(−k·G·q).
-        correct_velocity_adjoint(&mut dbar, valid0, self.weights(g), grid, 1);
+        // d = C(−k·G·q), its blended faces' shares read from φ.
+        let surface = &self.surface;
+        let mut share_bar = Vec::new();
+        if surface.iter().all(Vec::is_empty) {
+            correct_velocity_adjoint(&mut dbar, valid0, self.weights(g), grid, 1);
+        } else {
+            let mut input = g.field();
+            for c in &mut input.c {
+                c.fill(0.0);
+            }
+            self.sys.velocity_update_into(q, &mut input);
+            for (a, sf) in surface.iter().enumerate() {
+                let (lat, closed) = (grid.faces(a), self.closed(g, a));
+                let (adj, inp) = (&mut dbar.c[a], &input.c[a]);
+                let bars =
+                    extrapolate_one_layer_blended_adjoint(adj, inp, &valid0[a], sf, &lat, closed);
+                share_bar.extend(sf.iter().zip(bars));
+            }
+            g.give_back(None, Some(input));
+        }
         let qbar = self.sys.update_velocity_adjoint(&dbar);
         let (s, stats) = self.sys.solve(&qbar, &g.solve);
         // b = excess(dens, interior)·dx³ on the rows (0 on a band's deep cells).
@@ -644,6 +691,10 @@ impl DensityProjection {
         // The operator and the update read φ through the ghost-fluid θ, the interior
         // weights through the depth (and the bodies' poses through the clearance).
         let mut phi_bar = self.sys.phi_adjoint(&self.phi, self.weights(g), &s, q, &dbar);
+        for (sf, c_bar) in share_bar {
+            phi_bar[sf.liquid as usize] += c_bar * sf.gradient[0];
+            phi_bar[sf.air as usize] += c_bar * sf.gradient[1];
+        }
         for (c, bar) in interior_bar {
             match weight_set_by(c, self.interior[c], &self.phi, g) {
                 WeightSetBy::Depth(n) => phi_bar[n] -= bar / (DEPTH_RAMP * grid.dx),
@@ -911,6 +962,7 @@ mod tests {
                 },
                 particles_per_cell: 8,
                 ghost: GhostFluid::clamped(0.01),
+                blend: SurfaceBlend { theta: 0.0 },
                 solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),
                 band: self.band.as_ref(),
                 systems: None,
@@ -928,6 +980,33 @@ mod tests {
         let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
         assert!(!proj.deep_closed);
         assert_adjoint_is_central_difference(&pool.particles, &inputs);
+    }
+
+    /// With the displacement's liquid–air faces blended into its layer
+    /// (`solver.surface_blend`), with and without a band: faces known in part exist, the
+    /// displacement is not the yes/no rule's, and the adjoint, through the shares to φ_L,
+    /// still matches central differences.
+    #[test]
+    fn blended_adjoint_matches_central_differences() {
+        let deep: [Option<fn([usize; 3]) -> bool>; 2] =
+            [None, Some(|[i, j, k]| j == 0 && (1..7).contains(&i) && (1..5).contains(&k))];
+        for deep in deep {
+            let pool = SqueezedPool::new(deep);
+            let inputs = DensityInputs { blend: SurfaceBlend { theta: 0.5 }, ..pool.inputs() };
+            let proj = DensityProjection::build(&pool.particles, &inputs).expect("over full");
+            let parts: usize = proj.surface.iter().map(Vec::len).sum();
+            assert!(parts > 0, "no liquid–air face is known in part");
+            let (q, _) = proj.solve(&inputs, 1).unwrap();
+            let blended = proj.displacement(&q, &inputs).d;
+            let plain = DensityProjection { surface: Default::default(), ..proj }
+                .displacement(&q, &inputs)
+                .d;
+            let gap = (0..3)
+                .flat_map(|a| blended.c[a].iter().zip(&plain.c[a]).map(|(x, y)| (x - y).abs()))
+                .fold(0.0, f64::max);
+            assert!(gap > 1e-6 * pool.grid.dx, "the blend changed nothing: {gap:e}");
+            assert_adjoint_is_central_difference(&pool.particles, &inputs);
+        }
     }
 
     /// With deep cells under the over-full ones, the operator has the band's cells only

@@ -284,6 +284,64 @@ pub fn extrapolate_one_layer<E: Sync>(
         .for_each(|(part, front)| front.into_iter().for_each(|(m, v)| part[m] = v));
 }
 
+/// [`extrapolate_one_layer`] with the liquid–air faces `surface` (sorted by face, none a
+/// body covers) known in part, as [`SurfaceBlend`] weighs them: each starts with its share
+/// c of its value, and the layer updates them and the faces it reaches from the shares and
+/// values of their neighbours (see `blend.rs`); then zero on the faces `closed` holds. With
+/// every share 1 (or none given) it is [`extrapolate_one_layer`] to the bit.
+pub fn extrapolate_one_layer_blended(
+    field: &mut [f64],
+    valid: &[u8],
+    surface: &[SurfaceFace],
+    lat: &Lattice,
+    closed: impl Fn(usize) -> bool + Sync,
+) {
+    let lay = Layers::new(valid, lat, 1);
+    let own: Vec<f64> = surface.iter().map(|sf| field[sf.face as usize]).collect();
+    let starts = starts(surface, field, &own);
+    blend::extrapolate_blended(field, &lay, &starts, lat, None);
+    zero_closed_layer(field, &lay, closed);
+}
+
+/// The transpose of [`extrapolate_one_layer_blended`] from the field it started from
+/// (`input`): `adj`, ∂L/∂(the field after it), becomes ∂L/∂`input` on the valid faces and
+/// zero elsewhere; returns ∂L/∂c of each face of `surface`.
+pub fn extrapolate_one_layer_blended_adjoint(
+    adj: &mut [f64],
+    input: &[f64],
+    valid: &[u8],
+    surface: &[SurfaceFace],
+    lat: &Lattice,
+    closed: impl Fn(usize) -> bool + Sync,
+) -> Vec<f64> {
+    let lay = Layers::new(valid, lat, 1);
+    zero_closed_layer(adj, &lay, closed);
+    let own: Vec<f64> = surface.iter().map(|sf| input[sf.face as usize]).collect();
+    let starts = starts(surface, input, &own);
+    let mbar = blend::extrapolate_blended_adjoint(adj, input, &lay, &starts, lat);
+    // w⁰ = c·u and m⁰ = c on a face a body does not cover: ∂/∂u = c·w̄, ∂/∂c = u·w̄ + m̄.
+    surface
+        .iter()
+        .zip(mbar)
+        .map(|(sf, m_bar)| {
+            let f = sf.face as usize;
+            let w_bar = adj[f];
+            adj[f] = sf.share * w_bar;
+            input[f] * w_bar + m_bar
+        })
+        .collect()
+}
+
+/// Zero on the faces of the first layer of `lay` that `closed` holds (none of the valid
+/// faces is closed).
+fn zero_closed_layer(field: &mut [f64], lay: &Layers, closed: impl Fn(usize) -> bool + Sync) {
+    for &f in &lay.fronts[0] {
+        if closed(f) {
+            field[f] = 0.0;
+        }
+    }
+}
+
 /// [`extrapolate`] with its layers found (`lay`), the mask left as it is.
 fn extrapolate_layered(field: &mut [f64], lay: &Layers, lat: &Lattice) {
     extrapolate_fronts(field, lay, lat);
