@@ -28,6 +28,12 @@
 //! of settling (issue 33). Both sides have a dead zone of 10⁻⁶ (round-off in the deposit
 //! must not start a solve), subtracted so that b is continuous in the density.
 //!
+//! A cell's excess fades out over the tenth of a cell under the surface (its own φ_L): the
+//! deposit reads the cells around, so a cell just turning liquid can be over full, and its
+//! excess came on whole as it entered the operator. With `solver.surface_blend` the
+//! displacement's one layer blends its liquid–air faces as the velocity's extrapolation does
+//! (`DensityProjection::surface`).
+//!
 //! Where the interior ends, the deficit fades out instead of stopping
 //! (`interior_weights`): as the block's highest φ_L rises to zero from a tenth of a cell
 //! below, and as a body comes from √3 cells to half a cell closer. A yes/no interior was a
@@ -525,7 +531,7 @@ impl DensityProjection {
         let surface = &self.surface;
         for (a, field) in d.c.iter_mut().enumerate() {
             let lat = g.grid.faces(a);
-            let closed = self.closed(g, a);
+            let closed = self.closed_at(g, a);
             if surface[a].is_empty() {
                 let face = |pf: &crate::stages::pressure::ProjectedFace| pf.face as usize;
                 extrapolate_one_layer(field, &valid0[a], &self.sys.faces[a], face, &lat, closed);
@@ -539,7 +545,7 @@ impl DensityProjection {
     /// Whether the operator is closed at face `f` of `axis`: the inputs' closed faces, and
     /// every face of a deep cell when [`DensityProjection::deep_closed`] (the closed
     /// weights' zeros, without reading them).
-    fn closed<'g>(
+    fn closed_at<'g>(
         &self,
         g: &'g DensityInputs<'_>,
         axis: usize,
@@ -668,7 +674,7 @@ impl DensityProjection {
             }
             self.sys.velocity_update_into(q, &mut input);
             for (a, sf) in surface.iter().enumerate() {
-                let (lat, closed) = (grid.faces(a), self.closed(g, a));
+                let (lat, closed) = (grid.faces(a), self.closed_at(g, a));
                 let (adj, inp) = (&mut dbar.c[a], &input.c[a]);
                 let bars =
                     extrapolate_one_layer_blended_adjoint(adj, inp, &valid0[a], sf, &lat, closed);

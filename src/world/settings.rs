@@ -109,7 +109,8 @@ pub struct SolverSettings {
     /// covers in part with the body's part known and its fluid part by that part's share,
     /// and let the extrapolation's layers weigh what they read by those shares, so the
     /// velocity changes continuously as a cell turns from liquid to air or a body comes to
-    /// cover a face (`stages/extrapolate/blend.rs`). Default 0 (off: the yes/no rule): 0.5
+    /// cover a face (`stages/extrapolate/blend.rs`); the density projection's displacement
+    /// is blended the same way in its one layer. Default 0 (off: the yes/no rule): 0.5
     /// makes the map smoother (a box under a moving surface, with `body_ramp`: central
     /// differences at 1e-4 and 1e-6 within 1.2% instead of 2.6%), but the blended faces no
     /// longer hold their liquid cells' flux at zero, and the dam break ends 2.2% off its
