@@ -158,6 +158,8 @@ fn pair(mut a: Simulation, mut b: Simulation, steps: usize) -> diffluid::Result<
             );
         }
         let apart = a.particles().iter().zip(b.particles()).map(|(x, y)| (*x - *y).length());
+        let (p, far) = largest(apart);
+        let at = a.particles().get(p).map(|x| x.to_array());
         let (c, dphi) = largest((0..pa.len()).map(|c| (pa[c] - pb[c]).abs()));
         let (ua, ub) = (a.velocity_field(), b.velocity_field());
         let (axis, (f, du)) = (0..3)
@@ -165,8 +167,7 @@ fn pair(mut a: Simulation, mut b: Simulation, steps: usize) -> diffluid::Result<
             .max_by(|x, y| x.1 .1.total_cmp(&y.1 .1))
             .expect("three axes");
         println!(
-            "  at most: particles {:.3e} m apart, φ/dx {:.3e} at cell {:?}, u {du:.3e} m/s at face {:?} of axis {axis}",
-            apart.fold(0.0, f64::max),
+            "  at most: particles {far:.3e} m apart (particle {p} at {at:.4?}), φ/dx {:.3e} at cell {:?}, u {du:.3e} m/s at face {:?} of axis {axis}",
             dphi / grid.dx,
             grid.cells().ijk(c),
             grid.faces(axis).ijk(f)

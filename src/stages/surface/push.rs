@@ -3,30 +3,55 @@
 use super::*;
 use crate::geometry::body::RigidBody;
 use crate::math::{Pose, SharedShape, Vec3};
+use parry3d_f64::query::Ray;
 use rayon::prelude::*;
 
-/// One point pushed out of a body's shape at `pose` (bounds `lo`..`hi`): a point inside goes
-/// to the closest surface point and `margin` beyond it, a point outside but nearer than
-/// `margin` out to `margin`; any other point stays.
+/// One point pushed out of a body's shape at `pose` (bounds `lo`..`hi`) along the direction
+/// `n` the shape's signed distance d rises in: a point inside (d < 0) to where the ray from
+/// it along `n` leaves the shape and `margin` beyond, a point outside nearer than `margin`
+/// (0 ≤ d < `margin`) by `margin` − d along `n`; any other point stays. `n` is the
+/// distance's central difference over h = max(|d|/2, `margin`), normalised: it turns
+/// continuously from one face's normal to the next where two faces are equally near, where
+/// the closest surface point (the rule before) jumps from one face to the other (inside a
+/// box, across its diagonal planes: a particle a millimetre inside a box's edge was pushed
+/// to one face or the other, and the step jumped by the gap between them).
 #[inline]
 fn push_one(shape: &SharedShape, pose: &Pose, bounds: (Vec3, Vec3), x: Vec3, margin: f64) -> Vec3 {
     let (lo, hi) = bounds;
-    if x.cmplt(lo).any() || x.cmpgt(hi).any() {
+    let reach = Vec3::splat(margin);
+    if x.cmplt(lo - reach).any() || x.cmpgt(hi + reach).any() {
         return x;
     }
-    let proj = shape.project_point(pose, x, false);
-    if proj.is_inside {
-        let n = proj.point - x;
-        let len = n.length();
-        if len > 0.0 {
-            proj.point + n * (margin / len)
+    let sdf = |p: Vec3| {
+        let proj = shape.project_point(pose, p, false);
+        let d = (proj.point - p).length();
+        if proj.is_inside {
+            -d
         } else {
-            proj.point
+            d
         }
-    } else if (proj.point - x).length() < margin {
-        proj.point + (x - proj.point).normalize_or_zero() * margin
+    };
+    let d = sdf(x);
+    if d >= margin {
+        return x;
+    }
+    let h = (0.5 * d.abs()).max(margin);
+    let grad = Vec3::new(
+        sdf(x + Vec3::X * h) - sdf(x - Vec3::X * h),
+        sdf(x + Vec3::Y * h) - sdf(x - Vec3::Y * h),
+        sdf(x + Vec3::Z * h) - sdf(x - Vec3::Z * h),
+    );
+    let len = grad.length();
+    if len == 0.0 {
+        return x;
+    }
+    let n = grad / len;
+    if d < 0.0 {
+        let ray = Ray::new(x, n);
+        let exit = shape.cast_ray(pose, &ray, f64::MAX, false).unwrap_or(-d);
+        x + (exit + margin) * n
     } else {
-        x
+        x + (margin - d) * n
     }
 }
 

@@ -415,6 +415,36 @@ mod adjoint {
         assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "field: adjoint {ad:e}, fd {fd:e}");
     }
 
+    /// A point a millimetre inside a box's edge is pushed out continuously as it crosses the
+    /// plane where the edge's two faces are equally near (the closest surface point jumped
+    /// there from one face to the other, 1.4e-3 apart), and ends `margin` outside; a point
+    /// inside a face's middle goes straight out through that face.
+    #[test]
+    fn push_out_is_continuous_across_a_box_edge() {
+        let body = RigidBody::with_density(
+            "box".into(),
+            SharedShape::cuboid(0.2, 0.1, 0.15),
+            Pose::from_parts(Vec3::new(0.5, 0.5, 0.5), Rotation::IDENTITY),
+            500.0,
+        );
+        let margin = 1e-4;
+        let pushed = |x: Vec3| {
+            let mut p = [x];
+            push_out_of_bodies(&mut p, std::slice::from_ref(&body), margin);
+            p[0]
+        };
+        // Depths 1e-3 − s from the +x face and 1e-3 + s from the +y face.
+        let at = |s: f64| pushed(Vec3::new(0.699 + s, 0.599 - s, 0.5));
+        let gap = (at(-1e-9) - at(1e-9)).length();
+        assert!(gap < 1e-7, "the push jumped by {gap:e} across the diagonal plane");
+        for s in [-2e-4, 0.0, 2e-4] {
+            let d = body.sdf(at(s));
+            assert!((d - margin).abs() < 1e-6, "pushed {s:e}: distance {d:e}");
+        }
+        let middle = pushed(Vec3::new(0.5, 0.599, 0.5));
+        assert!((middle - Vec3::new(0.5, 0.6 + margin, 0.5)).length() < 1e-12, "{middle:?}");
+    }
+
     /// The push out of a tilted box and a ball: positions and the bodies' pose.
     #[test]
     fn push_out_adjoint_matches_central_differences() {
