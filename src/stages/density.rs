@@ -88,7 +88,7 @@ const BODY_RAMP: f64 = 0.5;
 /// within a tenth of a cell of the surface: the deposit reads the particles of the cells
 /// around, so a cell just turning liquid can be over full (those below it bunched), and
 /// its excess came on whole as it entered the operator, a jump of the step (traced on the
-/// surge: a cell at φ_L = −2.4e-6 of a cell with 2% too many particles).
+/// surge: a cell at φ_L = −2.4e-6 m with 2% too many particles).
 #[inline]
 fn excess(dens: f64, interior: f64, depth: f64) -> f64 {
     let over = dens - 1.0 - DEAD_ZONE;
