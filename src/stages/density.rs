@@ -523,11 +523,7 @@ impl DensityProjection {
         // inputs' closed faces, and every face of a deep cell: the closed weights' zeros,
         // without reading them). The same bits as `correct_velocity` and `closed_at_deep`
         // (`displacement_by_passes` in the tests), without their passes over the lattices.
-        let mut d = g.field();
-        for c in &mut d.c {
-            c.par_chunks_mut(crate::math::par::MIN_LEN).for_each(|c| c.fill(0.0));
-        }
-        let valid0 = self.sys.velocity_update_into(q, &mut d);
+        let (mut d, valid0) = self.updated(q, g);
         let surface = &self.surface;
         for (a, field) in d.c.iter_mut().enumerate() {
             let lat = g.grid.faces(a);
@@ -540,6 +536,17 @@ impl DensityProjection {
             }
         }
         Displacement { d, valid0 }
+    }
+
+    /// −G q on the faces of the rows, zero elsewhere (a field of the inputs' pool), and the
+    /// faces it set: the displacement before its extrapolation layer.
+    fn updated(&self, q: &[f64], g: &DensityInputs<'_>) -> (Mac, [Vec<u8>; 3]) {
+        let mut d = g.field();
+        for c in &mut d.c {
+            c.par_chunks_mut(crate::math::par::MIN_LEN).for_each(|c| c.fill(0.0));
+        }
+        let valid0 = self.sys.velocity_update_into(q, &mut d);
+        (d, valid0)
     }
 
     /// Whether the operator is closed at face `f` of `axis`: the inputs' closed faces, and
@@ -668,11 +675,7 @@ impl DensityProjection {
         if surface.iter().all(Vec::is_empty) {
             correct_velocity_adjoint(&mut dbar, valid0, self.weights(g), grid, 1);
         } else {
-            let mut input = g.field();
-            for c in &mut input.c {
-                c.fill(0.0);
-            }
-            self.sys.velocity_update_into(q, &mut input);
+            let (input, _) = self.updated(q, g);
             for (a, sf) in surface.iter().enumerate() {
                 let (lat, closed) = (grid.faces(a), self.closed_at(g, a));
                 let (adj, inp) = (&mut dbar.c[a], &input.c[a]);

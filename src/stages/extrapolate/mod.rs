@@ -297,8 +297,7 @@ pub fn extrapolate_one_layer_blended(
     closed: impl Fn(usize) -> bool + Sync,
 ) {
     let lay = Layers::new(valid, lat, 1);
-    let own: Vec<f64> = surface.iter().map(|sf| field[sf.face as usize]).collect();
-    let starts = starts(surface, field, &own);
+    let starts = fluid_starts(surface, field);
     blend::extrapolate_blended(field, &lay, &starts, lat, None);
     zero_closed_layer(field, &lay, closed);
 }
@@ -316,8 +315,7 @@ pub fn extrapolate_one_layer_blended_adjoint(
 ) -> Vec<f64> {
     let lay = Layers::new(valid, lat, 1);
     zero_closed_layer(adj, &lay, closed);
-    let own: Vec<f64> = surface.iter().map(|sf| input[sf.face as usize]).collect();
-    let starts = starts(surface, input, &own);
+    let starts = fluid_starts(surface, input);
     let mbar = blend::extrapolate_blended_adjoint(adj, input, &lay, &starts, lat);
     // w⁰ = c·u and m⁰ = c on a face a body does not cover: ∂/∂u = c·w̄, ∂/∂c = u·w̄ + m̄.
     surface
@@ -330,6 +328,12 @@ pub fn extrapolate_one_layer_blended_adjoint(
             input[f] * w_bar + m_bar
         })
         .collect()
+}
+
+/// Where the faces `surface` (none a body covers: their value is their fluid velocity)
+/// start the layers, from `field`.
+fn fluid_starts(surface: &[SurfaceFace], field: &[f64]) -> Vec<Start> {
+    surface.iter().map(|sf| sf.start(field[sf.face as usize], field[sf.face as usize])).collect()
 }
 
 /// Zero on the faces of the first layer of `lay` that `closed` holds (none of the valid

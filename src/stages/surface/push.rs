@@ -22,15 +22,7 @@ fn push_one(shape: &SharedShape, pose: &Pose, bounds: (Vec3, Vec3), x: Vec3, mar
     if x.cmplt(lo - reach).any() || x.cmpgt(hi + reach).any() {
         return x;
     }
-    let sdf = |p: Vec3| {
-        let proj = shape.project_point(pose, p, false);
-        let d = (proj.point - p).length();
-        if proj.is_inside {
-            -d
-        } else {
-            d
-        }
-    };
+    let sdf = |p: Vec3| shape.distance_to_point(pose, p, false);
     let d = sdf(x);
     if d >= margin {
         return x;
