@@ -498,6 +498,10 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
         rtol: args.rtol,
         atol: args.atol,
         compare_paper: scene.control.is_none(),
+        options: diffluid::gradients::GradientOptions {
+            through_contact: scene.optimize.as_ref().is_some_and(|o| o.through_contact),
+            ..Default::default()
+        },
         ..Default::default()
     };
     let report = match (scene.schedule(&sim), scene.trajectory_loss()) {

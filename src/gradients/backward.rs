@@ -31,8 +31,10 @@ use crate::stages::extrapolate::{
 use crate::stages::forces::body_velocity_adjoint;
 use crate::stages::particles::ParticleStage;
 use crate::stages::pressure::Coupling;
-use crate::stages::project::{project_adjoint, ProjectAdjointInputs};
-use crate::stages::rigid::integrate_adjoint;
+use crate::stages::project::{
+    project_adjoint, project_adjoint_held, HeldContact, ProjectAdjointInputs,
+};
+use crate::stages::rigid::{integrate_adjoint, integrate_contact_adjoint, Tank};
 use crate::stages::solid_phi::solidity_pose_adjoint;
 use crate::stages::surface;
 use crate::stages::system::{predicted_velocity, volume_source_derivative};
@@ -374,11 +376,21 @@ fn step_adjoint(
     let times = &mut total;
     let mut clock = StageClock::new();
 
-    let (mut out, mut vbar) =
-        integrate_adjoint(&bodies, &rec.bodies, &rec.v_after, &adj.bodies, dt);
-    let mut pose = vec![[0.0f64; 6]; bodies.len()];
     let mut mass = adj.mass;
     mass.resize(bodies.len(), 0.0);
+    let (mut out, mut vbar) = if rec.rigid_contact {
+        // Through the step rapier took.
+        let tank = Tank { size: grid.size(), external_reach: 0.0 };
+        let (start, after) = (&rec.bodies, &adj.bodies);
+        let contact = &settings.contact;
+        let (out, vbar, m) =
+            integrate_contact_adjoint(&bodies, start, &rec.v_after, after, dt, tank, contact);
+        mass.iter_mut().zip(m).for_each(|(a, b)| *a += b);
+        (out, vbar)
+    } else {
+        integrate_adjoint(&bodies, &rec.bodies, &rec.v_after, &adj.bodies, dt)
+    };
+    let mut pose = vec![[0.0f64; 6]; bodies.len()];
     clock.lap(Stage::Rigid, times);
 
     let mut ubar = adj.u;
@@ -418,7 +430,18 @@ fn step_adjoint(
         dt,
         step,
     };
-    let mut projected = project_adjoint(&inputs, ubar, &mut vbar, &mut mass, &mut pose)?;
+    let mut projected = if rec.held.is_empty() {
+        project_adjoint(&inputs, ubar, &mut vbar, &mut mass, &mut pose)?
+    } else {
+        // Back through the contact iteration held inside the projection.
+        let contact = HeldContact {
+            bodies: &bodies,
+            size: grid.size(),
+            settings: &settings.contact,
+            tolerance: 0.0,
+        };
+        project_adjoint_held(&inputs, &rec.held, contact, ubar, &mut vbar, &mut mass, &mut pose)?
+    };
     // The blended faces' shares read φ_L as the projection's θ does.
     if let Some(g) = projected.phi.as_mut() {
         for (c, v) in shares_phi {

@@ -31,6 +31,21 @@ pub struct Projection {
     pub forces: Vec<Twist>,
     /// What holding contact took.
     pub hold: ContactHold,
+    /// The solves of the contact iteration before the one that stands, in order (none
+    /// without contact): the backward pass differentiates through each.
+    pub held: Vec<HeldSolve>,
+}
+
+/// One solve of the contact iteration that a later one replaced (see [`hold_contact`]): what
+/// its adjoint reads. Per coupled body.
+#[derive(Clone, Debug, Default)]
+pub struct HeldSolve {
+    /// [v; ω] the solve started from (with the contact kick held so far).
+    pub v_hat: Vec<Twist>,
+    /// [v; ω] after it: what contact was then asked to change.
+    pub v_after: Vec<Twist>,
+    /// Its pressure.
+    pub p: Vec<f64>,
 }
 
 /// A pressure solve: from the predicted field û, the coupled bodies' velocities (with the
@@ -66,6 +81,7 @@ pub fn project(
     solve: PressureSolve<'_>,
 ) -> Result<(Projection, Mac)> {
     let mut last_p: Option<Vec<f64>> = None;
+    let mut held: Vec<HeldSolve> = Vec::new();
     let one = |kick: &[Twist]| {
         let vel: Vec<Twist> =
             v_hat.iter().zip(kick).map(|(v, k)| std::array::from_fn(|d| v[d] + k[d])).collect();
@@ -90,6 +106,9 @@ pub fn project(
             forces[k] = std::array::from_fn(|r| (0..6).map(|c| ent.mass[r][c] * dv[c]).sum());
         }
         last_p = Some(p.clone());
+        if contact.is_some() {
+            held.push(HeldSolve { v_hat: vel.clone(), v_after: after.clone(), p: p.clone() });
+        }
         let proj = Projection {
             p,
             stats,
@@ -97,6 +116,7 @@ pub fn project(
             v_after: after.clone(),
             forces,
             hold: ContactHold::default(),
+            held: Vec::new(),
         };
         Ok((proj, after))
     };
@@ -104,10 +124,13 @@ pub fn project(
         Some(c) => contact_change(c, &sys.coupled, after, dt),
         None => Vec::new(),
     };
-    let held: Option<ContactChange<'_>> = contact.map(|_| &change as ContactChange<'_>);
+    let change_fn: Option<ContactChange<'_>> = contact.map(|_| &change as ContactChange<'_>);
     let tolerance = contact.map_or(0.0, |c| c.tolerance);
-    let (mut proj, hold) = hold_contact(sys.coupled.len(), one, held, tolerance)?;
+    let (mut proj, hold) = hold_contact(sys.coupled.len(), one, change_fn, tolerance)?;
     proj.hold = hold;
+    // The last solve is the one that stands.
+    held.pop();
+    proj.held = held;
     // The velocity update of the solve that stands (the field is not copied per contact
     // iteration).
     let mut u = u_hat;
@@ -298,4 +321,73 @@ pub fn project_adjoint(
         vbar[*i] = std::array::from_fn(|d| vbar[*i][d] - js[d]);
     }
     Ok(ProjectAdjoint { u_hat: uhat_bar, phi: phi_bar.take(), rhs: s })
+}
+
+/// Adjoint of [`project`] with contact held inside it: [`project_adjoint`] of the solve that
+/// stood, then back through the contact iteration that led to it. Each kick was the last
+/// plus what rapier's contact step would do to the bodies after the solve before,
+/// k_{j+1} = k_j + C(V_j); so ∂L/∂k_j sums ∂L/∂V̂ of every later solve, rapier's step
+/// takes it to ∂L/∂V_j, the solve's pose and mass (by central differences of the step,
+/// [`contact_adjoint`](crate::stages::contact::contact_adjoint)), and one more adjoint
+/// solve per held solve takes ∂L/∂V_j to the solve's inputs. `held` are the solves before
+/// the one that stood ([`Projection::held`]), `contact` what the forward pass held contact
+/// with. Without held solves it is [`project_adjoint`].
+pub fn project_adjoint_held(
+    g: &ProjectAdjointInputs<'_>,
+    held: &[HeldSolve],
+    contact: HeldContact<'_>,
+    ubar: Mac,
+    vbar: &mut [Twist],
+    mass: &mut [f64],
+    pose: &mut [Twist],
+) -> Result<ProjectAdjoint> {
+    let mut total = project_adjoint(g, ubar, vbar, mass, pose)?;
+    let coupled = &g.sys.coupled;
+    if held.is_empty() || coupled.is_empty() {
+        return Ok(total);
+    }
+    // ∂L/∂k of the kick the latest solve reached, per coupled body.
+    let mut kick_bar: Vec<Twist> = coupled.iter().map(|&i| vbar[i]).collect();
+    let grid = g.sys.pressure.grid;
+    for solve in held.iter().rev() {
+        let seed: Vec<f64> = kick_bar.iter().flatten().copied().collect();
+        let change = |bodies: &[RigidBody], velocities: &[Twist]| -> Vec<f64> {
+            let c = HeldContact { bodies, ..contact };
+            contact_change(c, coupled, velocities, g.dt).into_iter().flatten().collect()
+        };
+        let through = crate::stages::contact::contact_adjoint(
+            contact.bodies,
+            coupled,
+            &solve.v_after,
+            &seed,
+            &change,
+        );
+        let mut v_after = g.v_after.to_vec();
+        let mut seed_v = vec![[0.0; 6]; vbar.len()];
+        for ((&i, t), v) in coupled.iter().zip(&through).zip(&solve.v_after) {
+            seed_v[i] = t.velocity;
+            add_twist(&mut pose[i], &t.pose);
+            mass[i] += t.mass;
+            v_after[i] = *v;
+        }
+        let inputs =
+            ProjectAdjointInputs { p: &solve.p, v_hat: &solve.v_hat, v_after: &v_after, ..*g };
+        let part = project_adjoint(&inputs, Mac::zeros(&grid), &mut seed_v, mass, pose)?;
+        for (a, b) in total.u_hat.c.iter_mut().zip(&part.u_hat.c) {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        }
+        if let (Some(a), Some(b)) = (total.phi.as_mut(), &part.phi) {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        }
+        total.rhs.iter_mut().zip(&part.rhs).for_each(|(x, y)| *x += y);
+        for (k, &i) in coupled.iter().enumerate() {
+            add_twist(&mut kick_bar[k], &seed_v[i]);
+        }
+        // Every solve's ∂L/∂V̂ reaches the velocity before the kicks; a kinematic body's
+        // velocity enters every solve's right-hand side.
+        for (a, b) in vbar.iter_mut().zip(&seed_v) {
+            add_twist(a, b);
+        }
+    }
+    Ok(total)
 }

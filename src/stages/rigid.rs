@@ -8,7 +8,7 @@ use crate::geometry::body::{
 };
 use crate::math::so3;
 use crate::math::{twist, Rotation, Twist, TwistParts, Vec3};
-use crate::stages::contact::ContactSettings;
+use crate::stages::contact::{contact_adjoint, ContactSettings};
 
 /// The adjoint of one body's state: ∂L/∂x, ∂L/∂q (in the quaternion embedding), ∂L/∂v,
 /// ∂L/∂ω.
@@ -145,4 +145,66 @@ pub fn integrate_adjoint(
         vbar[i] = twist(vb, wb);
     }
     (out, vbar)
+}
+
+/// Adjoint of [`integrate`] through rapier's contact step (`contact` its settings): as
+/// [`integrate_adjoint`], with the dynamic bodies' poses, velocities and masses
+/// differentiated through the step rapier took (by central differences of it, see
+/// [`contact_adjoint`]) instead of free flight. Returns the adjoints of the start poses, ∂L/∂[v;
+/// ω] after the solve, and ∂L/∂m per body. The other bodies are held where rapier held them:
+/// the dependence of a dynamic body's contact on a kinematic body's pose is not carried.
+pub fn integrate_contact_adjoint(
+    bodies: &[RigidBody],
+    start: &[BodyState],
+    v_after: &[Twist],
+    after: &[BodyAdjoint],
+    dt: f64,
+    tank: Tank,
+    contact: &ContactSettings,
+) -> (Vec<BodyAdjoint>, Vec<Twist>, Vec<f64>) {
+    let (mut out, mut vbar) = integrate_adjoint(bodies, start, v_after, after, dt);
+    let mut mass = vec![0.0; bodies.len()];
+    let dynamic: Vec<usize> =
+        (0..bodies.len()).filter(|&i| bodies[i].motion == Motion::Dynamic).collect();
+    if dynamic.is_empty() {
+        return (out, vbar, mass);
+    }
+    let mut at_start = bodies.to_vec();
+    for ((b, s), v) in at_start.iter_mut().zip(start).zip(v_after) {
+        b.set_state(s);
+        (b.v, b.w) = (v.linear(), v.angular());
+    }
+    let velocities: Vec<Twist> = dynamic.iter().map(|&i| v_after[i]).collect();
+    // The dynamic bodies' states after the step: x, q (the quaternion embedding the adjoint
+    // is given in), v, ω.
+    let seed: Vec<f64> = dynamic
+        .iter()
+        .flat_map(|&i| {
+            let a = &after[i];
+            let q = a.q.to_array();
+            a.x.to_array().into_iter().chain(q).chain(a.v.to_array()).chain(a.w.to_array())
+        })
+        .collect();
+    let step = |bs: &[RigidBody], _: &[Twist]| {
+        let mut bs = bs.to_vec();
+        // rapier's step never fails; a body it leaves outside the tank is the forward
+        // pass's error, not the adjoint's.
+        let _ = integrate(&mut bs, dt, tank, Some(contact), 0);
+        dynamic
+            .iter()
+            .flat_map(|&i| {
+                let b = &bs[i];
+                let q = b.q.to_array();
+                b.x.to_array().into_iter().chain(q).chain(b.v.to_array()).chain(b.w.to_array())
+            })
+            .collect()
+    };
+    let adjoints = contact_adjoint(&at_start, &dynamic, &velocities, &seed, &step);
+    for (&i, a) in dynamic.iter().zip(&adjoints) {
+        out[i] = BodyAdjoint::zero();
+        out[i].add_pose(start[i].q, &a.pose);
+        vbar[i] = a.velocity;
+        mass[i] = a.mass;
+    }
+    (out, vbar, mass)
 }

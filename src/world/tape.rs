@@ -11,6 +11,7 @@ use crate::math::Twist;
 use crate::solvers::cg::CgStats;
 use crate::stages::extrapolate::AirBodyFaces;
 pub use crate::stages::particles::ParticleRecord;
+use crate::stages::project::HeldSolve;
 
 /// One forward step's record.
 #[derive(Clone, Debug)]
@@ -44,8 +45,14 @@ pub struct StepRecord {
     /// [`correct_with_bodies`]: crate::stages::extrapolate::correct_with_bodies
     pub air_body_faces: AirBodyFaces,
     /// Whether rapier contact acted in this step (a kick in the solve, or the contact
-    /// integration): the gradient then takes contact as free flight.
+    /// integration): the gradient then goes through rapier's step.
     pub contact: bool,
+    /// Whether rapier integrated the bodies ([`Stage::Rigid`](crate::stages::Stage::Rigid)
+    /// through contact).
+    pub rigid_contact: bool,
+    /// The solves of the step's contact iteration before the one that stood (see
+    /// [`crate::stages::project::Projection::held`]).
+    pub held: Vec<HeldSolve>,
     /// The marker particles' stage (None when the surface is frozen).
     pub particles: Option<ParticleRecord>,
     /// Whether the step's solve had volume control's sources (see `solver.volume_control`).
@@ -70,6 +77,7 @@ impl Tape {
             .iter()
             .map(|s| {
                 8 * (s.u.c.iter().map(Vec::len).sum::<usize>() + s.p.len() + s.phi.len())
+                    + s.held.iter().map(|h| 8 * h.p.len() + 96 * h.v_hat.len()).sum::<usize>()
                     + s.bodies.len() * std::mem::size_of::<BodyState>()
                     + (s.v_after.len() + s.v_hat.len()) * 48
                     + s.body_faces

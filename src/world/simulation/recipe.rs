@@ -129,7 +129,8 @@ impl Simulation {
         }
         if let (Some(t), Some(start)) = (tape, start) {
             let taped = Taped { phi: taped_phi, air_body_faces, particles: record };
-            t.steps.push(self.record(start, &proj, &sys, taped, contact || contact_moves));
+            let contact = (contact, contact_moves);
+            t.steps.push(self.record(start, &proj, &sys, taped, contact));
         }
         self.rigid(dt, contact_moves)?;
         timed.lap(Stage::Rigid);
@@ -193,7 +194,7 @@ impl Simulation {
         proj: &Projection,
         sys: &StepSystem,
         taped: Taped,
-        contact: bool,
+        (held, rigid_contact): (bool, bool),
     ) -> StepRecord {
         StepRecord {
             u,
@@ -205,7 +206,9 @@ impl Simulation {
             body_faces: sys.geometry.body_faces.clone(),
             loads: self.bodies.iter().map(RigidBody::load).collect(),
             air_body_faces: taped.air_body_faces,
-            contact,
+            contact: held || rigid_contact,
+            rigid_contact,
+            held: proj.held.clone(),
             particles: taped.particles,
             volume_control: !sys.volume_source.is_empty(),
         }
