@@ -188,10 +188,10 @@ pub enum GradientError {
     /// The partitioned coupling has no adjoint.
     #[error("gradients are only available for solver.coupling = \"monolithic\"")]
     WeakCoupling,
-    /// rapier contact acted and the options do not accept it as free flight.
+    /// rapier contact acted and the options do not accept it.
     #[error(
         "rapier contact acted in the taped steps and gradients do not pass through it: set \
-         [contact] enabled = false, or accept contact as free flight in the gradient \
+         [contact] enabled = false, or differentiate through rapier's contact step \
          (optimize.through_contact = true)"
     )]
     ThroughContact,

@@ -205,7 +205,7 @@ pub struct Optimization {
     pub epochs: usize,
     /// Exploding-gradient threshold.
     pub max_gradient_norm: f64,
-    /// The backward pass's options (contact taken as free flight when the scene asks).
+    /// The backward pass's options (through rapier's contact when the scene asks).
     pub gradient: GradientOptions,
     /// Optimise the smoothed loss instead (`optimize.smoothing`): each epoch's loss and
     /// gradient are the mean over the perturbed runs, the same perturbations every epoch

@@ -215,7 +215,8 @@ pub struct ProjectAdjoint {
     pub rhs: Vec<f64>,
 }
 
-/// Adjoint of [`project`] without contact (the gradient takes contact as free flight): from
+/// Adjoint of [`project`]'s solve that stood (the kick held constant; see
+/// [`project_adjoint_held`] for the contact iteration before it): from
 /// ∂L/∂u after the update (`ubar`) and ∂L/∂[v; ω] after the solve per body (`vbar`), ∂L/∂û
 /// and ∂L/∂φ_L (returned); `vbar` becomes ∂L/∂[v; ω] before the solve for the coupled and
 /// the kinematic bodies; the masses' adjoints are added to `mass` and the poses' ∂L/∂[δx;

@@ -102,7 +102,7 @@ pub fn integrate(
     Ok(())
 }
 
-/// Adjoint of [`integrate`] without contact (the gradient takes contact as free flight):
+/// Adjoint of [`integrate`] without contact (see [`integrate_contact_adjoint`] for rapier's):
 /// from the adjoints `after` of the bodies' states after the step, with `start` their
 /// states at its start and `v_after` their [v; ω] after the pressure solve (the
 /// integration's input), the adjoints of the start poses (`x`, `q`; `v`, `w` zero) and

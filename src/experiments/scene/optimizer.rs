@@ -123,9 +123,9 @@ pub struct OptimizeSpec {
     /// run from this initial velocity of the loss body.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recover_velocity: Option<Arr3>,
-    /// Optimise a scene with rapier contact on, the backward pass taking the contact step as
-    /// free flight: an approximation (the gradient ignores contact impulses), named here so
-    /// it is never silent. Default false: contact and optimisation are then an error.
+    /// Optimise a scene with rapier contact on, the backward pass going through rapier's
+    /// contact step (differenced, see `gradients::GradientOptions::through_contact`) at some
+    /// extra cost. Default false: contact and optimisation are then an error.
     #[serde(default)]
     pub through_contact: bool,
     /// The backward pass's surface: `"live"` (default: the surface's motion differentiated,
