@@ -204,13 +204,14 @@ pub fn optimise(
             break;
         }
         let mut x = ControlProblem::flat(&actions);
+        let learning_rate = problem.optimizer.rate(epoch).unwrap_or(0.0);
         match problem.optimizer {
-            OptimizerSpec::Gd { learning_rate } => {
+            OptimizerSpec::Gd { .. } => {
                 for (x, g) in x.iter_mut().zip(&g) {
                     *x -= learning_rate * g;
                 }
             }
-            OptimizerSpec::Adam { learning_rate, beta1, beta2 } => {
+            OptimizerSpec::Adam { beta1, beta2, .. } => {
                 let t = (epoch + 1) as i32;
                 for i in 0..n {
                     m[i] = beta1 * m[i] + (1.0 - beta1) * g[i];

@@ -332,15 +332,11 @@ impl Optimization {
     }
 
     /// The step s (p ← p − s) the optimiser takes for gradient g.
-    fn step(&self, state: &mut OptimizerState, g: &[f64]) -> Vec<f64> {
+    fn step(&self, state: &mut OptimizerState, g: &[f64], epoch: usize) -> Vec<f64> {
+        let learning_rate = self.optimizer.rate(epoch).unwrap_or(0.0);
         match (&self.optimizer, state) {
-            (OptimizerSpec::Gd { learning_rate }, _) => {
-                g.iter().map(|x| learning_rate * x).collect()
-            }
-            (
-                OptimizerSpec::Adam { learning_rate, beta1, beta2 },
-                OptimizerState::Adam { m, v, t },
-            ) => {
+            (OptimizerSpec::Gd { .. }, _) => g.iter().map(|x| learning_rate * x).collect(),
+            (OptimizerSpec::Adam { beta1, beta2, .. }, OptimizerState::Adam { m, v, t }) => {
                 *t += 1;
                 let (b1t, b2t) = (1.0 - beta1.powi(*t as i32), 1.0 - beta2.powi(*t as i32));
                 (0..g.len())
@@ -599,7 +595,7 @@ impl Optimization {
                 stopped = Some(interrupted(ck.next_epoch));
                 break;
             }
-            let s = self.step(&mut ck.optimizer, &g);
+            let s = self.step(&mut ck.optimizer, &g, ck.next_epoch);
             ck.params = self.apply_step(&ck.params, &s);
             ck.next_epoch += 1;
             if let Some(path) = checkpoint {

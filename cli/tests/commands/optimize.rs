@@ -170,6 +170,8 @@ fn bad_optimisation_input_is_rejected() {
             "{ kind = \"lbfgs\", learning_rate = 1.0 }",
             "unknown field `learning_rate`",
         ),
+        ("learning_rate = 5.0", "learning_rate = 5.0, decay = 0.0", "optimize.optimizer.decay"),
+        ("learning_rate = 5.0", "learning_rate = 5.0, decay = 1.5", "optimize.optimizer.decay"),
         ("epochs = 60", "epochs = 0", "optimize.epochs"),
         ("target = [0.4, 0.2, 0.4]", "target = [0.4, 2.0, 0.4]", "outside the tank"),
         ("body = \"box\"", "body = \"crate\"", "no body named \"crate\""),
@@ -291,7 +293,7 @@ fn resume_refuses_a_changed_setting_and_names_it() {
     assert!(resume(&more).is_ok());
     let mut lr = scene.clone();
     lr.optimize.as_mut().unwrap().optimizer =
-        diffluid::experiments::scene::OptimizerSpec::Gd { learning_rate: 2.0 };
+        diffluid::experiments::scene::OptimizerSpec::Gd { learning_rate: 2.0, decay: 1.0 };
     let err = resume(&lr).unwrap_err().to_string();
     assert!(err.contains("optimize.optimizer.learning_rate") && err.contains("5.0"), "{err}");
     let mut params = scene.clone();

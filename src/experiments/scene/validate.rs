@@ -223,13 +223,15 @@ impl Scene {
                 }
             }
             match &c.optimizer {
-                OptimizerSpec::Gd { learning_rate } | OptimizerSpec::Adam { learning_rate, .. } => {
+                OptimizerSpec::Gd { learning_rate, decay }
+                | OptimizerSpec::Adam { learning_rate, decay, .. } => {
                     if !(learning_rate.is_finite() && *learning_rate > 0.0) {
                         return Err(problem(
                             "control.optimizer.learning_rate",
                             format!("must be a positive number, got {learning_rate}"),
                         ));
                     }
+                    check_decay("control", *decay)?;
                 }
                 OptimizerSpec::Lbfgs { .. } => {
                     return Err(problem("control.optimizer", "control takes gd or adam"))
@@ -250,8 +252,12 @@ impl Scene {
                 ));
             }
             let lr = match &o.optimizer {
-                OptimizerSpec::Gd { learning_rate } => *learning_rate,
-                OptimizerSpec::Adam { learning_rate, beta1, beta2 } => {
+                OptimizerSpec::Gd { learning_rate, decay } => {
+                    check_decay("optimize", *decay)?;
+                    *learning_rate
+                }
+                OptimizerSpec::Adam { learning_rate, beta1, beta2, decay } => {
+                    check_decay("optimize", *decay)?;
                     for (k, b) in [("beta1", beta1), ("beta2", beta2)] {
                         if !(b.is_finite() && *b >= 0.0 && *b < 1.0) {
                             return Err(problem(
@@ -314,4 +320,12 @@ impl Scene {
         }
         Ok(())
     }
+}
+
+/// A learning-rate decay of section `section` must be in (0, 1].
+fn check_decay(section: &str, decay: f64) -> Result<(), Problem> {
+    if decay.is_finite() && decay > 0.0 && decay <= 1.0 {
+        return Ok(());
+    }
+    Err(problem(format!("{section}.optimizer.decay"), format!("must be in (0, 1], got {decay}")))
 }
