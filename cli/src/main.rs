@@ -499,10 +499,11 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
         atol: args.atol,
         compare_paper: scene.control.is_none(),
         options: diffluid::gradients::GradientOptions {
-            through_contact: scene.optimize.as_ref().is_some_and(|o| o.through_contact),
+            // A scene with contact on is checked through it.
+            through_contact: scene.contact.enabled
+                || scene.optimize.as_ref().is_some_and(|o| o.through_contact),
             ..Default::default()
         },
-        ..Default::default()
     };
     let report = match (scene.schedule(&sim), scene.trajectory_loss()) {
         (Some(schedule), Some(terms)) => diffluid::gradients::gradcheck_controlled(

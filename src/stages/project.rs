@@ -350,19 +350,25 @@ pub fn project_adjoint_held(
     // ∂L/∂k of the kick the latest solve reached, per coupled body.
     let mut kick_bar: Vec<Twist> = coupled.iter().map(|&i| vbar[i]).collect();
     let grid = g.sys.pressure.grid;
+    // The kinematic bodies, which rapier holds fixed at their pose.
+    let posed: Vec<usize> = g.sys.kinematic.iter().map(|k| k.0).collect();
     for solve in held.iter().rev() {
         let seed: Vec<f64> = kick_bar.iter().flatten().copied().collect();
         let change = |bodies: &[RigidBody], velocities: &[Twist]| -> Vec<f64> {
             let c = HeldContact { bodies, ..contact };
             contact_change(c, coupled, velocities, g.dt).into_iter().flatten().collect()
         };
-        let through = crate::stages::contact::contact_adjoint(
+        let (through, kinematic) = crate::stages::contact::contact_adjoint(
             contact.bodies,
             coupled,
             &solve.v_after,
+            &posed,
             &seed,
             &change,
         );
+        for (&i, g) in posed.iter().zip(&kinematic) {
+            add_twist(&mut pose[i], g);
+        }
         let mut v_after = g.v_after.to_vec();
         let mut seed_v = vec![[0.0; 6]; vbar.len()];
         for ((&i, t), v) in coupled.iter().zip(&through).zip(&solve.v_after) {

@@ -150,9 +150,9 @@ pub fn integrate_adjoint(
 /// Adjoint of [`integrate`] through rapier's contact step (`contact` its settings): as
 /// [`integrate_adjoint`], with the dynamic bodies' poses, velocities and masses
 /// differentiated through the step rapier took (by central differences of it, see
-/// [`contact_adjoint`]) instead of free flight. Returns the adjoints of the start poses, ∂L/∂[v;
-/// ω] after the solve, and ∂L/∂m per body. The other bodies are held where rapier held them:
-/// the dependence of a dynamic body's contact on a kinematic body's pose is not carried.
+/// [`contact_adjoint`]) instead of free flight, and the poses of the kinematic and external
+/// bodies rapier holds fixed through what they do to the dynamic ones. Returns the adjoints
+/// of the start poses, ∂L/∂[v; ω] after the solve, and ∂L/∂m per body.
 pub fn integrate_contact_adjoint(
     bodies: &[RigidBody],
     start: &[BodyState],
@@ -199,12 +199,19 @@ pub fn integrate_contact_adjoint(
             })
             .collect()
     };
-    let adjoints = contact_adjoint(&at_start, &dynamic, &velocities, &seed, &step);
+    // The bodies rapier holds fixed at their pose that the caller moves.
+    let posed: Vec<usize> = (0..bodies.len())
+        .filter(|&i| matches!(bodies[i].motion, Motion::Kinematic | Motion::External))
+        .collect();
+    let (adjoints, poses) = contact_adjoint(&at_start, &dynamic, &velocities, &posed, &seed, &step);
     for (&i, a) in dynamic.iter().zip(&adjoints) {
         out[i] = BodyAdjoint::zero();
         out[i].add_pose(start[i].q, &a.pose);
         vbar[i] = a.velocity;
         mass[i] = a.mass;
+    }
+    for (&i, g) in posed.iter().zip(&poses) {
+        out[i].add_pose(start[i].q, g);
     }
     (out, vbar, mass)
 }
