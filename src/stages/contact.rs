@@ -23,8 +23,9 @@
 //!
 //! The tank `[0, domain]` is closed by six fixed thick cuboids just outside it; their inner
 //! faces are the planes `x = 0`, `x = domain.x`, `y = 0` (floor), `y = domain.y` (ceiling),
-//! `z = 0` and `z = domain.z`. A body that is not dynamic becomes a fixed rapier body: it
-//! pushes the others but is never moved nor written back.
+//! `z = 0` and `z = domain.z`. A kinematic body becomes a velocity-based kinematic rapier
+//! body (contact sees its velocity, so it pushes the others at its speed), any other body
+//! that is not dynamic a fixed one; neither is moved by contact nor written back.
 
 use crate::error::Result;
 #[cfg(feature = "contact")]
@@ -277,6 +278,11 @@ impl ContactWorld {
                     .soft_ccd_prediction(t)
                     .linvel(b.v)
                     .angvel(b.w)
+            } else if b.motion == Motion::Kinematic {
+                // It moves along its own velocity, and contact sees that velocity: a paddle
+                // pushes a ball at its speed instead of stepping into it and having the
+                // overlap pushed out.
+                RigidBodyBuilder::kinematic_velocity_based().linvel(b.v).angvel(b.w)
             } else {
                 RigidBodyBuilder::fixed()
             };
@@ -308,7 +314,7 @@ impl ContactWorld {
             let rb = &mut self.world.bodies[h];
             // `set_position` only flags a change when the pose differs.
             rb.set_position(b.pose(), true);
-            if b.motion == Motion::Dynamic {
+            if matches!(b.motion, Motion::Dynamic | Motion::Kinematic) {
                 rb.set_linvel(b.v, true);
                 rb.set_angvel(b.w, true);
             }
@@ -383,11 +389,11 @@ const CONTACT_STEP: f64 = 1e-8;
 /// The adjoint of a map through rapier's contact step, `f(bodies, velocities)` (the
 /// `bodies` with the velocities `velocities` of the bodies `moved`, one per entry, replacing
 /// theirs), seeded with `seed` on its outputs: per body of `moved`, `seed · ∂f/∂input` for
-/// each of its 13 inputs ([`ContactInputAdjoint`]), and per body of `posed` (bodies rapier
-/// holds fixed, a kinematic paddle say) for its pose alone; by central differences of `f`
-/// itself. rapier's contact solve (its substeps, the soft constraints, Coulomb friction
+/// each of its 13 inputs ([`ContactInputAdjoint`]), and per body of `posed` (bodies that
+/// contact does not move, a kinematic paddle say) for its velocity and pose (their own, in
+/// `bodies`; no mass); by central differences of `f` itself. rapier's contact solve (its substeps, the soft constraints, Coulomb friction
 /// sticking or sliding) has no adjoint of its own; differencing it gives the derivative of
-/// the very step the forward pass took, at 26 calls of `f` per moved body and 12 per posed
+/// the very step the forward pass took, at 26 calls of `f` per moved body and 24 per posed
 /// one (run in parallel). Where a contact starts or ends within the step the map has a kink
 /// and this is the mean of its two sides.
 pub fn contact_adjoint(
@@ -397,7 +403,7 @@ pub fn contact_adjoint(
     posed: &[usize],
     seed: &[f64],
     f: &ContactMap<'_>,
-) -> (Vec<ContactInputAdjoint>, Vec<Twist>) {
+) -> (Vec<ContactInputAdjoint>, Vec<ContactInputAdjoint>) {
     use crate::math::TwistParts;
     use rayon::prelude::*;
     // (body, its slot in `velocities` if moved, input).
@@ -406,6 +412,8 @@ pub fn contact_adjoint(
         let b = &mut bodies[i];
         match (input, slot) {
             (0..=5, Some(k)) => velocities[k][input] += h,
+            (0..=2, None) => b.v[input] += h,
+            (3..=5, None) => b.w[input - 3] += h,
             (6..=8, _) => b.x[input - 6] += h,
             (9..=11, _) => {
                 let mut axis = Vec3::ZERO;
@@ -424,7 +432,7 @@ pub fn contact_adjoint(
         .iter()
         .enumerate()
         .flat_map(|(k, &i)| (0..CONTACT_INPUTS).map(move |input| (i, Some(k), input)));
-    let posed_jobs = posed.iter().flat_map(|&i| (6..12).map(move |input| (i, None, input)));
+    let posed_jobs = posed.iter().flat_map(|&i| (0..12).map(move |input| (i, None, input)));
     let jobs: Vec<(usize, Option<usize>, usize)> = moved_jobs.chain(posed_jobs).collect();
     let slopes: Vec<f64> = jobs
         .par_iter()
@@ -437,14 +445,12 @@ pub fn contact_adjoint(
         })
         .collect();
     let (of_moved, of_posed) = slopes.split_at(moved.len() * CONTACT_INPUTS);
-    let moved_adjoints = of_moved
-        .chunks(CONTACT_INPUTS)
-        .map(|s| ContactInputAdjoint {
-            velocity: std::array::from_fn(|d| s[d]),
-            pose: std::array::from_fn(|d| s[6 + d]),
-            mass: s[12],
-        })
-        .collect();
-    let posed_adjoints = of_posed.chunks(6).map(|s| std::array::from_fn(|d| s[d])).collect();
+    let adjoint = |s: &[f64]| ContactInputAdjoint {
+        velocity: std::array::from_fn(|d| s[d]),
+        pose: std::array::from_fn(|d| s[6 + d]),
+        mass: s.get(12).copied().unwrap_or(0.0),
+    };
+    let moved_adjoints = of_moved.chunks(CONTACT_INPUTS).map(adjoint).collect();
+    let posed_adjoints = of_posed.chunks(12).map(adjoint).collect();
     (moved_adjoints, posed_adjoints)
 }

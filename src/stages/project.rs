@@ -350,7 +350,7 @@ pub fn project_adjoint_held(
     // ∂L/∂k of the kick the latest solve reached, per coupled body.
     let mut kick_bar: Vec<Twist> = coupled.iter().map(|&i| vbar[i]).collect();
     let grid = g.sys.pressure.grid;
-    // The kinematic bodies, which rapier holds fixed at their pose.
+    // The kinematic bodies, which contact does not move.
     let posed: Vec<usize> = g.sys.kinematic.iter().map(|k| k.0).collect();
     for solve in held.iter().rev() {
         let seed: Vec<f64> = kick_bar.iter().flatten().copied().collect();
@@ -367,7 +367,8 @@ pub fn project_adjoint_held(
             &change,
         );
         for (&i, g) in posed.iter().zip(&kinematic) {
-            add_twist(&mut pose[i], g);
+            add_twist(&mut pose[i], &g.pose);
+            add_twist(&mut vbar[i], &g.velocity);
         }
         let mut v_after = g.v_after.to_vec();
         let mut seed_v = vec![[0.0; 6]; vbar.len()];

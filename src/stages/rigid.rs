@@ -7,7 +7,7 @@ use crate::geometry::body::{
     carry_angular_momentum_adjoint, quat_step, quat_step_adjoint, BodyState, Motion, RigidBody,
 };
 use crate::math::so3;
-use crate::math::{twist, Rotation, Twist, TwistParts, Vec3};
+use crate::math::{add_twist, twist, Rotation, Twist, TwistParts, Vec3};
 use crate::stages::contact::{contact_adjoint, ContactSettings};
 
 /// The adjoint of one body's state: ∂L/∂x, ∂L/∂q (in the quaternion embedding), ∂L/∂v,
@@ -150,8 +150,8 @@ pub fn integrate_adjoint(
 /// Adjoint of [`integrate`] through rapier's contact step (`contact` its settings): as
 /// [`integrate_adjoint`], with the dynamic bodies' poses, velocities and masses
 /// differentiated through the step rapier took (by central differences of it, see
-/// [`contact_adjoint`]) instead of free flight, and the poses of the kinematic and external
-/// bodies rapier holds fixed through what they do to the dynamic ones. Returns the adjoints
+/// [`contact_adjoint`]) instead of free flight, and the velocities and poses of the kinematic
+/// and external bodies through what they do to the dynamic ones. Returns the adjoints
 /// of the start poses, ∂L/∂[v; ω] after the solve, and ∂L/∂m per body.
 pub fn integrate_contact_adjoint(
     bodies: &[RigidBody],
@@ -211,7 +211,8 @@ pub fn integrate_contact_adjoint(
         mass[i] = a.mass;
     }
     for (&i, g) in posed.iter().zip(&poses) {
-        out[i].add_pose(start[i].q, g);
+        out[i].add_pose(start[i].q, &g.pose);
+        add_twist(&mut vbar[i], &g.velocity);
     }
     (out, vbar, mass)
 }

@@ -298,3 +298,55 @@ particles = false
         assert!(e <= bound, "energy {e} over the bound {bound} at step {}", r.step);
     }
 }
+
+/// (8) A kinematic paddle moving at 0.5 m/s pushes a ball resting on the floor (the water
+/// far off in a corner): rapier sees the paddle's velocity, so the ball leaves at the
+/// paddle's speed and the two do not overlap. Held as a fixed body at each step's pose, the
+/// paddle stepped 5 mm into the ball every step and rapier pushed the overlap out: the ball
+/// crept along 4 cm inside the paddle with its velocity reading 0.
+#[test]
+fn a_kinematic_paddle_pushes_a_ball_at_its_speed() {
+    let scene = diffluid::Scene::from_toml(
+        r#"
+name = "push"
+[domain]
+size = [1.0, 0.5, 0.5]
+dx = 0.05
+[time]
+dt = 0.01
+steps = 40
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = { kind = "box", min = [0.8, 0.0, 0.0], max = [1.0, 0.05, 0.5] }
+[[body]]
+name = "paddle"
+shape = { kind = "cuboid", half_extents = [0.03, 0.1, 0.15] }
+density = 1000.0
+dynamic = false
+position = [0.2, 0.12, 0.25]
+velocity = [0.5, 0.0, 0.0]
+[[body]]
+name = "ball"
+shape = { kind = "ball", radius = 0.08 }
+density = 1500.0
+position = [0.35, 0.0805, 0.25]
+[contact]
+enabled = true
+"#,
+        "<push>",
+    )
+    .unwrap();
+    let mut sim = scene.build().unwrap();
+    let mut deepest: f64 = 0.0;
+    for _ in 0..scene.time.steps {
+        sim.step().unwrap();
+        let b = sim.bodies();
+        deepest = deepest.max(penetration(&b[0], &b[1]));
+    }
+    let ball = &sim.bodies()[1];
+    eprintln!("ball vx {:.5}, x {:.4}; deepest overlap {deepest:.2e} m", ball.v.x, ball.x.x);
+    assert!((ball.v.x - 0.5).abs() < 0.01, "the ball moves at {} m/s", ball.v.x);
+    assert!(deepest < 1e-3, "the paddle and the ball overlap by {deepest} m");
+}
