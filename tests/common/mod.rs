@@ -51,6 +51,41 @@ shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [{x:?}, {depth:?}, {z:?}] 
     )
 }
 
+/// A kinematic paddle beside a heavy ball (r 0.08 m, density 1500) just above the floor of a
+/// dry tank, its water in a far corner, contact on: `ball_x` is the ball's centre, `paddle`
+/// more lines of the paddle's table (its velocity, say).
+pub fn paddle_and_ball(steps: usize, ball_x: f64, paddle: &str) -> String {
+    format!(
+        r#"name = "push"
+[domain]
+size = [1.0, 0.5, 0.5]
+dx = 0.05
+[time]
+dt = 0.01
+steps = {steps}
+[fluid]
+density = 1000.0
+gravity = [0.0, -9.81, 0.0]
+[[liquid]]
+shape = {{ kind = "box", min = [0.8, 0.0, 0.0], max = [1.0, 0.05, 0.5] }}
+[[body]]
+name = "paddle"
+shape = {{ kind = "cuboid", half_extents = [0.03, 0.1, 0.15] }}
+density = 1000.0
+dynamic = false
+position = [0.2, 0.12, 0.25]
+{paddle}
+[[body]]
+name = "ball"
+shape = {{ kind = "ball", radius = 0.08 }}
+density = 1500.0
+position = [{ball_x:?}, 0.0805, 0.25]
+[contact]
+enabled = true
+"#
+    )
+}
+
 /// A fresh, empty folder under the system temp directory (its name starts with
 /// `diffluid-<tag>-`), removed when dropped.
 pub struct TempDir(tempfile::TempDir);

@@ -530,32 +530,8 @@ enabled = true
 /// first step, so no contact starts within the run).
 #[test]
 fn a_paddle_pushing_through_contact_has_the_gradient_of_its_actions() {
-    let text = r#"
-name = "push"
-[domain]
-size = [1.0, 0.5, 0.5]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 20
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = { kind = "box", min = [0.8, 0.0, 0.0], max = [1.0, 0.05, 0.5] }
-[[body]]
-name = "paddle"
-shape = { kind = "cuboid", half_extents = [0.03, 0.1, 0.15] }
-density = 1000.0
-dynamic = false
-position = [0.2, 0.12, 0.25]
-[[body]]
-name = "ball"
-shape = { kind = "ball", radius = 0.08 }
-density = 1500.0
-position = [0.3105, 0.0805, 0.25]
-[contact]
-enabled = true
+    let text = crate::common::paddle_and_ball(20, 0.3105, "")
+        + r#"
 [solver]
 tolerance = 1e-12
 [control]
@@ -568,7 +544,7 @@ epochs = 1
 body = "ball"
 position = { target = [0.6, 0.08, 0.3], weight = 1.0 }
 "#;
-    let scene = Scene::from_toml(text, "<push>").unwrap();
+    let scene = Scene::from_toml(&text, "<push>").unwrap();
     let sim = scene.build().unwrap();
     let schedule = scene.schedule(&sim).unwrap().unwrap();
     let terms = scene.trajectory_loss().unwrap();

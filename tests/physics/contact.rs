@@ -306,38 +306,8 @@ particles = false
 /// crept along 4 cm inside the paddle with its velocity reading 0.
 #[test]
 fn a_kinematic_paddle_pushes_a_ball_at_its_speed() {
-    let scene = diffluid::Scene::from_toml(
-        r#"
-name = "push"
-[domain]
-size = [1.0, 0.5, 0.5]
-dx = 0.05
-[time]
-dt = 0.01
-steps = 40
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = { kind = "box", min = [0.8, 0.0, 0.0], max = [1.0, 0.05, 0.5] }
-[[body]]
-name = "paddle"
-shape = { kind = "cuboid", half_extents = [0.03, 0.1, 0.15] }
-density = 1000.0
-dynamic = false
-position = [0.2, 0.12, 0.25]
-velocity = [0.5, 0.0, 0.0]
-[[body]]
-name = "ball"
-shape = { kind = "ball", radius = 0.08 }
-density = 1500.0
-position = [0.35, 0.0805, 0.25]
-[contact]
-enabled = true
-"#,
-        "<push>",
-    )
-    .unwrap();
+    let text = crate::common::paddle_and_ball(40, 0.35, "velocity = [0.5, 0.0, 0.0]");
+    let scene = diffluid::Scene::from_toml(&text, "<push>").unwrap();
     let mut sim = scene.build().unwrap();
     let mut deepest: f64 = 0.0;
     for _ in 0..scene.time.steps {
