@@ -499,9 +499,8 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
         atol: args.atol,
         compare_paper: scene.control.is_none(),
         options: diffluid::gradients::GradientOptions {
-            // A scene with contact on is checked through it.
-            through_contact: scene.contact.enabled
-                || scene.optimize.as_ref().is_some_and(|o| o.through_contact),
+            // Through contact unless the scene's optimisation refuses it.
+            through_contact: scene.optimize.as_ref().is_none_or(|o| o.through_contact),
             ..Default::default()
         },
     };

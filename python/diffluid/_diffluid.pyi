@@ -241,7 +241,7 @@ def value_and_grad(
     surface: str = "live",
     mode: str = "full",
     checkpoint_every: Optional[int] = None,
-    through_contact: bool = False,
+    through_contact: bool = True,
     smoothing: Optional[dict[str, Any]] = None,
 ) -> Tuple[float, dict[str, Any]]:
     """(loss, {param: gradient}): v, w, x, q (tangent) as (3,) arrays; mass as a float; u
@@ -261,7 +261,7 @@ def rollout(
     steps: Optional[int] = None,
     surface: str = "live",
     mode: str = "full",
-    through_contact: bool = False,
+    through_contact: bool = True,
     checkpoint_every: Optional[int] = None,
     masses: Optional[F64] = None,
 ) -> Rollout: ...
@@ -293,7 +293,7 @@ def controlled_run(
     steps_per_action: int = 1,
     surface: str = "live",
     mode: str = "full",
-    through_contact: bool = False,
+    through_contact: bool = True,
     checkpoint_every: Optional[int] = None,
     bodies: Optional[Sequence[Body]] = None,
     masses: Optional[F64] = None,
@@ -313,7 +313,7 @@ class Stepper:
         steps_per_action: int = 1,
         surface: str = "live",
         mode: str = "full",
-        through_contact: bool = False,
+        through_contact: bool = True,
         bodies: Optional[Sequence[Body]] = None,
         masses: Optional[F64] = None,
     ) -> Stepper: ...

@@ -137,7 +137,7 @@ def rollout(
     steps: Optional[int] = None,
     surface: str = "live",
     mode: str = "full",
-    through_contact: bool = False,
+    through_contact: bool = True,
     checkpoint_every: Optional[int] = None,
     masses: Optional[torch.Tensor] = None,
 ) -> BodyState:
@@ -280,7 +280,7 @@ def trajectory(
     steps_per_action: int = 1,
     surface: str = "live",
     mode: str = "full",
-    through_contact: bool = False,
+    through_contact: bool = True,
     checkpoint_every: Optional[int] = None,
     bodies: Optional[Sequence[Union[int, str]]] = None,
     masses: Optional[torch.Tensor] = None,
@@ -392,7 +392,7 @@ class Stepper:
         steps_per_action: int = 1,
         surface: str = "live",
         mode: str = "full",
-        through_contact: bool = False,
+        through_contact: bool = True,
         bodies: Optional[Sequence[Union[int, str]]] = None,
         masses: Optional[torch.Tensor] = None,
     ) -> None:

@@ -211,7 +211,7 @@ pub struct ControlledRun {
 #[pyfunction]
 #[pyo3(signature = (
     sim, actions, state0 = None, *, steps_per_action = 1, surface = "live", mode = "full",
-    through_contact = false, checkpoint_every = None, bodies = None, masses = None
+    through_contact = true, checkpoint_every = None, bodies = None, masses = None
 ))]
 #[allow(clippy::too_many_arguments)]
 pub fn controlled_run(
@@ -443,7 +443,7 @@ impl Stepper {
     /// not dynamic are ignored); :meth:`mass_gradient` gives ∂L/∂m.
     #[new]
     #[pyo3(signature = (
-        sim, *, steps_per_action = 1, surface = "live", mode = "full", through_contact = false,
+        sim, *, steps_per_action = 1, surface = "live", mode = "full", through_contact = true,
         bodies = None, masses = None
     ))]
     #[allow(clippy::too_many_arguments)]

@@ -123,7 +123,7 @@ fn wrt(name: &str) -> PyResult<Wrt> {
 #[pyfunction]
 #[pyo3(signature = (
     scene, loss = None, params = None, *, steps = None, state = None, body = None,
-    surface = "live", mode = "full", checkpoint_every = None, through_contact = false,
+    surface = "live", mode = "full", checkpoint_every = None, through_contact = true,
     smoothing = None
 ))]
 #[allow(clippy::too_many_arguments)]
@@ -367,7 +367,7 @@ fn state_rows<'py>(py: Python<'py>, s: &[BodyState]) -> PyResult<Bound<'py, PyTu
 #[pyfunction]
 #[pyo3(signature = (
     sim, v, w, x, q, u = None, *, steps = None, surface = "live", mode = "full",
-    through_contact = false, checkpoint_every = None, masses = None
+    through_contact = true, checkpoint_every = None, masses = None
 ))]
 #[allow(clippy::too_many_arguments)]
 pub fn rollout(

@@ -719,7 +719,7 @@ fn smoothness_of(
     let max = *horizons.last().expect("a horizon");
     let loss = scene.loss().expect("the scene has a loss");
     // Through rapier's contact where the scene's optimisation asks for it.
-    let through_contact = scene.optimize.as_ref().is_some_and(|o| o.through_contact);
+    let through_contact = scene.optimize.as_ref().is_none_or(|o| o.through_contact);
     let settings: GradientSettings =
         GradientOptions { through_contact, ..Default::default() }.into();
     let sim = scene.build()?;

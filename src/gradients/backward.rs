@@ -115,22 +115,33 @@ impl std::str::FromStr for SurfaceGradient {
 }
 
 /// How the backward pass treats what it cannot differentiate.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct GradientOptions {
     /// Full or the paper's approximation.
     pub mode: GradientMode,
     /// The moving surface, or the paper's fixed one.
     pub surface: SurfaceGradient,
-    /// Accept taped steps in which rapier contact acted: the gradient then goes through the
-    /// step rapier took (its contact solve differenced, see
-    /// [`contact_adjoint`](crate::stages::contact::contact_adjoint)), which costs 26 rapier
-    /// steps a body and one adjoint solve per contact iteration in each such step, so it is
-    /// asked for. Without it such a tape is an error.
+    /// Go through taped steps in which rapier contact acted (default true): the gradient
+    /// follows the step rapier took (its contact solve differenced, see
+    /// [`contact_adjoint`](crate::stages::contact::contact_adjoint)), at 26 rapier steps a
+    /// body and one adjoint solve per contact iteration in each such step. False makes such
+    /// a tape an error, for a caller who wants to be told that contact acted.
     pub through_contact: bool,
 }
 
+impl Default for GradientOptions {
+    /// The full gradient of the moving surface, through contact.
+    fn default() -> Self {
+        GradientOptions {
+            mode: GradientMode::default(),
+            surface: SurfaceGradient::default(),
+            through_contact: true,
+        }
+    }
+}
+
 impl GradientOptions {
-    /// The options for `mode`, contact not accepted.
+    /// The options for `mode`, the rest the defaults.
     pub fn new(mode: GradientMode) -> GradientOptions {
         GradientOptions { mode, ..Default::default() }
     }

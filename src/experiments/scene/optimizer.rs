@@ -128,6 +128,10 @@ impl OptimizerSpec {
     }
 }
 
+fn through_contact() -> bool {
+    true
+}
+
 fn beta1() -> f64 {
     0.9
 }
@@ -152,10 +156,10 @@ pub struct OptimizeSpec {
     /// run from this initial velocity of the loss body.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recover_velocity: Option<Arr3>,
-    /// Optimise a scene with rapier contact on, the backward pass going through rapier's
-    /// contact step (differenced, see `gradients::GradientOptions::through_contact`) at some
-    /// extra cost. Default false: contact and optimisation are then an error.
-    #[serde(default)]
+    /// With rapier contact on, the backward pass goes through rapier's contact step
+    /// (differenced, see `gradients::GradientOptions::through_contact`) at some extra cost.
+    /// Default true; false makes an epoch in which contact acted an error.
+    #[serde(default = "through_contact")]
     pub through_contact: bool,
     /// The backward pass's surface: `"live"` (default: the surface's motion differentiated,
     /// the exact gradient of the map) or `"frozen"` (the paper's approximation: the surface

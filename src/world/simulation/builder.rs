@@ -87,10 +87,10 @@ impl SimulationBuilder {
     /// [`Error::BodyLeftTank`], and [`Simulation::add_body`] warns about a dynamic body
     /// denser than the liquid.
     ///
-    /// Why off by default: the gradients do not pass through contact (a taped run in which
-    /// it acted is [`crate::error::GradientError::ThroughContact`]), and a world built in code gives
-    /// the same numbers as the scene file that describes it. A program that only steps
-    /// forward (a game loop) wants it on.
+    /// Why off by default: a world built in code gives the same numbers as the scene file
+    /// that describes it (contact is off there too), and the gradient through a step in which
+    /// contact acted costs more (see `gradients::GradientOptions::through_contact`). A program
+    /// that only steps forward (a game loop) wants it on.
     pub fn contact(mut self, contact: crate::world::settings::ContactSettings) -> Self {
         self.settings.contact = contact;
         self
