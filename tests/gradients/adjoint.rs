@@ -544,17 +544,7 @@ epochs = 1
 body = "ball"
 position = { target = [0.6, 0.08, 0.3], weight = 1.0 }
 "#;
-    let scene = Scene::from_toml(&text, "<push>").unwrap();
-    let sim = scene.build().unwrap();
-    let schedule = scene.schedule(&sim).unwrap().unwrap();
-    let terms = scene.trajectory_loss().unwrap();
-    let settings = GradcheckSettings {
-        eps: 1e-7,
-        options: GradientOptions { through_contact: true, ..Default::default() },
-        ..Default::default()
-    };
-    let report =
-        diffluid::gradients::gradcheck_controlled(&sim, &schedule, &terms, &settings, 12).unwrap();
+    let report = controlled_check(&text, 12);
     let mut actions = 0;
     for r in &report.params {
         eprintln!(
@@ -599,17 +589,7 @@ body = "ball"
 position = { target = [0.55, 0.3, 0.42], weight = 1.0 }
 velocity = { target = [0.0, 0.0, 0.0], weight = 0.3 }
 "#;
-    let scene = Scene::from_toml(&text, "<force>").unwrap();
-    let sim = scene.build().unwrap();
-    let schedule = scene.schedule(&sim).unwrap().unwrap();
-    let terms = scene.trajectory_loss().unwrap();
-    let settings = GradcheckSettings {
-        eps: 1e-7,
-        options: GradientOptions { through_contact: true, ..Default::default() },
-        ..Default::default()
-    };
-    let report =
-        diffluid::gradients::gradcheck_controlled(&sim, &schedule, &terms, &settings, 6).unwrap();
+    let report = controlled_check(&text, 6);
     for r in &report.params {
         eprintln!(
             "force {:12} adjoint {:+.8e} fd {:+.8e} rel {:.2e}",
@@ -621,4 +601,19 @@ velocity = { target = [0.0, 0.0, 0.0], weight = 0.3 }
         let close = (r.adjoint - r.fd).abs() <= 1e-8 + 1e-4 * r.fd.abs();
         assert!(close, "{}: adjoint {:e}, fd {:e}", r.name, r.adjoint, r.fd);
     }
+}
+
+/// The gradient check of a scene with a `[control]` section at ε = 1e-7, through contact,
+/// `actions` action entries checked.
+fn controlled_check(text: &str, actions: usize) -> diffluid::gradients::GradcheckReport {
+    let scene = Scene::from_toml(text, "<control>").unwrap();
+    let sim = scene.build().unwrap();
+    let schedule = scene.schedule(&sim).unwrap().unwrap();
+    let terms = scene.trajectory_loss().unwrap();
+    let settings = GradcheckSettings {
+        eps: 1e-7,
+        options: GradientOptions { through_contact: true, ..Default::default() },
+        ..Default::default()
+    };
+    diffluid::gradients::gradcheck_controlled(&sim, &schedule, &terms, &settings, actions).unwrap()
 }
