@@ -29,7 +29,7 @@ use diffluid::io::output::read_mesh;
 use diffluid::io::render::View;
 use diffluid::Scene;
 use proptest::prelude::*;
-use proptest::test_runner::{Config, TestRunner};
+use proptest::test_runner::{Config, TestRng, TestRunner};
 use serde_json::Value;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
@@ -59,8 +59,12 @@ where
 {
     let counts: Vec<AtomicUsize> = outcomes.iter().map(|_| AtomicUsize::new(0)).collect();
     let cases = cases();
-    let mut runner =
-        TestRunner::new(Config { cases, failure_persistence: None, ..Config::default() });
+    // The same cases every run: the checks on how far the cases got (some refused, some
+    // resumed) count rare outcomes (a few resumed checkpoints in 200), which a fresh seed
+    // per run missed about one run in twenty.
+    let config = Config { cases, failure_persistence: None, ..Config::default() };
+    let rng = TestRng::deterministic_rng(config.rng_algorithm);
+    let mut runner = TestRunner::new_with_rng(config, rng);
     let result = runner.run(&strategy, |value| {
         let reached = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&value)));
         match reached {
