@@ -28,7 +28,7 @@ pyo3::create_exception!(
     GradientError,
     PyValueError,
     "A gradient asked of a forward map the backward pass cannot differentiate (weak \
-     coupling, contact without through_contact, bodies added inside the taped steps)."
+     coupling, contact with through_contact=False, bodies added inside the taped steps)."
 );
 pyo3::create_exception!(
     _diffluid,
