@@ -499,8 +499,7 @@ fn gradcheck_cmd(args: GradcheckArgs) -> Outcome {
         atol: args.atol,
         compare_paper: scene.control.is_none(),
         options: diffluid::gradients::GradientOptions {
-            // Through contact unless the scene's optimisation refuses it.
-            through_contact: scene.optimize.as_ref().is_none_or(|o| o.through_contact),
+            through_contact: scene.through_contact(),
             ..Default::default()
         },
     };

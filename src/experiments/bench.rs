@@ -666,10 +666,10 @@ pub struct SmoothnessRow {
 /// initial v_x and v_y, on two scenes: the surge (`surge_ball`: a floating ball hit by a
 /// dam-break surge, dx 0.05, dt 0.02) and the dam break with a ball (`dam_break_ball`,
 /// dx 0.1, dt 0.05; its contact is on, and its gradient goes through rapier's contact
-/// step, as its `[optimize]` section asks). Three settings: the defaults; `volume control` (no density
-/// projection, the volume kept by the smooth divergence source instead); and `smoothed`
-/// (also no sparse-cell rule and a fixed 4 particle sub-steps: every jump source that is a
-/// setting). The quick study: the surge at 4 and 8 steps, x₀, ε = 1e-4 and 1e-6, the
+/// step, as its `[optimize]` section asks). Three settings: the defaults; `volume control`
+/// (no density projection, the volume kept by the smooth divergence source instead); and
+/// `smoothed` (also no sparse-cell rule and a fixed 4 particle sub-steps: every jump source
+/// that is a setting). The quick study: the surge at 4 and 8 steps, x₀, ε = 1e-4 and 1e-6, the
 /// defaults.
 pub fn smoothness(quick: bool) -> Result<Vec<SmoothnessRow>> {
     use crate::geometry::body::Param;
@@ -718,8 +718,7 @@ fn smoothness_of(
     use crate::gradients::{value_and_gradient, GradientOptions, GradientSettings, Loss};
     let max = *horizons.last().expect("a horizon");
     let loss = scene.loss().expect("the scene has a loss");
-    // Through rapier's contact where the scene's optimisation asks for it.
-    let through_contact = scene.optimize.as_ref().is_none_or(|o| o.through_contact);
+    let through_contact = scene.through_contact();
     let settings: GradientSettings =
         GradientOptions { through_contact, ..Default::default() }.into();
     let sim = scene.build()?;

@@ -31,9 +31,7 @@ use crate::stages::extrapolate::{
 use crate::stages::forces::body_velocity_adjoint;
 use crate::stages::particles::ParticleStage;
 use crate::stages::pressure::Coupling;
-use crate::stages::project::{
-    project_adjoint, project_adjoint_held, HeldContact, ProjectAdjointInputs,
-};
+use crate::stages::project::{project_adjoint_held, HeldContact, ProjectAdjointInputs};
 use crate::stages::rigid::{integrate_adjoint, integrate_contact_adjoint, Tank};
 use crate::stages::solid_phi::solidity_pose_adjoint;
 use crate::stages::surface;
@@ -443,18 +441,15 @@ fn step_adjoint(
         dt,
         step,
     };
-    let mut projected = if rec.held.is_empty() {
-        project_adjoint(&inputs, ubar, &mut vbar, &mut mass, &mut pose)?
-    } else {
-        // Back through the contact iteration held inside the projection.
-        let contact = HeldContact {
-            bodies: &bodies,
-            size: grid.size(),
-            settings: &settings.contact,
-            tolerance: 0.0,
-        };
-        project_adjoint_held(&inputs, &rec.held, contact, ubar, &mut vbar, &mut mass, &mut pose)?
+    // Back through the contact iteration held inside the projection, if any.
+    let contact = HeldContact {
+        bodies: &bodies,
+        size: grid.size(),
+        settings: &settings.contact,
+        tolerance: 0.0,
     };
+    let mut projected =
+        project_adjoint_held(&inputs, &rec.held, contact, ubar, &mut vbar, &mut mass, &mut pose)?;
     // The blended faces' shares read φ_L as the projection's θ does.
     if let Some(g) = projected.phi.as_mut() {
         for (c, v) in shares_phi {

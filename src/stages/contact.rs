@@ -399,9 +399,9 @@ const CONTACT_REFINEMENTS: usize = 3;
 /// theirs), seeded with `seed` on its outputs: per body of `moved`, `seed · ∂f/∂input` for
 /// each of its 13 inputs ([`ContactInputAdjoint`]), and per body of `posed` (bodies that
 /// contact does not move, a kinematic paddle say) for its velocity and pose (their own, in
-/// `bodies`; no mass); by central differences of `f` itself. rapier's contact solve (its substeps, the soft constraints, Coulomb friction
-/// sticking or sliding) has no adjoint of its own; differencing it gives the derivative of
-/// the very step the forward pass took, at 26 calls of `f` per moved body and 24 per posed
+/// `bodies`; no mass); by central differences of `f` itself. rapier's contact solve (its
+/// substeps, the soft constraints, Coulomb friction sticking or sliding) has no adjoint of
+/// its own; differencing it gives the derivative of the very step the forward pass took, at 26 calls of `f` per moved body and 24 per posed
 /// one (run in parallel), more where the one-sided slopes disagree (the step is then cut
 /// tenfold, twice at most). Where a contact starts or ends within the smallest step the map
 /// has a kink and this is the mean of its two sides.
@@ -415,7 +415,14 @@ pub fn contact_adjoint(
 ) -> (Vec<ContactInputAdjoint>, Vec<ContactInputAdjoint>) {
     use crate::math::TwistParts;
     use rayon::prelude::*;
-    // (body, its slot in `velocities` if moved, input).
+    // The map of `bodies` with the moved ones at `velocities` (it reads those, not theirs).
+    let run = |mut bodies: Vec<RigidBody>, velocities: &[Twist]| {
+        for (&i, v) in moved.iter().zip(velocities) {
+            (bodies[i].v, bodies[i].w) = (v.linear(), v.angular());
+        }
+        f(&bodies, velocities)
+    };
+    // Input `input` of body `i` (`slot` its place in `velocities` if moved) moved by h.
     let at = |i: usize, slot: Option<usize>, input: usize, h: f64| {
         let (mut bodies, mut velocities) = (bodies.to_vec(), velocities.to_vec());
         let b = &mut bodies[i];
@@ -431,11 +438,7 @@ pub fn contact_adjoint(
             }
             _ => b.set_mass(b.mass + h),
         }
-        // The map reads the velocities given, not the bodies' own.
-        for (&i, v) in moved.iter().zip(&velocities) {
-            (bodies[i].v, bodies[i].w) = (v.linear(), v.angular());
-        }
-        f(&bodies, &velocities)
+        run(bodies, &velocities)
     };
     let moved_jobs = moved
         .iter()
@@ -444,13 +447,7 @@ pub fn contact_adjoint(
     let posed_jobs = posed.iter().flat_map(|&i| (0..12).map(move |input| (i, None, input)));
     let jobs: Vec<(usize, Option<usize>, usize)> = moved_jobs.chain(posed_jobs).collect();
     // The map where it is, for the one-sided slopes.
-    let at_base = {
-        let mut bodies = bodies.to_vec();
-        for (&i, v) in moved.iter().zip(velocities) {
-            (bodies[i].v, bodies[i].w) = (v.linear(), v.angular());
-        }
-        f(&bodies, velocities)
-    };
+    let at_base = run(bodies.to_vec(), velocities);
     let dot = |a: &[f64], b: &[f64]| -> f64 {
         seed.iter().zip(a.iter().zip(b)).map(|(s, (x, y))| s * (x - y)).sum()
     };

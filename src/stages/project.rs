@@ -366,9 +366,9 @@ pub fn project_adjoint_held(
             &seed,
             &change,
         );
-        for (&i, g) in posed.iter().zip(&kinematic) {
-            add_twist(&mut pose[i], &g.pose);
-            add_twist(&mut vbar[i], &g.velocity);
+        for (&i, k) in posed.iter().zip(&kinematic) {
+            add_twist(&mut pose[i], &k.pose);
+            add_twist(&mut vbar[i], &k.velocity);
         }
         let mut v_after = g.v_after.to_vec();
         let mut seed_v = vec![[0.0; 6]; vbar.len()];

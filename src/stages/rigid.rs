@@ -179,27 +179,17 @@ pub fn integrate_contact_adjoint(
     // is given in), v, ω.
     let seed: Vec<f64> = dynamic
         .iter()
-        .flat_map(|&i| {
-            let a = &after[i];
-            let q = a.q.to_array();
-            a.x.to_array().into_iter().chain(q).chain(a.v.to_array()).chain(a.w.to_array())
-        })
+        .flat_map(|&i| state_entries(after[i].x, after[i].q, after[i].v, after[i].w))
         .collect();
     let step = |bs: &[RigidBody], _: &[Twist]| {
         let mut bs = bs.to_vec();
         // rapier's step never fails; a body it leaves outside the tank is the forward
         // pass's error, not the adjoint's.
         let _ = integrate(&mut bs, dt, tank, Some(contact), 0);
-        dynamic
-            .iter()
-            .flat_map(|&i| {
-                let b = &bs[i];
-                let q = b.q.to_array();
-                b.x.to_array().into_iter().chain(q).chain(b.v.to_array()).chain(b.w.to_array())
-            })
-            .collect()
+        dynamic.iter().flat_map(|&i| state_entries(bs[i].x, bs[i].q, bs[i].v, bs[i].w)).collect()
     };
-    // The bodies rapier holds fixed at their pose that the caller moves.
+    // The bodies contact does not move: kinematic ones (rapier sees their velocity) and
+    // external ones (held fixed at their pose).
     let posed: Vec<usize> = (0..bodies.len())
         .filter(|&i| matches!(bodies[i].motion, Motion::Kinematic | Motion::External))
         .collect();
@@ -215,4 +205,9 @@ pub fn integrate_contact_adjoint(
         add_twist(&mut vbar[i], &g.velocity);
     }
     (out, vbar, mass)
+}
+
+/// A body's state, or its adjoint, as 13 numbers: x, q (the quaternion embedding), v, ω.
+fn state_entries(x: Vec3, q: Rotation, v: Vec3, w: Vec3) -> impl Iterator<Item = f64> {
+    x.to_array().into_iter().chain(q.to_array()).chain(v.to_array()).chain(w.to_array())
 }

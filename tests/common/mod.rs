@@ -33,7 +33,20 @@ pub fn builtin_text(name: &str) -> &'static str {
 /// steps of 0.01 s, and water under gravity at rest in it up to `depth`. A test appends its
 /// bodies and settings (`[[body]]`, `[solver]`, ...).
 pub fn tank_toml(name: &str, size: [f64; 3], dx: f64, depth: f64, steps: usize) -> String {
+    let [x, _, z] = size;
+    tank_head(name, size, dx, steps, [[0.0; 3], [x, depth, z]])
+}
+
+/// [`tank_toml`] with the water in the box `liquid` (its min and max corners) instead.
+pub fn tank_head(
+    name: &str,
+    size: [f64; 3],
+    dx: f64,
+    steps: usize,
+    liquid: [[f64; 3]; 2],
+) -> String {
     let [x, y, z] = size;
+    let [lo, hi] = liquid;
     format!(
         r#"name = "{name}"
 [domain]
@@ -46,7 +59,7 @@ steps = {steps}
 density = 1000.0
 gravity = [0.0, -9.81, 0.0]
 [[liquid]]
-shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [{x:?}, {depth:?}, {z:?}] }}
+shape = {{ kind = "box", min = {lo:?}, max = {hi:?} }}
 "#
     )
 }
@@ -55,20 +68,10 @@ shape = {{ kind = "box", min = [0.0, 0.0, 0.0], max = [{x:?}, {depth:?}, {z:?}] 
 /// dry tank, its water in a far corner, contact on: `ball_x` is the ball's centre, `paddle`
 /// more lines of the paddle's table (its velocity, say).
 pub fn paddle_and_ball(steps: usize, ball_x: f64, paddle: &str) -> String {
-    format!(
-        r#"name = "push"
-[domain]
-size = [1.0, 0.5, 0.5]
-dx = 0.05
-[time]
-dt = 0.01
-steps = {steps}
-[fluid]
-density = 1000.0
-gravity = [0.0, -9.81, 0.0]
-[[liquid]]
-shape = {{ kind = "box", min = [0.8, 0.0, 0.0], max = [1.0, 0.05, 0.5] }}
-[[body]]
+    let corner = [[0.8, 0.0, 0.0], [1.0, 0.05, 0.5]];
+    tank_head("push", [1.0, 0.5, 0.5], 0.05, steps, corner)
+        + &format!(
+            r#"[[body]]
 name = "paddle"
 shape = {{ kind = "cuboid", half_extents = [0.03, 0.1, 0.15] }}
 density = 1000.0
@@ -83,7 +86,7 @@ position = [{ball_x:?}, 0.0805, 0.25]
 [contact]
 enabled = true
 "#
-    )
+        )
 }
 
 /// A fresh, empty folder under the system temp directory (its name starts with

@@ -25,6 +25,12 @@ impl Scene {
         })
     }
 
+    /// Whether gradients go through rapier's contact: unless the `[optimize]` section refuses
+    /// it (`through_contact = false`).
+    pub fn through_contact(&self) -> bool {
+        self.optimize.as_ref().is_none_or(|o| o.through_contact)
+    }
+
     /// The index of the body named `name`.
     pub fn body_index(&self, name: &str) -> Option<usize> {
         (0..self.body.len()).find(|&i| self.body[i].name_or_default(i) == name)

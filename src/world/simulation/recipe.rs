@@ -19,7 +19,7 @@ use crate::stages::extrapolate::{
 };
 use crate::stages::forces::body_velocity;
 use crate::stages::particles::{ParticleRecord, ParticleStage, Potential};
-use crate::stages::project::{project, HeldContact, Projection};
+use crate::stages::project::{project, HeldContact, HeldSolve, Projection};
 use crate::stages::rigid::{integrate, Tank};
 use crate::stages::surface::{self, Bins, Pockets};
 use crate::stages::system::{
@@ -114,7 +114,7 @@ impl Simulation {
                 (projected, layered)
             },
         );
-        let (proj, mut u, contact) = projected?;
+        let (mut proj, mut u, contact) = projected?;
         let report = report && solves;
         let (max_divergence, kinetic_energy) = self.projected_measures(&sys, &u, &proj, report);
         timed.lap(Stage::Pressure);
@@ -128,7 +128,9 @@ impl Simulation {
             solves.contact |= contact || contact_moves;
         }
         if let (Some(t), Some(start)) = (tape, start) {
-            let taped = Taped { phi: taped_phi, air_body_faces, particles: record };
+            // The contact iteration's replaced solves: the record's alone from here.
+            let held = std::mem::take(&mut proj.held);
+            let taped = Taped { phi: taped_phi, air_body_faces, particles: record, held };
             let contact = (contact, contact_moves);
             t.steps.push(self.record(start, &proj, &sys, taped, contact));
         }
@@ -208,7 +210,7 @@ impl Simulation {
             air_body_faces: taped.air_body_faces,
             contact: held || rigid_contact,
             rigid_contact,
-            held: proj.held.clone(),
+            held: taped.held,
             particles: taped.particles,
             volume_control: !sys.volume_source.is_empty(),
         }
@@ -560,6 +562,7 @@ struct Taped {
     phi: Vec<f64>,
     air_body_faces: AirBodyFaces,
     particles: Option<ParticleRecord>,
+    held: Vec<HeldSolve>,
 }
 
 /// What a step measured along the way for its report.
