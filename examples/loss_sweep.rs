@@ -9,7 +9,7 @@
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
-//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `body-ramp`,
+//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `density-gain=G`, `body-ramp`,
 //! `surface-blend=T`, and
 //! `along=P` (the coordinate moved: `v0` … `q2`, default `v0`). The sweep runs the scene at
 //! that coordinate + t for 41 values of t over ±`HALF` (in parallel) and prints the median slope, the net slope and the roughness: the sum of
@@ -57,6 +57,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "close-pockets" => s.close_pockets = Some(value.parse()?),
             "sparse-depth" => s.sparse_depth = value.parse()?,
             "density-tolerance" => s.density_tolerance = value.parse()?,
+            "density-gain" => s.density_gain = value.parse()?,
             other => return Err(format!("unknown setting {other}").into()),
         }
     }

@@ -10,7 +10,7 @@
 //! option (`solver.density_correction`).
 //!
 //! The map, for particles P: φ = SDF(P) (the operator's liquid), dens = deposit(P),
-//! b = excess(dens)·dx³ on liquid cells, A q = b, d = C(−G q) (one
+//! b = gain·excess(dens)·dx³ on liquid cells, A q = b, d = C(−G q) (one
 //! extrapolation layer), and each particle moves by d(x) capped at half a cell, then is
 //! kept out of the static solids. Its adjoint ([`DensityProjection::adjoint`]) is one more
 //! solve with the same A, and the derivatives of the deposit, of φ (through the ghost-fluid
@@ -27,6 +27,11 @@
 //! down, and a ball dropped from 5 cm above its floating height gained 2.8 J in 3 s instead
 //! of settling (issue 33). Both sides have a dead zone of 10⁻⁶ (round-off in the deposit
 //! must not start a solve), subtracted so that b is continuous in the density.
+//!
+//! The right-hand side is `gain` times the excess (`solver.density_gain`, default 1.75): the
+//! deposit sees only part of a displacement (a one-cell divergence is 0.42 of its own
+//! cell's reading, and none of a particle's motion within the half cell next to a wall), so
+//! a displacement of exactly the excess took out 41% of the dam break's excess in a step.
 //!
 //! A cell's excess fades out over the tenth of a cell under the surface (its own φ_L): the
 //! deposit reads the cells around, so a cell just turning liquid can be over full, and its
@@ -292,6 +297,8 @@ pub struct DensityInputs<'a> {
     pub surface: surface::SurfaceModel,
     /// Marker particles seeded per cell (the density of a full cell).
     pub particles_per_cell: usize,
+    /// How many times its excess a cell's displacement carries (`solver.density_gain`).
+    pub gain: f64,
     /// The ghost-fluid θ of the projection's operator.
     pub ghost: GhostFluid,
     /// How the displacement's liquid–air faces blend into its extrapolation layer (see
@@ -449,7 +456,7 @@ impl DensityProjection {
             .map(|&c| {
                 let c = c as usize;
                 if g.counts_excess(c) {
-                    excess(dens[c], interior[c], depth_weight(phi[c], grid.dx)) * vol
+                    g.gain * excess(dens[c], interior[c], depth_weight(phi[c], grid.dx)) * vol
                 } else {
                     0.0
                 }
@@ -687,8 +694,8 @@ impl DensityProjection {
         }
         let qbar = self.sys.update_velocity_adjoint(&dbar);
         let (s, stats) = self.sys.solve(&qbar, &g.solve);
-        // b = excess(dens, interior, depth)·dx³ on the rows (0 on a band's deep cells).
-        let vol = grid.dx.powi(3);
+        // b = gain·excess(dens, interior, depth)·dx³ on the rows (0 on a band's deep cells).
+        let vol = g.gain * grid.dx.powi(3);
         let mut dens_bar = vec![0.0; grid.num_cells()];
         let (mut interior_bar, mut depth_bar) = (Vec::new(), Vec::new());
         for (r, &c) in self.sys.cell_of_row.iter().enumerate() {
@@ -915,7 +922,7 @@ fn displaced(
     g: &DensityInputs<'_>,
 ) -> (DensityStats, Option<Vec<f64>>) {
     proj.displace(particles, &q, g);
-    let excess_volume = proj.b.iter().map(|b| b.max(0.0)).sum();
+    let excess_volume = proj.b.iter().map(|b| b.max(0.0)).sum::<f64>() / g.gain;
     let stats = DensityStats { excess_volume, cg_iterations: iterations };
     proj.give_back(g);
     (stats, Some(q))
@@ -987,6 +994,7 @@ mod tests {
                     sparse_depth: 0.0,
                 },
                 particles_per_cell: 8,
+                gain: 1.75,
                 ghost: GhostFluid::clamped(0.01),
                 blend: SurfaceBlend { theta: 0.0 },
                 solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),

@@ -256,6 +256,23 @@ fn zero_density_tolerance() {
     assert_refused(&output, &dir.out(), &["solver.density_tolerance", "got 0", &line]);
 }
 
+/// The density projection's gain is refused outside (0, 2], naming the key and the line:
+/// zero would turn the projection off without saying so, and above 2 the displacement
+/// overshoots (the surge lost 7% of its volume at 2.5).
+#[test]
+fn density_gain_out_of_range() {
+    for (value, shown) in [("0.0", "got 0"), ("2.5", "got 2.5"), ("nan", "got NaN")] {
+        let dir = TempDir::new("density_gain");
+        let text = broken(
+            "extrapolation_layers = 3\n",
+            &format!("extrapolation_layers = 3\ndensity_gain = {value}\n"),
+        );
+        let line = at_line(line_of(&text, "density_gain ="));
+        let output = run(&dir.scene(&text), &dir.out(), &[]);
+        assert_refused(&output, &dir.out(), &["solver.density_gain", shown, &line]);
+    }
+}
+
 /// A 880 × 330 × 440 tank (128M cells, just under the 512³ cap) needs some 32 GB for its grid
 /// alone: refused before anything is allocated with the estimate and what is available (it
 /// used to abort on a failed allocation, or take the machine's memory until the OS killed

@@ -412,6 +412,7 @@ impl Simulation {
             gravity: self.settings.fluid.gravity,
             surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,
+            gain: solver.density_gain,
             ghost: solver.ghost_fluid(),
             blend: solver.blend(),
             solve: solver.density_linear(),
