@@ -231,9 +231,10 @@ fn live_surface_floating_box_gradient_matches_central_differences() {
 /// their central differences.
 ///
 /// At Kugelstadt et al.'s density gain of 1. With the default 1.75 the moving box's q₀ and
-/// q₂ are 1.1e-4 off central differences that agree from ε = 1e-8 to 1e-5, an error that
-/// grows with the horizon (1e-6 at 8 steps, 1e-5 at 14) and moves with the gain (1.5e-5 at
-/// 1.7, 9.6e-5 at 1.8; 5e-7 at 1.1): not yet explained (docs/gradients.md, "The density
+/// q₂ (gradients a hundredth of the largest) are 1.1e-4 off central differences that agree
+/// from ε = 1e-8 to 1e-5: 1.2e-6 of the gradient's norm, against 4e-7 at a gain of 1. The
+/// error grows steadily with the horizon, while every window of up to three steps is exact
+/// to the differences' noise; not yet explained (docs/gradients.md, "The density
 /// projection's gain").
 #[test]
 fn body_ramp_gradient_matches_central_differences() {
