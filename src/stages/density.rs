@@ -299,6 +299,9 @@ pub struct DensityInputs<'a> {
     pub particles_per_cell: usize,
     /// How many times its excess a cell's displacement carries (`solver.density_gain`).
     pub gain: f64,
+    /// How many times a step runs the projection (`solver.density_passes`; see
+    /// [`crate::stages::particles::ParticleStage::settle`]).
+    pub passes: usize,
     /// The ghost-fluid θ of the projection's operator.
     pub ghost: GhostFluid,
     /// How the displacement's liquid–air faces blend into its extrapolation layer (see
@@ -995,6 +998,7 @@ mod tests {
                 },
                 particles_per_cell: 8,
                 gain: 1.75,
+                passes: 1,
                 ghost: GhostFluid::clamped(0.01),
                 blend: SurfaceBlend { theta: 0.0 },
                 solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),

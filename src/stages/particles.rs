@@ -28,8 +28,9 @@ pub struct ParticleRecord {
     /// Positions after advection, before the push out of the bodies (which the backward
     /// pass replays: it is cheap, and its adjoint reads the positions before it).
     pub moved: Vec<Vec3>,
-    /// The density projection's potential q (None when no cell was over full or it is off).
-    pub density: Option<Vec<f64>>,
+    /// The density projection's potential q of each pass that found a cell over full (none
+    /// when it is off).
+    pub density: Vec<Vec<f64>>,
     /// Per cell, the particle (at the end of the step) whose distance the step's φ_L is
     /// (`NONE` where φ does not move with a particle).
     pub nearest: Vec<u32>,
@@ -64,27 +65,48 @@ pub struct ParticleStage<'a> {
     pub step: usize,
 }
 
-/// Where the density projection's potential comes from.
+/// Where the density projection's potentials come from.
 pub enum Potential {
     /// Solved.
     Solve,
-    /// A recorded run's potential and iterations, for its re-run (a checkpointed segment).
-    Recorded((Option<Vec<f64>>, usize)),
-    /// The step's recorded potential, in the backward pass's replay: the system is built
-    /// with its adjoint's inputs and kept.
-    Replay(Option<Vec<f64>>),
+    /// A recorded run's potentials and iterations, pass by pass, for its re-run (a
+    /// checkpointed segment): each pass's potential (None for a pass that found no cell
+    /// over full, which ended the passes) and iterations.
+    Recorded(Vec<(Option<Vec<f64>>, usize)>),
+    /// The step's recorded potentials (one per pass that acted), in the backward pass's
+    /// replay: each pass's system is built with its adjoint's inputs and kept.
+    Replay(Vec<Vec<f64>>),
+}
+
+/// One density projection pass as the backward pass's replay keeps it: the system, its
+/// displacement and the positions it was built from.
+pub struct KeptPass {
+    /// The pass's system.
+    pub proj: DensityProjection,
+    /// Its displacement.
+    pub disp: Displacement,
+    /// The positions it was built from and moved.
+    pub before: Vec<Vec3>,
 }
 
 /// What [`ParticleStage::settle`] did.
 #[derive(Default)]
 pub struct Settled {
-    /// The projection's statistics.
+    /// The projection's statistics (the first pass's excess, every pass's iterations).
     pub stats: DensityStats,
-    /// Its potential (None when it found no over-full cell or is off).
-    pub q: Option<Vec<f64>>,
-    /// In a replay: the system and its displacement, and the positions before the second
-    /// push-out.
-    pub kept: Option<(DensityProjection, Displacement, Vec<Vec3>)>,
+    /// Each pass's potential and iterations, in order (None for a pass that found no
+    /// over-full cell, which ends them; empty when the projection is off).
+    pub passes: Vec<(Option<Vec<f64>>, usize)>,
+    /// In a replay: each pass that acted, and the positions after the last (before the
+    /// second push-out).
+    pub kept: Option<(Vec<KeptPass>, Vec<Vec3>)>,
+}
+
+impl Settled {
+    /// The potentials of the passes that acted, for the step's record.
+    pub fn potentials(&self) -> Vec<Vec<f64>> {
+        self.passes.iter().filter_map(|(q, _)| q.clone()).collect()
+    }
 }
 
 /// The particle stages replayed from a record: the positions each part started from.
@@ -118,26 +140,56 @@ impl ParticleStage<'_> {
         moved
     }
 
-    /// [`Density`](super::Stage::Density): the density projection, its potential from
-    /// `potential`, then the push out of the bodies again (nothing when it is off).
+    /// [`Density`](super::Stage::Density): the density projection's passes (`g.passes`,
+    /// each on the positions the last left; a pass that finds no over-full cell ends them),
+    /// their potentials from `potential`, then the push out of the bodies again (nothing
+    /// when it is off).
     pub fn settle(&self, particles: &mut [Vec3], potential: Potential) -> Result<Settled> {
         let Some(g) = &self.density else { return Ok(Settled::default()) };
         let step = self.step;
         let mut settled = Settled::default();
+        let add = |settled: &mut Settled, stats: DensityStats, q: Option<Vec<f64>>| {
+            if settled.passes.is_empty() {
+                settled.stats.excess_volume = stats.excess_volume;
+            }
+            settled.stats.cg_iterations += stats.cg_iterations;
+            let acted = q.is_some();
+            settled.passes.push((q, stats.cg_iterations));
+            acted
+        };
         match potential {
             Potential::Solve => {
-                (settled.stats, settled.q) = density::correct(particles, g, step)?;
+                for _ in 0..g.passes {
+                    let (stats, q) = density::correct(particles, g, step)?;
+                    if !add(&mut settled, stats, q) {
+                        break;
+                    }
+                }
             }
             Potential::Recorded(recorded) => {
-                (settled.stats, settled.q) =
-                    density::correct_replayed(particles, g, recorded, step)?;
+                for pass in recorded {
+                    let (stats, q) = density::correct_replayed(particles, g, pass, step)?;
+                    add(&mut settled, stats, q);
+                }
             }
-            Potential::Replay(q) => {
-                if let (Some(proj), Some(q)) = (DensityProjection::build(particles, g), q) {
+            Potential::Replay(qs) => {
+                let mut kept = Vec::with_capacity(qs.len());
+                for q in qs {
+                    let Some(proj) = DensityProjection::build(particles, g) else {
+                        return Err(crate::error::GradientError::NotDeterministic {
+                            step,
+                            what: "found no cell over full where its forward pass did".into(),
+                        }
+                        .into());
+                    };
+                    let before = particles.to_vec();
                     let disp = proj.displacement(&q, g);
                     proj.displace_by(particles, &disp, g);
-                    settled.kept = Some((proj, disp, particles.to_vec()));
-                    settled.q = Some(q);
+                    settled.passes.push((Some(q), 0));
+                    kept.push(KeptPass { proj, disp, before });
+                }
+                if !kept.is_empty() {
+                    settled.kept = Some((kept, particles.to_vec()));
                 }
             }
         }
@@ -169,8 +221,7 @@ impl ParticleStage<'_> {
     ) -> Result<()> {
         let Some(g) = &self.density else { return Ok(()) };
         let fd = surface::jacobian_step(self.grid);
-        let Settled { q, kept, .. } = replayed.settled;
-        let Some((proj, disp, displaced)) = kept else {
+        let Some((kept, displaced)) = replayed.settled.kept else {
             // No projection: the second push-out from the advected positions.
             let push = surface::push_out_of_bodies_adjoint(
                 &replayed.advected,
@@ -185,20 +236,24 @@ impl ParticleStage<'_> {
         let push =
             surface::push_out_of_bodies_adjoint(&displaced, pbar, self.bodies, self.margin, fd);
         add_pose(pose, push);
-        let q = q.expect("a kept projection has its potential");
-        let (s, stats) = proj.adjoint_with(&replayed.advected, &q, &disp, pbar, pose, g);
-        if !stats.converged {
-            return Err(Error::NotConverged {
-                solve: Solve::DensityAdjoint,
-                step: self.step,
-                iterations: stats.iterations,
-                residual: stats.relative_residual,
-                tolerance: g.solve.tolerance,
-            });
+        let potentials = replayed.settled.passes.into_iter().filter_map(|(q, _)| q);
+        let passes: Vec<_> = kept.into_iter().zip(potentials).collect();
+        // The passes in reverse, each taking ∂L/∂(its positions after) to ∂L/∂(before).
+        for (KeptPass { proj, disp, before }, q) in passes.into_iter().rev() {
+            let (s, stats) = proj.adjoint_with(&before, &q, &disp, pbar, pose, g);
+            if !stats.converged {
+                return Err(Error::NotConverged {
+                    solve: Solve::DensityAdjoint,
+                    step: self.step,
+                    iterations: stats.iterations,
+                    residual: stats.relative_residual,
+                    tolerance: g.solve.tolerance,
+                });
+            }
+            density_weight_pose(&proj, &q, &s, g, dual_faces, statics, pose);
+            g.give_back(None, Some(disp.d));
+            proj.give_back(g);
         }
-        density_weight_pose(&proj, &q, &s, g, dual_faces, statics, pose);
-        g.give_back(None, Some(disp.d));
-        proj.give_back(g);
         Ok(())
     }
 

@@ -76,6 +76,10 @@ pub const MAX_EXTRAPOLATION_LAYERS: usize = 64;
 /// displacement overshooting its cells' excess.
 pub const MAX_DENSITY_GAIN: f64 = 2.0;
 
+/// The most density projection passes a step may ask for (`solver.density_passes`): each
+/// leaves about a third of what it was given, so a fourth has little left to take.
+pub const MAX_DENSITY_PASSES: usize = 4;
+
 /// Solver settings (a scene's `[solver]` table). Every field has a default, given with its
 /// reason.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -135,6 +139,14 @@ pub struct SolverSettings {
     /// projection) a step took out 41% of the dam break's excess and the particles ended
     /// its landing 1.39% short of its volume. Default 1.75; (0, 2].
     pub density_gain: f64,
+    /// How many times a step runs the density projection, each on the particles the last
+    /// one left (each pass solves again, so the stage costs that many times as much; a pass
+    /// that finds no over-full cell ends them). What one pass leaves sits in the cells along
+    /// the walls, where the deposit sees least of a displacement. Default 1; 1 to 4. Two
+    /// take the dam break's worst volume error over 100 steps from 0.58% to 0.42%, the
+    /// surge's from 1.18% to 0.58%, and with the smooth mode's settings (`surface_blend`,
+    /// `body_ramp`, `close_pockets`, no sparse cells) from 1.28% to 0.71%.
+    pub density_passes: usize,
     /// Volume control without the density projection: each step's pressure solve gives
     /// every liquid cell whose marker particles hold more than a full cell a divergence that
     /// spreads `volume_control` times the excess in a step (Kim et al. 2007, "Volume control
@@ -234,6 +246,7 @@ impl Default for SolverSettings {
             surface_blend: 0.0,
             density_correction: true,
             density_gain: 1.75,
+            density_passes: 1,
             volume_control: None,
             close_pockets: None,
             density_tolerance: 1e-6,
@@ -337,6 +350,12 @@ impl SolverSettings {
             return Err(SettingError::new(
                 "solver.density_gain",
                 format!("must be in (0, {MAX_DENSITY_GAIN}], got {}", self.density_gain),
+            ));
+        }
+        if !(1..=MAX_DENSITY_PASSES).contains(&self.density_passes) {
+            return Err(SettingError::new(
+                "solver.density_passes",
+                format!("must be 1 to {MAX_DENSITY_PASSES}, got {}", self.density_passes),
             ));
         }
         if let Some(k) = self.volume_control {

@@ -86,7 +86,7 @@ impl Tape {
                         .sum::<usize>()
                     + s.particles.as_ref().map_or(0, |r| {
                         24 * (r.start.len() + r.moved.len())
-                            + 8 * r.density.as_ref().map_or(0, Vec::len)
+                            + 8 * r.density.iter().map(Vec::len).sum::<usize>()
                             + 4 * r.nearest.len()
                             + r.change.as_ref().map_or(0, |c| 4 * c.kept.len())
                             + r.deep.as_ref().map_or(0, Vec::len)

@@ -273,6 +273,22 @@ fn density_gain_out_of_range() {
     }
 }
 
+/// The density projection's passes are refused outside 1 to 4, naming the key and the line
+/// (0 would turn the projection off without saying so).
+#[test]
+fn density_passes_out_of_range() {
+    for (value, shown) in [("0", "got 0"), ("5", "got 5")] {
+        let dir = TempDir::new("density_passes");
+        let text = broken(
+            "extrapolation_layers = 3\n",
+            &format!("extrapolation_layers = 3\ndensity_passes = {value}\n"),
+        );
+        let line = at_line(line_of(&text, "density_passes ="));
+        let output = run(&dir.scene(&text), &dir.out(), &[]);
+        assert_refused(&output, &dir.out(), &["solver.density_passes", shown, &line]);
+    }
+}
+
 /// A 880 × 330 × 440 tank (128M cells, just under the 512³ cap) needs some 32 GB for its grid
 /// alone: refused before anything is allocated with the estimate and what is available (it
 /// used to abort on a failed allocation, or take the machine's memory until the OS killed

@@ -273,7 +273,18 @@ impl Simulation {
         let density_on = self.settings.solver.density_correction;
         let potential = match pressures {
             Pressures::Replay(replay) if density_on => {
-                Potential::Recorded(replay.next_density(step)?)
+                // The passes its forward pass made: up to `density_passes`, the last one
+                // that found no cell over full ending them.
+                let mut passes = Vec::new();
+                while passes.len() < self.settings.solver.density_passes {
+                    let pass = replay.next_density(step)?;
+                    let acted = pass.0.is_some();
+                    passes.push(pass);
+                    if !acted {
+                        break;
+                    }
+                }
+                Potential::Recorded(passes)
             }
             _ => Potential::Solve,
         };
@@ -298,14 +309,16 @@ impl Simulation {
         self.particles = particles;
         let settled = settled?;
         if let (Pressures::Record(solves), true) = (&mut *pressures, density_on) {
-            solves.push_density(settled.q.clone(), settled.stats.cg_iterations);
+            for (q, iterations) in &settled.passes {
+                solves.push_density(q.clone(), *iterations);
+            }
         }
         timed.lap(Stage::Density);
         let record = start.zip(moved).map(|(start, moved)| ParticleRecord {
             start,
             substeps,
             moved,
-            density: settled.q,
+            density: settled.potentials(),
             nearest: Vec::new(),
             pockets: Pockets::default(),
             change,

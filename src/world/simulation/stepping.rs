@@ -413,6 +413,7 @@ impl Simulation {
             surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,
             gain: solver.density_gain,
+            passes: solver.density_passes,
             ghost: solver.ghost_fluid(),
             blend: solver.blend(),
             solve: solver.density_linear(),
