@@ -9,8 +9,8 @@
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
-//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `density-gain=G`, `body-ramp`,
-//! `surface-blend=T`, and
+//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `density-gain=G`,
+//! `density-passes=N`, `body-ramp`, `surface-blend=T`, and
 //! `along=P` (the coordinate moved: `v0` … `q2`, default `v0`). The sweep runs the scene at
 //! that coordinate + t for 41 values of t over ±`HALF` (in parallel) and prints the median slope, the net slope and the roughness: the sum of
 //! the 40 steps' deviations from the median step over the net change (0 for a line, about 1
@@ -58,6 +58,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "sparse-depth" => s.sparse_depth = value.parse()?,
             "density-tolerance" => s.density_tolerance = value.parse()?,
             "density-gain" => s.density_gain = value.parse()?,
+            "density-passes" => s.density_passes = value.parse()?,
             other => return Err(format!("unknown setting {other}").into()),
         }
     }
