@@ -666,10 +666,12 @@ pub struct SmoothnessRow {
 /// initial v_x and v_y, on two scenes: the surge (`surge_ball`: a floating ball hit by a
 /// dam-break surge, dx 0.05, dt 0.02) and the dam break with a ball (`dam_break_ball`,
 /// dx 0.1, dt 0.05; its contact is on, and its gradient goes through rapier's contact
-/// step, as its `[optimize]` section asks). Three settings: the defaults; `volume control`
-/// (no density projection, the volume kept by the smooth divergence source instead); and
+/// step, as its `[optimize]` section asks). Four settings: the defaults; `volume control`
+/// (no density projection, the volume kept by the smooth divergence source instead);
 /// `smoothed` (also no sparse-cell rule and a fixed 4 particle sub-steps: every jump source
-/// that is a setting). The quick study: the surge at 4 and 8 steps, x₀, ε = 1e-4 and 1e-6, the
+/// that is a setting); and `smooth mode` (the density projection kept, the liquid–air faces
+/// blended, φ_L ramped into the bodies, air pockets closed, no sparse-cell rule, θ clamped
+/// at 1e-5: the settings docs/gradients.md measured smoothest). The quick study: the surge at 4 and 8 steps, x₀, ε = 1e-4 and 1e-6, the
 /// defaults.
 pub fn smoothness(quick: bool) -> Result<Vec<SmoothnessRow>> {
     use crate::geometry::body::Param;
@@ -681,8 +683,11 @@ pub fn smoothness(quick: bool) -> Result<Vec<SmoothnessRow>> {
         &[Coordinate { param: Param::V, axis: 0 }, Coordinate { param: Param::V, axis: 1 }]
     };
     let scenes: &[&str] = if quick { &["surge_ball"] } else { &["surge_ball", "dam_break_ball"] };
-    let variants: &[&str] =
-        if quick { &["default"] } else { &["default", "volume control", "smoothed"] };
+    let variants: &[&str] = if quick {
+        &["default"]
+    } else {
+        &["default", "volume control", "smoothed", "smooth mode"]
+    };
     let mut rows = Vec::new();
     for &name in scenes {
         for &variant in variants {
@@ -698,6 +703,13 @@ pub fn smoothness(quick: bool) -> Result<Vec<SmoothnessRow>> {
                     scene.solver.volume_control = Some(4.0);
                     scene.solver.sparse_cells = false;
                     scene.solver.particle_substeps = 4;
+                }
+                "smooth mode" => {
+                    scene.solver.surface_blend = 0.5;
+                    scene.solver.body_ramp = true;
+                    scene.solver.close_pockets = Some(0.5);
+                    scene.solver.sparse_cells = false;
+                    scene.solver.theta_min = 1e-5;
                 }
                 other => unreachable!("no settings {other}"),
             }
