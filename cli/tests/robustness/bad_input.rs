@@ -256,36 +256,27 @@ fn zero_density_tolerance() {
     assert_refused(&output, &dir.out(), &["solver.density_tolerance", "got 0", &line]);
 }
 
-/// The density projection's gain is refused outside (0, 2], naming the key and the line:
-/// zero would turn the projection off without saying so, and above 2 the displacement
-/// overshoots (the surge lost 7% of its volume at 2.5).
+/// The density projection's gain is refused outside (0, 2] and its passes outside 1 to 4,
+/// naming the key and the line: a gain or passes of zero would turn the projection off
+/// without saying so, and above a gain of 2 the displacement overshoots (the surge lost 7%
+/// of its volume at 2.5).
 #[test]
-fn density_gain_out_of_range() {
-    for (value, shown) in [("0.0", "got 0"), ("2.5", "got 2.5"), ("nan", "got NaN")] {
-        let dir = TempDir::new("density_gain");
+fn density_settings_out_of_range() {
+    for (key, value, shown) in [
+        ("density_gain", "0.0", "got 0"),
+        ("density_gain", "2.5", "got 2.5"),
+        ("density_gain", "nan", "got NaN"),
+        ("density_passes", "0", "got 0"),
+        ("density_passes", "5", "got 5"),
+    ] {
+        let dir = TempDir::new(key);
         let text = broken(
             "extrapolation_layers = 3\n",
-            &format!("extrapolation_layers = 3\ndensity_gain = {value}\n"),
+            &format!("extrapolation_layers = 3\n{key} = {value}\n"),
         );
-        let line = at_line(line_of(&text, "density_gain ="));
+        let line = at_line(line_of(&text, &format!("{key} =")));
         let output = run(&dir.scene(&text), &dir.out(), &[]);
-        assert_refused(&output, &dir.out(), &["solver.density_gain", shown, &line]);
-    }
-}
-
-/// The density projection's passes are refused outside 1 to 4, naming the key and the line
-/// (0 would turn the projection off without saying so).
-#[test]
-fn density_passes_out_of_range() {
-    for (value, shown) in [("0", "got 0"), ("5", "got 5")] {
-        let dir = TempDir::new("density_passes");
-        let text = broken(
-            "extrapolation_layers = 3\n",
-            &format!("extrapolation_layers = 3\ndensity_passes = {value}\n"),
-        );
-        let line = at_line(line_of(&text, "density_passes ="));
-        let output = run(&dir.scene(&text), &dir.out(), &[]);
-        assert_refused(&output, &dir.out(), &["solver.density_passes", shown, &line]);
+        assert_refused(&output, &dir.out(), &[&format!("solver.{key}"), shown, &line]);
     }
 }
 
