@@ -373,8 +373,11 @@ pub struct ContactInputAdjoint {
 /// ones (see [`contact_adjoint`]) to a vector of outputs.
 pub type ContactMap<'a> = dyn Fn(&[RigidBody], &[Twist]) -> Vec<f64> + Sync + 'a;
 
-/// Inputs per body a contact map is differentiated in: [v; ω], [δx; δθ], m.
-const CONTACT_INPUTS: usize = 13;
+/// Inputs per body contact does not move (a kinematic or external one): [v; ω], [δx; δθ].
+const POSED_INPUTS: usize = 12;
+
+/// Inputs per body a contact map is differentiated in: [v; ω], [δx; δθ], then m.
+const CONTACT_INPUTS: usize = POSED_INPUTS + 1;
 
 /// The central differences' first step in [`contact_adjoint`]: m/s, rad/s, m and rad, and a
 /// fraction of the mass. rapier's solve is a fixed sequence of substeps and iterations, so
@@ -444,7 +447,8 @@ pub fn contact_adjoint(
         .iter()
         .enumerate()
         .flat_map(|(k, &i)| (0..CONTACT_INPUTS).map(move |input| (i, Some(k), input)));
-    let posed_jobs = posed.iter().flat_map(|&i| (0..12).map(move |input| (i, None, input)));
+    let posed_jobs =
+        posed.iter().flat_map(|&i| (0..POSED_INPUTS).map(move |input| (i, None, input)));
     let jobs: Vec<(usize, Option<usize>, usize)> = moved_jobs.chain(posed_jobs).collect();
     // The map where it is, for the one-sided slopes.
     let at_base = run(bodies.to_vec(), velocities);
@@ -456,7 +460,7 @@ pub fn contact_adjoint(
         let (plus, minus) = (at(i, slot, input, h), at(i, slot, input, -h));
         (dot(&plus, &at_base) / h, dot(&at_base, &minus) / h)
     };
-    let unit = |i: usize, input: usize| if input == 12 { bodies[i].mass } else { 1.0 };
+    let unit = |i: usize, input: usize| if input == POSED_INPUTS { bodies[i].mass } else { 1.0 };
     let first: Vec<(f64, f64)> = jobs
         .par_iter()
         .map(|&(i, slot, input)| sides(i, slot, input, CONTACT_STEP * unit(i, input)))
@@ -489,9 +493,9 @@ pub fn contact_adjoint(
     let adjoint = |s: &[f64]| ContactInputAdjoint {
         velocity: std::array::from_fn(|d| s[d]),
         pose: std::array::from_fn(|d| s[6 + d]),
-        mass: s.get(12).copied().unwrap_or(0.0),
+        mass: s.get(POSED_INPUTS).copied().unwrap_or(0.0),
     };
     let moved_adjoints = of_moved.chunks(CONTACT_INPUTS).map(adjoint).collect();
-    let posed_adjoints = of_posed.chunks(12).map(adjoint).collect();
+    let posed_adjoints = of_posed.chunks(POSED_INPUTS).map(adjoint).collect();
     (moved_adjoints, posed_adjoints)
 }

@@ -65,14 +65,17 @@ pub struct ParticleStage<'a> {
     pub step: usize,
 }
 
+/// A recorded run's next density projection pass: its potential (None for a pass that found
+/// no cell over full, which ended the passes) and iterations.
+pub type NextPass<'a> = dyn FnMut() -> Result<(Option<Vec<f64>>, usize)> + 'a;
+
 /// Where the density projection's potentials come from.
-pub enum Potential {
+pub enum Potential<'a> {
     /// Solved.
     Solve,
-    /// A recorded run's potentials and iterations, pass by pass, for its re-run (a
-    /// checkpointed segment): each pass's potential (None for a pass that found no cell
-    /// over full, which ended the passes) and iterations.
-    Recorded(Vec<(Option<Vec<f64>>, usize)>),
+    /// A recorded run's potentials and iterations, handed out pass by pass, for its re-run
+    /// (a checkpointed segment).
+    Recorded(&'a mut NextPass<'a>),
     /// The step's recorded potentials (one per pass that acted), in the backward pass's
     /// replay: each pass's system is built with its adjoint's inputs and kept.
     Replay(Vec<Vec<f64>>),
@@ -103,9 +106,32 @@ pub struct Settled {
 }
 
 impl Settled {
+    /// Up to `passes` passes of `pass` on `particles`, each on the positions the last left,
+    /// until one finds no cell over full; what they did is added to `self`.
+    fn run_passes(
+        &mut self,
+        particles: &mut [Vec3],
+        passes: usize,
+        mut pass: impl FnMut(&mut [Vec3]) -> Result<(DensityStats, Option<Vec<f64>>)>,
+    ) -> Result<()> {
+        for _ in 0..passes {
+            let (stats, q) = pass(particles)?;
+            if self.passes.is_empty() {
+                self.stats.excess_volume = stats.excess_volume;
+            }
+            self.stats.cg_iterations += stats.cg_iterations;
+            let acted = q.is_some();
+            self.passes.push((q, stats.cg_iterations));
+            if !acted {
+                break;
+            }
+        }
+        Ok(())
+    }
+
     /// The potentials of the passes that acted, for the step's record.
-    pub fn potentials(&self) -> Vec<Vec<f64>> {
-        self.passes.iter().filter_map(|(q, _)| q.clone()).collect()
+    pub fn into_potentials(self) -> Vec<Vec<f64>> {
+        self.passes.into_iter().filter_map(|(q, _)| q).collect()
     }
 }
 
@@ -144,33 +170,18 @@ impl ParticleStage<'_> {
     /// each on the positions the last left; a pass that finds no over-full cell ends them),
     /// their potentials from `potential`, then the push out of the bodies again (nothing
     /// when it is off).
-    pub fn settle(&self, particles: &mut [Vec3], potential: Potential) -> Result<Settled> {
+    pub fn settle(&self, particles: &mut [Vec3], potential: Potential<'_>) -> Result<Settled> {
         let Some(g) = &self.density else { return Ok(Settled::default()) };
         let step = self.step;
         let mut settled = Settled::default();
-        let add = |settled: &mut Settled, stats: DensityStats, q: Option<Vec<f64>>| {
-            if settled.passes.is_empty() {
-                settled.stats.excess_volume = stats.excess_volume;
-            }
-            settled.stats.cg_iterations += stats.cg_iterations;
-            let acted = q.is_some();
-            settled.passes.push((q, stats.cg_iterations));
-            acted
-        };
         match potential {
             Potential::Solve => {
-                for _ in 0..g.passes {
-                    let (stats, q) = density::correct(particles, g, step)?;
-                    if !add(&mut settled, stats, q) {
-                        break;
-                    }
-                }
+                settled.run_passes(particles, g.passes, |p| density::correct(p, g, step))?;
             }
-            Potential::Recorded(recorded) => {
-                for pass in recorded {
-                    let (stats, q) = density::correct_replayed(particles, g, pass, step)?;
-                    add(&mut settled, stats, q);
-                }
+            Potential::Recorded(next) => {
+                settled.run_passes(particles, g.passes, |p| {
+                    density::correct_replayed(p, g, next()?, step)
+                })?;
             }
             Potential::Replay(qs) => {
                 let mut kept = Vec::with_capacity(qs.len());

@@ -271,22 +271,14 @@ impl Simulation {
         timed.lap(Stage::Band);
         let step = self.step + 1;
         let density_on = self.settings.solver.density_correction;
-        let potential = match pressures {
-            Pressures::Replay(replay) if density_on => {
-                // The passes its forward pass made: up to `density_passes`, the last one
-                // that found no cell over full ending them.
-                let mut passes = Vec::new();
-                while passes.len() < self.settings.solver.density_passes {
-                    let pass = replay.next_density(step)?;
-                    let acted = pass.0.is_some();
-                    passes.push(pass);
-                    if !acted {
-                        break;
-                    }
-                }
-                Potential::Recorded(passes)
-            }
-            _ => Potential::Solve,
+        // A re-run takes each density pass's potential from the record, in order.
+        let mut next_pass = match pressures {
+            Pressures::Replay(replay) if density_on => Some(|| replay.next_density(step)),
+            _ => None,
+        };
+        let potential = match next_pass.as_mut() {
+            Some(next) => Potential::Recorded(next),
+            None => Potential::Solve,
         };
         let mut particles = std::mem::take(&mut self.particles);
         let (substeps, start, moved, settled) = {
@@ -314,17 +306,18 @@ impl Simulation {
             }
         }
         timed.lap(Stage::Density);
+        let stats = settled.stats;
         let record = start.zip(moved).map(|(start, moved)| ParticleRecord {
             start,
             substeps,
             moved,
-            density: settled.potentials(),
+            density: settled.into_potentials(),
             nearest: Vec::new(),
             pockets: Pockets::default(),
             change,
             deep: self.band.as_ref().map(|b| b.deep.clone()),
         });
-        Ok((record, settled.stats))
+        Ok((record, stats))
     }
 
     /// [`Stage::Surface`]: φ_L where the particles are now (with a frozen surface: where it
