@@ -5,12 +5,15 @@
 //! ```text
 //! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS HALF
 //! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS --pair T1 T2
+//! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS --volume
 //! ```
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
 //! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `density-gain=G`,
-//! `density-passes=N`, `body-ramp`, `surface-blend=T`, and
+//! `density-passes=N`, `body-ramp`, `surface-blend=T`, `smooth` (the smoothness study's
+//! smooth mode: `surface-blend=0.5`, `body-ramp`, `close-pockets=0.5`, `no-sparse`,
+//! `theta-min=1e-5`), and
 //! `along=P` (the coordinate moved: `v0` … `q2`, default `v0`). The sweep runs the scene at
 //! that coordinate + t for 41 values of t over ±`HALF` (in parallel) and prints the median slope, the net slope and the roughness: the sum of
 //! the 40 steps' deviations from the median step over the net change (0 for a line, about 1
@@ -18,7 +21,8 @@
 //! prints, per step, how far the body's position and velocity differ, how many cells differ
 //! in kind, and each such cell with its φ in both runs and its neighbours' φ; then how far
 //! the marker particles, φ and the face velocities differ at most, and where (a jump that
-//! changes no cell's kind shows there first, often far from the body).
+//! changes no cell's kind shows there first, often far from the body). `--volume` runs the
+//! scene once and prints its worst liquid-volume error over the steps, and the step.
 //! docs/gradients.md ("Air pockets") quotes what it measured.
 
 use diffluid::experiments::scene::Scene;
@@ -30,7 +34,7 @@ use std::path::Path;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let usage = "usage: loss_sweep SCENE STEPS SETTINGS (HALF | --pair T1 T2)";
+    let usage = "usage: loss_sweep SCENE STEPS SETTINGS (HALF | --pair T1 T2 | --volume)";
     if args.len() < 4 {
         return Err(usage.into());
     }
@@ -47,6 +51,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         match key {
             "default" => {}
             "body-ramp" => s.body_ramp = true,
+            "smooth" => {
+                s.surface_blend = 0.5;
+                s.body_ramp = true;
+                s.close_pockets = Some(0.5);
+                s.sparse_cells = false;
+                s.theta_min = 1e-5;
+            }
             "surface-blend" => s.surface_blend = value.parse()?,
             "along" => along = parse_along(value)?,
             "no-density" => s.density_correction = false,
@@ -61,6 +72,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "density-passes" => s.density_passes = value.parse()?,
             other => return Err(format!("unknown setting {other}").into()),
         }
+    }
+    if args[3] == "--volume" {
+        return volume(scene.build()?, steps).map_err(Into::into);
     }
     let loss = scene.loss().ok_or("the scene has no [loss]")?;
     let sim = scene.build()?;
@@ -120,6 +134,20 @@ fn parse_along(value: &str) -> Result<(Param, usize), String> {
         return Err(bad());
     }
     Ok((param, axis))
+}
+
+/// Steps `sim` and prints its worst relative liquid-volume error and the step of it.
+fn volume(mut sim: Simulation, steps: usize) -> diffluid::Result<()> {
+    let v0 = sim.liquid_volume();
+    let (mut worst, mut at) = (0.0f64, 0);
+    for k in 1..=steps {
+        let e = (sim.step()?.liquid_volume - v0).abs() / v0;
+        if e > worst {
+            (worst, at) = (e, k);
+        }
+    }
+    println!("worst volume error {:.3}% at step {at} of {steps}", 100.0 * worst);
+    Ok(())
 }
 
 /// Steps `a` and `b` together and prints where they part.

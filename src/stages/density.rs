@@ -545,6 +545,7 @@ impl DensityProjection {
                 extrapolate_one_layer_blended(field, &valid0[a], &surface[a], &lat, closed);
             }
         }
+        through_walls(&mut d, g.grid);
         Displacement { d, valid0 }
     }
 
@@ -595,6 +596,7 @@ impl DensityProjection {
                 closed_at_deep(g.grid, a, deep, field, 0.0);
             }
         }
+        through_walls(&mut d, g.grid);
         Displacement { d, valid0 }
     }
 
@@ -679,6 +681,8 @@ impl DensityProjection {
                     *read = (*x, vbar);
                 });
         });
+        // The tank walls' faces are their neighbours' (`through_walls`).
+        through_walls_adjoint(&mut dbar, grid);
         // d = C(−k·G·q), its blended faces' shares read from φ.
         let surface = &self.surface;
         let mut share_bar = Vec::new();
@@ -843,10 +847,54 @@ fn excess_reaches_air(
 /// [`DensityProjection::displace`] moves the particles by, and what its adjoint reads.
 #[derive(Debug)]
 pub struct Displacement {
-    /// The displacement on the faces (extrapolated one layer).
+    /// The displacement on the faces (extrapolated one layer; the tank walls' faces their
+    /// neighbours', see `through_walls`).
     pub d: Mac,
     /// The faces the potential's gradient set, before the extrapolation.
     pub valid0: [Vec<u8>; 3],
+}
+
+/// Each tank wall's faces of `d` (the faces normal to a wall, on it) given the value of the
+/// face next to them inside: what the particles in the half cell next to a wall move by.
+/// The displacement is zero on a wall, and interpolated it fell to zero across that half
+/// cell, where the deposit (which folds the wall's side back into the cell) sees no motion:
+/// a particle there moved by a fraction of what its cell asked and the wall cells kept
+/// their excess (the dam break's worst volume error over 100 steps 0.58%, the smooth mode's
+/// 1.28%; with the walls' faces their neighbours' 0.52% and 0.60%). The potential and the
+/// faces it sets are unchanged: only what the particles read.
+fn through_walls(d: &mut Mac, grid: &Grid) {
+    for_wall_faces(grid, |a, wall, inner| d.c[a][wall] = d.c[a][inner]);
+}
+
+/// Adjoint of [`through_walls`], in place: each wall face's adjoint moved to the face next
+/// to it.
+fn through_walls_adjoint(dbar: &mut Mac, grid: &Grid) {
+    for_wall_faces(grid, |a, wall, inner| {
+        let bar = std::mem::take(&mut dbar.c[a][wall]);
+        dbar.c[a][inner] += bar;
+    });
+}
+
+/// Calls `visit(axis, wall face, the face next to it inside)` for every face on a tank wall
+/// normal to it (both walls of each axis).
+fn for_wall_faces(grid: &Grid, mut visit: impl FnMut(usize, usize, usize)) {
+    for a in 0..3 {
+        let lat = grid.faces(a);
+        let n = lat.n;
+        let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+        for (wall, inner) in [(0, 1), (n[a] - 1, n[a] - 2)] {
+            for j in 0..n[b] {
+                for k in 0..n[c] {
+                    let at = |along: usize| {
+                        let mut ijk = [0; 3];
+                        (ijk[a], ijk[b], ijk[c]) = (along, j, k);
+                        lat.index(ijk[0], ijk[1], ijk[2])
+                    };
+                    visit(a, at(wall), at(inner));
+                }
+            }
+        }
+    }
 }
 
 /// The displacement `v` capped at half a cell.
@@ -1018,6 +1066,35 @@ mod tests {
         let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
         assert!(!proj.deep_closed);
         assert_adjoint_is_central_difference(&pool.particles, &inputs);
+    }
+
+    /// In the half cell next to a wall a particle moves by what the face next to the wall
+    /// asks, not by a share of it falling to zero at the wall: the squeezed pool's floor
+    /// cells push their particles up by the same amount a quarter of a cell over the floor
+    /// as one cell over it, and the same holds at the side walls.
+    #[test]
+    fn particles_next_to_a_wall_move_by_the_face_inside() {
+        let pool = SqueezedPool::new(None);
+        let inputs = pool.inputs();
+        let proj = DensityProjection::build(&pool.particles, &inputs).expect("over-full cells");
+        let (q, _) = proj.solve(&inputs, 1).unwrap();
+        let d = proj.displacement(&q, &inputs).d;
+        let (dx, size) = (pool.grid.dx, pool.grid.size());
+        let mut lifted = 0;
+        for (i, k) in [(0.5, 0.5), (3.3, 2.7), (7.5, 5.5)] {
+            let at = |y: f64| d.velocity(&pool.grid, Vec3::new(i * dx, y, k * dx));
+            let (near, inside) = (at(0.25 * dx), at(dx));
+            assert!((near.y - inside.y).abs() <= 1e-12 * inside.y.abs(), "{near} {inside}");
+            lifted += usize::from(inside.y > 1e-6 * dx);
+        }
+        assert!(lifted == 3, "the floor cells are over full and push up");
+        for (axis, wall, inner) in [(0, 0.1, 1.0), (0, 7.9, 7.0), (2, 0.2, 1.0), (2, 5.8, 5.0)] {
+            let mut p = Vec3::new(0.5 * size.x, 0.55 * dx, 0.5 * size.z);
+            p[axis] = wall * dx;
+            let near = d.velocity(&pool.grid, p)[axis];
+            p[axis] = inner * dx;
+            assert_eq!(near, d.velocity(&pool.grid, p)[axis], "axis {axis} at {wall} cells");
+        }
     }
 
     /// A cell over full within a tenth of a cell of the surface pushes out only part of its

@@ -119,16 +119,16 @@ fn the_density_gain_keeps_the_dam_break_within_one_percent() {
     };
     let default = diffluid::world::SolverSettings::default().density_gain;
     assert!(worst(default) < 0.01, "the default gain should keep the volume within 1%");
-    assert!(worst(1.0) > 0.012, "a gain of 1 should lose more (measured 1.39%)");
+    assert!(worst(1.0) > 0.01, "a gain of 1 should lose more (measured 1.12%)");
 }
 
-/// Two density projection passes a step (`solver.density_passes = 2`) keep what one leaves
-/// along the walls: with the smooth mode's settings (the liquid–air faces blended, φ_L
-/// ramped into bodies, air pockets closed, no sparse-cell rule), whose blended faces leak,
-/// the dam break's worst volume error over 100 steps is 1.28% with one pass and 0.71% with
-/// two, within the 1% the long-horizon work asks of every mode.
+/// The smooth mode's settings (the liquid–air faces blended, φ_L ramped into bodies, air
+/// pockets closed, no sparse-cell rule, θ clamped at 1e-5) keep the dam break's volume
+/// within the 1% the long-horizon work asks of every mode with one density pass (measured
+/// 0.60% over 100 steps; 1.28% before the particles next to a wall moved by the face
+/// inside), and a second pass a step keeps more of what one leaves (measured 0.42%).
 #[test]
-fn two_density_passes_keep_the_smooth_mode_within_one_percent() {
+fn the_smooth_mode_keeps_the_dam_break_within_one_percent() {
     let worst = |passes: usize| {
         let mut scene = Scene::builtin("dam_break").unwrap();
         scene.solver.surface_blend = 0.5;
@@ -141,8 +141,9 @@ fn two_density_passes_keep_the_smooth_mode_within_one_percent() {
         eprintln!("smooth mode, {passes} density passes: worst volume error {:.2}%", 100.0 * worst);
         worst
     };
-    assert!(worst(2) < 0.01, "two passes should keep the smooth mode within 1%");
-    assert!(worst(1) > 0.011, "one pass should lose more (measured 1.28%)");
+    let one = worst(1);
+    assert!(one < 0.01, "one pass should keep the smooth mode within 1%");
+    assert!(worst(2) < 0.8 * one, "a second pass should keep more of the volume");
 }
 
 /// The largest |V − V₀|/V₀ of the liquid's volume (from the particles) over `steps` steps of
