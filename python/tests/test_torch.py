@@ -47,6 +47,13 @@ def test_loss_and_gradient_are_value_and_grads(box_scene):
 # 1.2e-6 (relative 3.9e-6) for the live box; what remains is the pressure solve's tolerance
 # (1e-12) divided by eps.
 TOL = dict(eps=1e-6, atol=1e-5, rtol=1e-3)
+# The live box at eps 1e-7. With the smooth defaults (blended liquid-air faces and phi_L
+# ramped into the bodies, since 6 December 2026) its map has a kink within 1e-6 of this
+# start along x1 and x2: central differences at 1e-6 straddle it (up to 1.5e-3 off in the
+# Jacobian's position columns; `diffluid gradcheck` 2.9e-5 and 3.2e-5 relative), while at
+# 1e-7 they agree with the adjoint to 3e-9 and 8e-9, as at either step without the blend
+# or without the ramp.
+LIVE_TOL = dict(TOL, eps=1e-7)
 
 
 def test_gradcheck_frozen_surface(box_scene):
@@ -58,7 +65,7 @@ def test_gradcheck_frozen_surface(box_scene):
 def test_gradcheck_live_surface(live_scene):
     sim = diffluid.Simulation(live_scene)
     f = lambda v, w, x, q: tuple(rollout(sim, v, w, x, q))
-    assert torch.autograd.gradcheck(f, leaves(sim), **TOL)
+    assert torch.autograd.gradcheck(f, leaves(sim), **LIVE_TOL)
 
 
 def test_gradcheck_through_a_quaternion_that_is_not_unit(box_scene):

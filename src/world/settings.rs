@@ -68,6 +68,12 @@ impl Fluid {
     }
 }
 
+/// Writes an optional setting whose absence is not its default as 0 when it is `None` (the
+/// setting's off).
+fn off_as_zero<S: serde::Serializer>(value: &Option<f64>, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_f64(value.unwrap_or(0.0))
+}
+
 /// The most extrapolation layers a scene may ask for: far more than advection ever reads
 /// (Δt·|u|/dx cells), and below what the layer counter of `extrapolate.rs` holds (253).
 pub const MAX_EXTRAPOLATION_LAYERS: usize = 64;
@@ -101,15 +107,18 @@ pub struct SolverSettings {
     /// Marker particles seeded per liquid cell, on a regular sub-lattice: 1, 8, 27 or 64.
     /// Default 8.
     pub particles_per_cell: usize,
-    /// Smallest ghost-fluid fraction θ at a liquid–air face. Default 0.01 (Gibou et al.;
-    /// bounds the diagonal at 100× a full face).
+    /// Smallest ghost-fluid fraction θ at a liquid–air face. Default 1e-5: the clamp is a
+    /// kink of the step where a face's θ crosses it, and with the blended faces
+    /// (`surface_blend`) a face of small θ carries little of its projected velocity. 0.01
+    /// (Gibou et al.'s, bounding the diagonal at 100× a full face) was the default before
+    /// 6 December 2026; `large_tank` costs 1.08× as much in the smooth defaults.
     pub theta_min: f64,
     /// Ramp φ_L into the moving bodies over half a cell outside them instead of switching a
     /// cell from the particles' φ to the extension's as a body's surface crosses its centre
-    /// (`stages/solid_phi.rs`). Default false. It makes the map continuous in the bodies'
-    /// poses (a box under a moving surface: central differences at 1e-4 and 1e-6 within
-    /// 2.6% instead of 17%), but the surge's line along v_x no smoother (docs/gradients.md,
-    /// "Bodies crossing cell centres").
+    /// (`stages/solid_phi.rs`). Default true (false before 6 December 2026). It makes the
+    /// map continuous in the bodies' poses (a box under a moving surface: central
+    /// differences at 1e-4 and 1e-6 within 2.6% instead of 17%; docs/gradients.md, "Bodies
+    /// crossing cell centres").
     pub body_ramp: bool,
     /// Blend each liquid–air face from its projected velocity into the extrapolation's as
     /// the ghost-fluid fraction θ of its liquid side falls below `surface_blend` (the face's
@@ -118,14 +127,14 @@ pub struct SolverSettings {
     /// and let the extrapolation's layers weigh what they read by those shares, so the
     /// velocity changes continuously as a cell turns from liquid to air or a body comes to
     /// cover a face (`stages/extrapolate/blend.rs`); the density projection's displacement
-    /// is blended the same way in its one layer. Default 0 (off: the yes/no rule): 0.5
-    /// makes the map smoother (a box under a moving surface, with `body_ramp`: central
-    /// differences at 1e-4 and 1e-6 within 1.2% instead of 2.6%), but the blended faces no
-    /// longer hold their liquid cells' flux at zero, and the dam break's worst volume error
-    /// over 100 steps is 1.25% instead of 0.58% (2.6% and 1.4% at a density gain of 1; its
-    /// tests allow 2%; docs/gradients.md,
-    /// "Liquid–air faces blended into the extrapolation"). 0 to 1, 0.5 being the surface at
-    /// the face.
+    /// is blended the same way in its one layer. Default 0.5 (0, the yes/no rule, before
+    /// 6 December 2026): with the other smooth defaults central differences at 1e-4 and 1e-6
+    /// agree within 0.7% on a box under a moving surface (15% with the yes/no rules) and
+    /// within 2.1% on the surge's velocities at 50 steps (27 to 350-fold). The blended faces
+    /// no longer hold their liquid cells' flux at zero; the dam break's worst volume error
+    /// over 100 steps is 0.60% with them, 0.52% without (docs/gradients.md, "Liquid–air
+    /// faces blended into the extrapolation", "The smooth defaults"). 0 to 1, 0.5 being the
+    /// surface at the face.
     pub surface_blend: f64,
     /// Push marker particles out of over-full cells after advecting them (particle density
     /// projection, see `density.rs`). Default true: without it the dam break loses about
@@ -143,9 +152,9 @@ pub struct SolverSettings {
     /// one left (each pass solves again, so the stage costs that many times as much; a pass
     /// that finds no over-full cell ends them). What one pass leaves sits in the cells along
     /// the walls, where the deposit sees least of a displacement. Default 1; 1 to 4. Two
-    /// take the dam break's worst volume error over 100 steps from 0.58% to 0.42%, the
-    /// surge's from 1.18% to 0.58%, and with the smooth mode's settings (`surface_blend`,
-    /// `body_ramp`, `close_pockets`, no sparse cells) from 1.28% to 0.71%.
+    /// take the dam break's worst volume error over 100 steps from 0.60% to 0.42% (the
+    /// defaults), but make the map rougher at the scale an optimiser steps
+    /// (docs/gradients.md, "The density projection's gain").
     pub density_passes: usize,
     /// Volume control without the density projection: each step's pressure solve gives
     /// every liquid cell whose marker particles hold more than a full cell a divergence that
@@ -164,7 +173,9 @@ pub struct SolverSettings {
     /// point `close_pockets`·dx from the particles through air (a gap in the particles
     /// inside the liquid) is liquid, by a continuous function of φ_L. Such a pocket is a
     /// zero-pressure sink inside the liquid, and as it opens and closes the step jumps.
-    /// Default: off (none given); 0 to 0.6 cells.
+    /// Default 0.5 (off before 6 December 2026); 0 (off) to 0.6 cells. Written as 0 when
+    /// off (`None`), so that a written scene reads back off, not as the default.
+    #[serde(serialize_with = "off_as_zero")]
     pub close_pockets: Option<f64>,
     /// The density projection's CG stops when ‖r‖₂ ≤ density_tolerance·‖b‖₂ (b: the excess
     /// volume of the over-full cells). What is left is that fraction of the volume the
@@ -179,9 +190,11 @@ pub struct SolverSettings {
     pub density_tolerance: f64,
     /// A cell that holds a marker particle is liquid even where the particles' distance says
     /// air (thin sheets and splashes stay in the projection instead of drifting on
-    /// extrapolated velocities, which loses volume). Default true. As the rule was (and is
-    /// with `sparse_depth = 0`), it makes φ_L jump when a particle crosses a cell face, a
-    /// kink of the forward map that gradients cannot see.
+    /// extrapolated velocities, which loses volume). Default false (true before 6 December
+    /// 2026): as the rule was (and is with `sparse_depth = 0`), it makes φ_L jump when a
+    /// particle crosses a cell face, a kink of the forward map that gradients cannot see, and
+    /// the density projection keeps the volume without it (the dam break's worst over 100
+    /// steps 0.60% in the smooth defaults).
     pub sparse_cells: bool,
     /// With `sparse_cells`, how deep (cells) a particle must be inside its cell to make it
     /// liquid, φ_L falling continuously with the particle's depth up to there (see
@@ -241,16 +254,16 @@ impl Default for SolverSettings {
             preconditioner: Preconditioner::Auto,
             extrapolation_layers: 3,
             particles_per_cell: 8,
-            theta_min: 0.01,
-            body_ramp: false,
-            surface_blend: 0.0,
+            theta_min: 1e-5,
+            body_ramp: true,
+            surface_blend: 0.5,
             density_correction: true,
             density_gain: 1.75,
             density_passes: 1,
             volume_control: None,
-            close_pockets: None,
+            close_pockets: Some(0.5),
             density_tolerance: 1e-6,
-            sparse_cells: true,
+            sparse_cells: false,
             sparse_depth: 0.0,
             particle_substeps: 0,
             narrow_band: NarrowBand::Auto,
@@ -517,5 +530,23 @@ impl WorldSettings {
         self.fluid.validate()?;
         self.solver.validate()?;
         self.contact.validate().map_err(|(key, message)| SettingError { key, message })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::SolverSettings;
+
+    /// Pockets left open (`None`, not the default) are written so that they read back open,
+    /// and the default reads back as itself.
+    #[test]
+    fn open_pockets_round_trip() {
+        for close_pockets in [None, Some(0.5), Some(0.25)] {
+            let settings = SolverSettings { close_pockets, ..Default::default() };
+            let text = toml::to_string(&settings).unwrap();
+            let back: SolverSettings = toml::from_str(&text).unwrap();
+            let effective = |s: &SolverSettings| s.close_pockets.filter(|k| *k > 0.0);
+            assert_eq!(effective(&back), effective(&settings), "{text}");
+        }
     }
 }

@@ -329,6 +329,7 @@ fn closed_pockets_gradient_matches_central_differences() {
     scene.solver.tolerance = 1e-12;
     scene.solver.density_correction = false;
     scene.solver.sparse_cells = false;
+    scene.solver.close_pockets = None;
     let open = scene.clone();
     scene.solver.close_pockets = Some(0.5);
     let (sa, sb) = final_states(&open, &scene, 25);

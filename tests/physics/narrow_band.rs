@@ -120,8 +120,10 @@ fn live_gradient_with_a_band_matches_central_differences() {
 
 /// A heavy ball sinking through a deep pool carries the band with it (the cells it leaves
 /// are seeded, the ones it nears leave the deep set) and ends where it does without a band:
-/// measured 0.05 cells lower (0.5% of the 0.39 m it sinks), 0.8% faster, and the volume
-/// within 0.25% every step.
+/// measured 0.04 cells lower (0.4% of the 0.39 m it sinks), 1.2% faster (0.8% with the
+/// yes/no surface rules that were the defaults before 6 December 2026; without the band the
+/// ball's last speed, a cell over the floor, moves by 3.6% as air pockets are closed or
+/// not), and the volume within 0.3% every step.
 #[test]
 fn a_ball_sinking_through_the_deep_cells_sinks_as_without_a_band() {
     let text = |band: usize| {
@@ -156,6 +158,6 @@ narrow_band = {band}
     );
     assert!(b.x.y < 0.15, "the ball reached the floor's neighbourhood: {}", b.x.y);
     assert!((a.x.y - b.x.y).abs() < 0.075 * dx);
-    assert!((a.v.y - b.v.y).abs() < 0.01 * b.v.y.abs());
+    assert!((a.v.y - b.v.y).abs() < 0.015 * b.v.y.abs());
     assert!(worst < 1e-2, "volume {:.2}% off", 100.0 * worst);
 }

@@ -116,7 +116,7 @@ fn quick_scale_study_writes_its_table_and_charts() {
 }
 
 /// `diffluid bench --only smoothed --quick`: the smoothed gradient on the surge at 6 steps
-/// (σ_v 1e-2, 4 runs) beside the exact adjoint, for x₀ and v_y. Over 6 steps the map is
+/// (σ_v 1e-2, 4 runs) beside the exact adjoint, for x₀ and v_x. Over 6 steps the map is
 /// smooth at that scale, so the estimate lies within 10% plus four standard errors of the
 /// exact gradient (a sign or frame error would put it far outside).
 #[test]
@@ -132,7 +132,7 @@ fn quick_smoothed_gradient_study_agrees_where_the_map_is_smooth() {
     let header: Vec<&str> = table.lines().next().unwrap().split(',').collect();
     let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
     let rows: Vec<Vec<&str>> = table.lines().skip(1).map(|l| l.split(',').collect()).collect();
-    assert_eq!(rows.len(), 2, "x[0] and v[1] at one horizon and one σ");
+    assert_eq!(rows.len(), 2, "x[0] and v[0] at one horizon and one σ");
     for r in &rows {
         let num = |name: &str| r[col(name)].parse::<f64>().unwrap();
         let (exact, smoothed, se) = (num("exact"), num("smoothed"), num("standard_error"));
