@@ -6,5 +6,6 @@
 mod common;
 
 mod adjoint;
+mod smooth_defaults;
 mod smoothing;
 mod thin_gradients;
