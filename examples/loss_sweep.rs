@@ -53,20 +53,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         match key {
             "default" => {}
             "body-ramp" => s.body_ramp = true,
-            "yes-no" => {
-                s.surface_blend = 0.0;
-                s.body_ramp = false;
-                s.close_pockets = None;
-                s.sparse_cells = true;
-                s.theta_min = 0.01;
-            }
-            "smooth" => {
-                s.surface_blend = 0.5;
-                s.body_ramp = true;
-                s.close_pockets = Some(0.5);
-                s.sparse_cells = false;
-                s.theta_min = 1e-5;
-            }
+            "yes-no" => s.use_yes_no_surface_rules(),
+            "smooth" => s.use_smooth_surface_rules(),
             "surface-blend" => s.surface_blend = value.parse()?,
             "along" => along = parse_along(value)?,
             "no-density" => s.density_correction = false,

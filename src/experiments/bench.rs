@@ -704,13 +704,7 @@ pub fn smoothness(quick: bool) -> Result<Vec<SmoothnessRow>> {
                     scene.solver.sparse_cells = false;
                     scene.solver.particle_substeps = 4;
                 }
-                "yes/no rules" => {
-                    scene.solver.surface_blend = 0.0;
-                    scene.solver.body_ramp = false;
-                    scene.solver.close_pockets = None;
-                    scene.solver.sparse_cells = true;
-                    scene.solver.theta_min = 0.01;
-                }
+                "yes/no rules" => scene.solver.use_yes_no_surface_rules(),
                 other => unreachable!("no settings {other}"),
             }
             rows.extend(smoothness_of(&scene, variant, horizons, &epss, params)?);
@@ -847,10 +841,8 @@ pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
     let horizons: &[usize] = if quick { &[6] } else { &[25, 50] };
     let sigmas: &[f64] = if quick { &[1e-2] } else { &[1e-3, 1e-2] };
     let samples = if quick { 4 } else { 16 };
-    // The quick study's v_x: its v_y gradient is a thousandth of x₀'s at 6 steps, and with
-    // the blended surface (the default from 6 December 2026) varies by its own size over
-    // σ_v = 1e-3 (the smoothed estimate 39% off the exact one), a curvature that is no
-    // error of the estimator's.
+    // The quick study's v_x: at 6 steps v_y's gradient is small and curved at the scale of
+    // σ_v with the blended surface (docs/gradients.md, "The smooth defaults").
     let v_axis = if quick { 0 } else { 1 };
     let params =
         [Coordinate { param: Param::X, axis: 0 }, Coordinate { param: Param::V, axis: v_axis }];

@@ -859,10 +859,9 @@ pub struct Displacement {
 /// The displacement is zero on a wall, and interpolated it fell to zero across that half
 /// cell, where the deposit (which folds the wall's side back into the cell) sees no motion:
 /// a particle there moved by a fraction of what its cell asked and the wall cells kept
-/// their excess (the dam break's worst volume error over 100 steps 0.58% with the yes/no
-/// surface rules, 1.28% in the smooth defaults; with the walls' faces their neighbours'
-/// 0.52% and 0.60%). The potential and the
-/// faces it sets are unchanged: only what the particles read.
+/// their excess, where every mode's volume went (docs/gradients.md, "The smooth
+/// defaults"). The potential and the faces it sets are unchanged: only what the particles
+/// read.
 fn through_walls(d: &mut Mac, grid: &Grid) {
     for_wall_faces(grid, |a, wall, inner| d.c[a][wall] = d.c[a][inner]);
 }

@@ -82,10 +82,12 @@ pub enum Potential<'a> {
 }
 
 /// One density projection pass as the backward pass's replay keeps it: the system, its
-/// displacement and the positions it was built from.
+/// potential, its displacement and the positions it was built from.
 pub struct KeptPass {
     /// The pass's system.
     pub proj: DensityProjection,
+    /// Its recorded potential.
+    pub q: Vec<f64>,
     /// Its displacement.
     pub disp: Displacement,
     /// The positions it was built from and moved.
@@ -98,7 +100,7 @@ pub struct Settled {
     /// The projection's statistics (the first pass's excess, every pass's iterations).
     pub stats: DensityStats,
     /// Each pass's potential and iterations, in order (None for a pass that found no
-    /// over-full cell, which ends them; empty when the projection is off).
+    /// over-full cell, which ends them; empty when the projection is off or replayed).
     pub passes: Vec<(Option<Vec<f64>>, usize)>,
     /// In a replay: each pass that acted, and the positions after the last (before the
     /// second push-out).
@@ -196,8 +198,7 @@ impl ParticleStage<'_> {
                     let before = particles.to_vec();
                     let disp = proj.displacement(&q, g);
                     proj.displace_by(particles, &disp, g);
-                    settled.passes.push((Some(q), 0));
-                    kept.push(KeptPass { proj, disp, before });
+                    kept.push(KeptPass { proj, q, disp, before });
                 }
                 if !kept.is_empty() {
                     settled.kept = Some((kept, particles.to_vec()));
@@ -247,10 +248,8 @@ impl ParticleStage<'_> {
         let push =
             surface::push_out_of_bodies_adjoint(&displaced, pbar, self.bodies, self.margin, fd);
         add_pose(pose, push);
-        let potentials = replayed.settled.passes.into_iter().filter_map(|(q, _)| q);
-        let passes: Vec<_> = kept.into_iter().zip(potentials).collect();
         // The passes in reverse, each taking ∂L/∂(its positions after) to ∂L/∂(before).
-        for (KeptPass { proj, disp, before }, q) in passes.into_iter().rev() {
+        for KeptPass { proj, q, disp, before } in kept.into_iter().rev() {
             let (s, stats) = proj.adjoint_with(&before, &q, &disp, pbar, pose, g);
             if !stats.converged {
                 return Err(Error::NotConverged {

@@ -277,6 +277,29 @@ impl Default for SolverSettings {
 }
 
 impl SolverSettings {
+    /// The surface rules of the defaults (since 6 December 2026, the smooth ones:
+    /// `surface_blend`, `body_ramp`, `close_pockets`, `sparse_cells`, `theta_min`), the other
+    /// settings left as they are.
+    pub fn use_smooth_surface_rules(&mut self) {
+        let d = SolverSettings::default();
+        self.surface_blend = d.surface_blend;
+        self.body_ramp = d.body_ramp;
+        self.close_pockets = d.close_pockets;
+        self.sparse_cells = d.sparse_cells;
+        self.theta_min = d.theta_min;
+    }
+
+    /// The yes/no surface rules that were the defaults before 6 December 2026: no blend, no
+    /// ramp, air pockets open, the sparse-cell rule, θ clamped at 0.01 (docs/gradients.md,
+    /// "The smooth defaults"); the other settings left as they are.
+    pub fn use_yes_no_surface_rules(&mut self) {
+        self.surface_blend = 0.0;
+        self.body_ramp = false;
+        self.close_pockets = None;
+        self.sparse_cells = true;
+        self.theta_min = 0.01;
+    }
+
     /// The pressure solve these settings ask for.
     pub fn linear(&self) -> LinearSolve {
         LinearSolve {

@@ -231,10 +231,10 @@ fn live_surface_floating_box_gradient_matches_central_differences() {
 /// (`solver.density_passes = 2`): the backward pass runs the passes' adjoints in reverse,
 /// each from the positions its pass was built from. Every parameter within 1e-5 of central
 /// differences of the same map at ε = 1e-7 (measured 7.4e-7 at worst, in ω₁); with the
-/// second pass's adjoint left out, 1.2e-2 (at ε = 1e-6). Two passes make the map rough (docs/gradients.md): along
-/// x₂ the differences at 1e-5 are off by 45%, and those at 1e-6 still see its curvature
-/// (2.6e-5 off, their one-sided halves 1.2e-5 apart), while at 3e-7 to 1e-8 they agree with
-/// the adjoint within 4e-8 to 9e-8.
+/// second pass's adjoint left out, 1.2e-2 (at ε = 1e-6). Two passes make the map rough
+/// (docs/gradients.md): along x₂ the differences at 1e-5 are off by 45%, and those at 1e-6
+/// still see its curvature (2.6e-5 off, their one-sided halves 1.2e-5 apart), while at
+/// 3e-7 to 1e-8 they agree with the adjoint within 4e-8 to 9e-8.
 #[test]
 fn two_density_passes_gradient_matches_central_differences() {
     let mut scene = tank_with_surface(FLOATING_BOX, 20, false);

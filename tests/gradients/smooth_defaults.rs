@@ -35,11 +35,7 @@ fn the_defaults_keep_the_moving_surface_box_smooth() {
     let (smooth, row) = worst_spread(&scene);
     eprintln!("defaults: worst spread {:.2}% ({row})", 100.0 * smooth);
     let mut yes_no = scene.clone();
-    yes_no.solver.surface_blend = 0.0;
-    yes_no.solver.body_ramp = false;
-    yes_no.solver.close_pockets = None;
-    yes_no.solver.sparse_cells = true;
-    yes_no.solver.theta_min = 0.01;
+    yes_no.solver.use_yes_no_surface_rules();
     let (rough, rough_row) = worst_spread(&yes_no);
     eprintln!("yes/no rules: worst spread {:.2}% ({rough_row})", 100.0 * rough);
     assert!(smooth < 0.01, "the defaults: {row} spreads by {:.2}%", 100.0 * smooth);

@@ -133,11 +133,7 @@ fn the_density_gain_keeps_the_dam_break_within_one_percent() {
 fn the_smooth_mode_keeps_the_dam_break_within_one_percent() {
     let worst = |passes: usize| {
         let mut scene = Scene::builtin("dam_break").unwrap();
-        scene.solver.surface_blend = 0.5;
-        scene.solver.body_ramp = true;
-        scene.solver.close_pockets = Some(0.5);
-        scene.solver.sparse_cells = false;
-        scene.solver.theta_min = 1e-5;
+        scene.solver.use_smooth_surface_rules();
         scene.solver.density_passes = passes;
         let worst = worst_volume_error(&scene, 100);
         eprintln!("smooth mode, {passes} density passes: worst volume error {:.2}%", 100.0 * worst);

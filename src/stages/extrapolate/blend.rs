@@ -138,8 +138,8 @@ pub fn surface_faces(
         };
         let projected = &sys.faces[a];
         // Both lists sorted by face: each chunk of the projected faces finds its place in
-        // the covered ones once and walks them along (a search a face was a quarter of the
-        // block drop's extra time with the blend).
+        // the covered ones once and walks them along, not a search a face
+        // (docs/performance.md, "The smooth defaults").
         let mut out: Vec<SurfaceFace> = projected
             .par_chunks(CHUNK)
             .flat_map_iter(|chunk| {
