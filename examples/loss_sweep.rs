@@ -9,9 +9,9 @@
 //! ```
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
-//! `default`, `no-density`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
+//! `default`, `no-density`, `sparse`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
 //! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `density-gain=G`,
-//! `density-passes=N`, `body-ramp`, `surface-blend=T`, `smooth` (`surface-blend=0.5`,
+//! `density-passes=N`, `surface-softness=T`, `body-ramp`, `surface-blend=T`, `smooth` (`surface-blend=0.5`,
 //! `body-ramp`, `close-pockets=0.5`, `no-sparse`, `theta-min=1e-5`: the defaults since
 //! 6 December 2026), `yes-no` (the surface rules that were the defaults before: no blend, no
 //! ramp, pockets open, the sparse-cell rule, θ clamped at 0.01), and
@@ -59,11 +59,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "along" => along = parse_along(value)?,
             "no-density" => s.density_correction = false,
             "no-sparse" => s.sparse_cells = false,
+            "sparse" => s.sparse_cells = true,
             "substeps" => s.particle_substeps = value.parse()?,
             "volume-control" => s.volume_control = Some(value.parse()?),
             "theta-min" => s.theta_min = value.parse()?,
             "close-pockets" => s.close_pockets = Some(value.parse()?),
             "sparse-depth" => s.sparse_depth = value.parse()?,
+            "surface-softness" => s.surface_softness = value.parse()?,
             "density-tolerance" => s.density_tolerance = value.parse()?,
             "density-gain" => s.density_gain = value.parse()?,
             "density-passes" => s.density_passes = value.parse()?,

@@ -603,10 +603,8 @@ fn particles_adjoint(
     let ParticlePieces { pr, phi_bar, rhs, dual_faces } = pieces;
     let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
     // The density projection read the band of its own step.
-    let band = pr.deep.as_ref().map(|deep| {
-        let m = surface::per_axis(settings.solver.particles_per_cell);
-        Band::with_deep(&grid, deep.clone(), initial.surface_model().radius, m)
-    });
+    let band =
+        pr.deep.as_ref().map(|deep| Band::with_deep(&grid, deep.clone(), &initial.surface_model()));
     let stage = ParticleStage {
         grid: &grid,
         dt,
@@ -626,7 +624,16 @@ fn particles_adjoint(
         pbar = vec![Vec3::ZERO; replayed.end.len()];
     }
     let model = initial.surface_model();
-    surface::liquid_sdf_adjoint(&replayed.end, &pr.nearest, &grid, &model, phi_bar, &mut pbar);
+    let deep = band.as_ref().map(|b| b.deep.as_slice());
+    surface::liquid_sdf_adjoint(
+        &replayed.end,
+        &pr.nearest,
+        &grid,
+        &model,
+        deep,
+        phi_bar,
+        &mut pbar,
+    );
     // Volume control: the solve's sources read the particles' density here.
     if rec.volume_control {
         let rate = settings.solver.volume_rate();

@@ -57,23 +57,21 @@ pub struct Band {
 }
 
 impl Band {
-    /// No deep cells on `grid`, for particles of radius `radius` seeded `m` per axis.
-    pub fn empty(grid: &Grid, radius: f64, m: usize) -> Band {
-        let o = surface::sub_offsets(m);
-        let near = o.iter().map(|a| (a - 0.5).abs()).fold(f64::MAX, f64::min);
+    /// No deep cells on `grid`, for particles made into φ_L by `model`.
+    pub fn empty(grid: &Grid, model: &surface::SurfaceModel) -> Band {
         Band {
             deep: vec![false; grid.num_cells()],
             density: vec![0.0; grid.num_cells()],
-            phi: near * 3f64.sqrt() * grid.dx - radius,
+            phi: model.full_phi(grid.dx),
             owed: vec![0.0; grid.num_cells()],
             sent: vec![0; grid.num_cells()],
         }
     }
 
     /// The band whose deep cells are `deep`.
-    pub fn with_deep(grid: &Grid, deep: Vec<bool>, radius: f64, m: usize) -> Band {
-        let mut band = Band::empty(grid, radius, m);
-        band.density = full_density(grid, &deep, m);
+    pub fn with_deep(grid: &Grid, deep: Vec<bool>, model: &surface::SurfaceModel) -> Band {
+        let mut band = Band::empty(grid, model);
+        band.density = full_density(grid, &deep, model.per_axis);
         band.deep = deep;
         band
     }
@@ -533,7 +531,7 @@ mod tests {
     fn update_takes_out_the_deep_particles_and_then_rests() {
         let (g, mut pos, outside) = pool();
         let all = pos.clone();
-        let mut band = Band::empty(&g, 0.0631, 2);
+        let mut band = Band::empty(&g, &surface::SurfaceModel::nearest(0.0631, 2));
         let still = Mac::zeros(&g);
         let (mut binned, mut band_binned) = (pos.clone(), band.clone());
         let bins = Some(surface::Bins::new(&binned, &g));
@@ -568,7 +566,7 @@ mod tests {
     #[test]
     fn update_trades_with_the_band_as_the_flux_says() {
         let (g, mut pos, outside) = pool();
-        let mut band = Band::empty(&g, 0.0631, 2);
+        let mut band = Band::empty(&g, &surface::SurfaceModel::nearest(0.0631, 2));
         let dt = 0.01;
         let mut flow = Mac::zeros(&g);
         update(&mut pos, None, &mut band, &outside, 2, &flow, dt, &g, 2, |_| true);

@@ -744,7 +744,16 @@ impl DensityProjection {
         }
         let sbar = self.extension.transpose(&self.phi, &mut phi_bar);
         solidity_pose_adjoint(grid, g.bodies, &sbar, pose);
-        surface::liquid_sdf_adjoint(particles, &self.nearest, grid, &g.surface, &phi_bar, pbar);
+        let deep = g.band.map(|b| b.deep.as_slice());
+        surface::liquid_sdf_adjoint(
+            particles,
+            &self.nearest,
+            grid,
+            &g.surface,
+            deep,
+            &phi_bar,
+            pbar,
+        );
         (s, stats)
     }
 }
@@ -1015,8 +1024,9 @@ mod tests {
                 (0..cells.len()).map(|c| deep.is_some_and(|d| d(cells.ijk(c)))).collect();
             particles.retain(|x| !deep[surface::cell_of(&grid, *x)]);
             let radius = surface::particle_radius(grid.dx, 2);
-            let band =
-                deep.contains(&true).then(|| Band::with_deep(&grid, deep.clone(), radius, 2));
+            let band = deep.contains(&true).then(|| {
+                Band::with_deep(&grid, deep.clone(), &surface::SurfaceModel::nearest(radius, 2))
+            });
             SqueezedPool {
                 grid,
                 particles,
@@ -1043,6 +1053,8 @@ mod tests {
                     radius: surface::particle_radius(self.grid.dx, 2),
                     sparse_cells: true,
                     sparse_depth: 0.0,
+                    softness: 0.0,
+                    per_axis: 2,
                 },
                 particles_per_cell: 8,
                 gain: 1.75,

@@ -6,6 +6,7 @@ use crate::solvers::{LinearSolve, Preconditioner};
 pub use crate::stages::contact::ContactSettings;
 use crate::stages::extrapolate::SurfaceBlend;
 use crate::stages::pressure::{Coupling, GhostFluid};
+use crate::stages::surface::{self, SurfaceModel};
 use serde::{Deserialize, Serialize};
 
 /// A setting that fails its check: the key (as a scene file names it, `solver.theta_min`)
@@ -203,6 +204,13 @@ pub struct SolverSettings {
     /// continuous rule moved the dam break's volume checks, see docs/gradients.md,
     /// "Sparse cells"). 0 to 0.5 cells; 0.05 is what was measured.
     pub sparse_depth: f64,
+    /// Make φ_L a soft minimum of the particles' distances, of this softness τ (cells;
+    /// `stages/surface/softmin.rs`), instead of the nearest particle's distance. The nearest
+    /// particle's distance has a kink wherever another particle becomes a cell's nearest,
+    /// which a surface's cells pass through all the time; the soft minimum is infinitely
+    /// differentiable in the particles' positions. Default 0 (the nearest particle); 0 to
+    /// 0.5 cells.
+    pub surface_softness: f64,
     /// Sub-steps of the marker particles' advection per step. Default 0: as many as keep
     /// every particle within half a cell per sub-step, from the step's largest velocity
     /// (cheap, but the count changes as the flow speeds up, a jump of the forward map). A
@@ -265,6 +273,7 @@ impl Default for SolverSettings {
             density_tolerance: 1e-6,
             sparse_cells: false,
             sparse_depth: 0.0,
+            surface_softness: 0.0,
             particle_substeps: 0,
             narrow_band: NarrowBand::Auto,
             memory_limit_gb: None,
@@ -321,6 +330,25 @@ impl SolverSettings {
     /// The density projection's solve.
     pub fn density_linear(&self) -> LinearSolve {
         LinearSolve { tolerance: self.density_tolerance, ..self.linear() }
+    }
+
+    /// How φ_L is made from the particles on cells of size `dx`: the particles' radius for
+    /// the nearest particle's distance or their soft minimum ([`Self::surface_softness`]),
+    /// and the sparse-cell rule.
+    pub fn surface_model(&self, dx: f64) -> SurfaceModel {
+        let m = surface::per_axis(self.particles_per_cell);
+        let tau = self.surface_softness;
+        SurfaceModel {
+            radius: if tau > 0.0 {
+                surface::soft_particle_radius(dx, m, tau)
+            } else {
+                surface::particle_radius(dx, m)
+            },
+            sparse_cells: self.sparse_cells,
+            sparse_depth: self.sparse_depth,
+            softness: tau * dx,
+            per_axis: m,
+        }
     }
 
     /// How liquid–air faces blend into the extrapolation ([`Self::surface_blend`]).
@@ -406,6 +434,13 @@ impl SolverSettings {
             return Err(SettingError::new(
                 "solver.sparse_depth",
                 format!("must be in [0, 0.5] (cells), got {}", self.sparse_depth),
+            ));
+        }
+        let tau = self.surface_softness;
+        if !(tau.is_finite() && (0.0..=0.5).contains(&tau)) {
+            return Err(SettingError::new(
+                "solver.surface_softness",
+                format!("must be in [0, 0.5] (cells; 0 for the nearest particle), got {tau}"),
             ));
         }
         if let Some(k) = self.close_pockets {

@@ -8,4 +8,5 @@ mod common;
 mod adjoint;
 mod smooth_defaults;
 mod smoothing;
+mod soft_surface;
 mod thin_gradients;

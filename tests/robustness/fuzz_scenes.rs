@@ -140,6 +140,8 @@ fn scene() -> impl Strategy<Value = String> {
         2 => any::<bool>().prop_map(|v| format!("sparse_cells = {v}")),
         2 => num(0.0, 0.6).prop_map(|v| format!("sparse_depth = {v}")),
         1 => hostile().prop_map(|v| format!("sparse_depth = {v}")),
+        1 => num(0.0, 0.7).prop_map(|v| format!("surface_softness = {v}")),
+        1 => hostile().prop_map(|v| format!("surface_softness = {v}")),
         2 => num(0.0, 0.8).prop_map(|v| format!("close_pockets = {v}")),
         1 => hostile().prop_map(|v| format!("close_pockets = {v}")),
         1 => num(0.0, 10.0).prop_map(|v| format!("volume_control = {v}")),

@@ -1,5 +1,6 @@
 //! The liquid signed distance φ_L from the particles, and its adjoint.
 
+use super::softmin::{soft_full_phi, SoftSdf, SOFT};
 use super::*;
 use crate::geometry::grid::Grid;
 use crate::math::buffer::refill;
@@ -81,6 +82,31 @@ pub struct SurfaceModel {
     /// a particle must be inside its cell to make it liquid, φ falling continuously with the
     /// particle's depth up to there (see `sparse_phi`).
     pub sparse_depth: f64,
+    /// The softness τ (metres) of the soft minimum of the particles' distances φ is made of
+    /// (see `softmin.rs`), or 0 for the nearest particle's distance.
+    pub softness: f64,
+    /// Particles per axis of the seeding sub-lattice (the soft minimum counts a narrow band's
+    /// deep cells as that many particles each).
+    pub per_axis: usize,
+}
+
+impl SurfaceModel {
+    /// The nearest particle's distance for particles of radius `radius` seeded `m` per axis,
+    /// without the sparse-cell rule.
+    pub fn nearest(radius: f64, m: usize) -> SurfaceModel {
+        SurfaceModel { radius, sparse_cells: false, sparse_depth: 0.0, softness: 0.0, per_axis: m }
+    }
+
+    /// φ_L at the centre of a cell deep in freshly seeded liquid, on cells of size `dx`: what
+    /// a narrow band's deep cells read.
+    pub fn full_phi(&self, dx: f64) -> f64 {
+        if self.softness > 0.0 {
+            return soft_full_phi(dx, self);
+        }
+        let o = sub_offsets(self.per_axis);
+        let near = o.iter().map(|a| (a - 0.5).abs()).fold(f64::MAX, f64::min);
+        near * 3f64.sqrt() * dx - self.radius
+    }
 }
 
 /// The φ (in cells, negative) the sparse-cell rule sets a cell that holds a particle to.
@@ -119,7 +145,8 @@ fn sparse_phi_gradient(offset: Vec3, dx: f64, radius: f64, depth: f64) -> Vec3 {
 }
 
 /// The liquid signed distance at cell centres: `min_p |x − x_p| − r`, exact where the
-/// nearest particle is within two cells, and `2·dx − r` or more beyond.
+/// nearest particle is within two cells, and `2·dx − r` or more beyond; or with
+/// `model.softness`, a soft minimum of the particles' distances (see `softmin.rs`).
 pub fn liquid_sdf(
     pos: &[Vec3],
     bins: &Bins,
@@ -177,75 +204,47 @@ fn liquid_sdf_with(
     let cells = grid.cells();
     let dx = grid.dx;
     let slab = grid.n[0] * grid.n[1];
+    let soft =
+        (model.softness > 0.0).then(|| SoftSdf::new(pos, bins, grid, model, deep.map(|d| d.cells)));
     // How far (L∞, in cells) the nearest cell holding a particle is: nothing to search in
-    // the air beyond two cells of the liquid (most of a tall tank's cells).
+    // the air beyond two cells of the liquid (most of a tall tank's cells). The soft minimum
+    // counts the deep cells' particles too.
+    let counted = |c: usize| soft.is_some() && deep.is_some_and(|d| d.cells[c]);
     let occupied: Vec<bool> =
-        (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty()).collect();
+        (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty() || counted(c)).collect();
     let reach = linf_distance(grid, &occupied, 3);
+    let far = soft.as_ref().map_or(2.0 * dx - radius, SoftSdf::far);
     // Filled in place, a slab a task (not built a slab at a time and copied together).
     if phi.len() != cells.len() {
         refill(&mut phi, cells.len(), 0.0);
     }
     let mut who = if nearest { vec![NONE; cells.len()] } else { Vec::new() };
-    // The squared distance under which the second ring cannot hold a particle as near: the
-    // (1.5·dx)² of its nearest faces, less a relative 1e-9 for the rounding of a particle's
-    // bin (its cell from x/dx) and of its computed distance.
-    let ring2 = (1.5 * dx).powi(2) * (1.0 - 1e-9);
     // φ of cell (i, j, k) and the particle it is the distance to.
     let cell_phi = |i: usize, j: usize, k: usize| -> (f64, u32) {
         if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
             return (d.phi, NONE);
         }
         if reach[grid.cell(i, j, k)] > 2 {
-            return (2.0 * dx - radius, NONE);
+            return (far, NONE);
         }
         let x = cells.position(i, j, k);
         let own = grid.cell(i, j, k);
-        // The nearest particle so far: its squared distance, its cell and its index. Of
-        // particles as near, the one in the cell first in lattice order, and the first in
-        // that cell's bin, as a scan of the whole block in lattice order would find.
-        let mut best = (f64::MAX, usize::MAX, NONE);
-        let scan = |c: usize, best: &mut (f64, usize, u32)| {
-            for &p in bins.cell(c) {
-                let d = (pos[p as usize] - x).length_squared();
-                if d < best.0 || (d == best.0 && c < best.1) {
-                    *best = (d, c, p);
-                }
-            }
+        let (value, particle) = match &soft {
+            Some(soft) => soft.phi([i, j, k]),
+            None => nearest_particle(pos, bins, grid, radius, [i, j, k], reach[own]),
         };
-        // A particle outside the cell is at least dx/2 from its centre, so one nearer inside
-        // it is the nearest (deep in the liquid, most cells: 8 distances instead of 216). A
-        // particle outside the 3³ block is at least 1.5·dx away (the nearest face of a cell
-        // two away), so one found inside it nearer than that is the true nearest (and no
-        // particle beyond ties with it); otherwise look one ring further (exact up to 2·dx).
-        // Each ring is searched once, and none that `reach` says is empty.
-        let r = reach[own];
-        if r == 0 {
-            scan(own, &mut best);
-        }
-        if best.0.sqrt() >= 0.5 * dx && r <= 1 {
-            for_ring_cells(grid, [i, j, k], 1, |c| scan(c, &mut best));
-        }
-        if best.0 > ring2 {
-            for_ring_cells(grid, [i, j, k], 2, |c| scan(c, &mut best));
-        }
-        let mut d = (best.0.sqrt(), best.2);
-        if d.0 > 2.0 * dx {
-            d = (2.0 * dx, NONE);
-        }
-        let value = d.0 - radius;
         // The sparse-cell rule can only lower φ where it is above the rule's floor.
         let own_particles = bins.cell(own);
         if !model.sparse_cells || value <= -SPARSE_FLOOR * dx || own_particles.is_empty() {
-            (value, d.1)
+            (value, particle)
         } else if model.sparse_depth == 0.0 {
             if value >= 0.0 {
                 (-SPARSE_FLOOR * dx, NONE)
             } else {
-                (value, d.1)
+                (value, particle)
             }
         } else {
-            let mut sparse = (value, d.1);
+            let mut sparse = (value, particle);
             for &p in own_particles {
                 let s = sparse_phi(pos[p as usize] - x, dx, radius, model.sparse_depth);
                 if s < sparse.0 {
@@ -278,20 +277,79 @@ fn liquid_sdf_with(
     (phi, who)
 }
 
-/// Adjoint of [`liquid_sdf_nearest`] (of surface model `model`) in the particles:
-/// ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c| for the particle p whose distance φ_c is, or the
+/// The particle nearest the centre of cell `ijk` (whose `reach` is the L∞ distance in cells
+/// to the nearest cell holding a particle, at most 2) and its distance less the radius: exact
+/// up to 2·dx, `2·dx − radius` (and `NONE`) beyond.
+fn nearest_particle(
+    pos: &[Vec3],
+    bins: &Bins,
+    grid: &Grid,
+    radius: f64,
+    [i, j, k]: [usize; 3],
+    r: u8,
+) -> (f64, u32) {
+    use crate::geometry::grid::NONE;
+    let dx = grid.dx;
+    let x = grid.cells().position(i, j, k);
+    let own = grid.cell(i, j, k);
+    // The squared distance under which the second ring cannot hold a particle as near: the
+    // (1.5·dx)² of its nearest faces, less a relative 1e-9 for the rounding of a particle's
+    // bin (its cell from x/dx) and of its computed distance.
+    let ring2 = (1.5 * dx).powi(2) * (1.0 - 1e-9);
+    // The nearest particle so far: its squared distance, its cell and its index. Of
+    // particles as near, the one in the cell first in lattice order, and the first in
+    // that cell's bin, as a scan of the whole block in lattice order would find.
+    let mut best = (f64::MAX, usize::MAX, NONE);
+    let scan = |c: usize, best: &mut (f64, usize, u32)| {
+        for &p in bins.cell(c) {
+            let d = (pos[p as usize] - x).length_squared();
+            if d < best.0 || (d == best.0 && c < best.1) {
+                *best = (d, c, p);
+            }
+        }
+    };
+    // A particle outside the cell is at least dx/2 from its centre, so one nearer inside
+    // it is the nearest (deep in the liquid, most cells: 8 distances instead of 216). A
+    // particle outside the 3³ block is at least 1.5·dx away (the nearest face of a cell
+    // two away), so one found inside it nearer than that is the true nearest (and no
+    // particle beyond ties with it); otherwise look one ring further (exact up to 2·dx).
+    // Each ring is searched once, and none that `reach` says is empty.
+    if r == 0 {
+        scan(own, &mut best);
+    }
+    if best.0.sqrt() >= 0.5 * dx && r <= 1 {
+        for_ring_cells(grid, [i, j, k], 1, |c| scan(c, &mut best));
+    }
+    if best.0 > ring2 {
+        for_ring_cells(grid, [i, j, k], 2, |c| scan(c, &mut best));
+    }
+    let mut d = (best.0.sqrt(), best.2);
+    if d.0 > 2.0 * dx {
+        d = (2.0 * dx, NONE);
+    }
+    (d.0 - radius, d.1)
+}
+
+/// Adjoint of [`liquid_sdf_nearest`] (of surface model `model`, a narrow band's `deep`
+/// cells) in the particles: ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c| for the particle p whose
+/// distance φ_c is, the soft minimum's derivative where it set φ_c (see `softmin.rs`), or the
 /// derivative of `sparse_phi` where the sparse-cell rule set φ_c. Adds into `pbar`.
 pub fn liquid_sdf_adjoint(
     pos: &[Vec3],
     nearest: &[u32],
     grid: &Grid,
     model: &SurfaceModel,
+    deep: Option<&[bool]>,
     phi_bar: &[f64],
     pbar: &mut [Vec3],
 ) {
     let cells = grid.cells();
+    if model.softness > 0.0 {
+        let bins = Bins::new(pos, grid);
+        SoftSdf::new(pos, &bins, grid, model, deep).adjoint(nearest, phi_bar, pbar);
+    }
     for (c, (&p, &g)) in nearest.iter().zip(phi_bar).enumerate() {
-        if g == 0.0 || p == crate::geometry::grid::NONE {
+        if g == 0.0 || p == crate::geometry::grid::NONE || p == SOFT {
             continue;
         }
         let [i, j, k] = cells.ijk(c);

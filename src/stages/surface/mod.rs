@@ -16,6 +16,7 @@ mod distance;
 mod pockets;
 mod push;
 mod seeding;
+mod softmin;
 #[cfg(test)]
 mod tests;
 
@@ -26,3 +27,4 @@ pub use distance::*;
 pub use pockets::*;
 pub use push::*;
 pub use seeding::*;
+pub use softmin::{soft_particle_radius, SOFT_REACH};

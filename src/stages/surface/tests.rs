@@ -29,7 +29,13 @@ mod forward {
         // Sparse: most cells find their nearest particle one or two cells away, or none.
         let grid = Grid { n: [11, 9, 10], dx: 0.1 };
         let pos = scattered(&grid, 60);
-        let model = SurfaceModel { radius: 0.03, sparse_cells: false, sparse_depth: 0.0 };
+        let model = SurfaceModel {
+            radius: 0.03,
+            sparse_cells: false,
+            sparse_depth: 0.0,
+            softness: 0.0,
+            per_axis: 2,
+        };
         let bins = Bins::new(&pos, &grid);
         let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
         let cells = grid.cells();
@@ -96,6 +102,8 @@ mod forward {
             radius: particle_radius(grid.dx, 2),
             sparse_cells: true,
             sparse_depth: 0.0,
+            softness: 0.0,
+            per_axis: 2,
         };
         let bins = Bins::new(&pos, &grid);
         let cells = grid.cells();
@@ -224,6 +232,8 @@ mod forward {
             radius: particle_radius(grid.dx, 2),
             sparse_cells: true,
             sparse_depth: 0.0,
+            softness: 0.0,
+            per_axis: 2,
         };
         let phi = liquid_sdf(&pos, &bins, &grid, &model, None);
         // Centres at y = 7/16 (below) and 9/16 (above) straddle the surface y = 0.5 evenly.
@@ -242,7 +252,13 @@ mod forward {
         let grid = Grid { n: [8, 8, 8], dx: 0.1 };
         let radius = particle_radius(grid.dx, 2);
         let depth = 0.05;
-        let sparse = SurfaceModel { radius, sparse_cells: true, sparse_depth: depth };
+        let sparse = SurfaceModel {
+            radius,
+            sparse_cells: true,
+            sparse_depth: depth,
+            softness: 0.0,
+            per_axis: 2,
+        };
         let jumping = SurfaceModel { sparse_depth: 0.0, ..sparse };
         let plain = SurfaceModel { sparse_cells: false, ..sparse };
         let phi_at = |x: Vec3, model: &SurfaceModel| {
@@ -283,6 +299,90 @@ mod forward {
         // The rule as it was jumps there: the cell holding the particle is liquid.
         let jumped = phi_at(at(2000), &jumping);
         assert!(jumped[a].min(jumped[b]) < 0.0);
+    }
+
+    /// The soft minimum's particle radius puts a flat, freshly seeded surface on a cell
+    /// face halfway between the centres that straddle it, as the nearest particle's does.
+    #[test]
+    fn soft_sdf_puts_a_seeded_flat_surface_on_its_face() {
+        let grid = Grid { n: [11, 10, 11], dx: 0.1 };
+        let off = sub_offsets(2);
+        let mut pos = Vec::new();
+        for k in 0..11 {
+            for j in 0..7 {
+                for i in 0..11 {
+                    for &a in &off {
+                        for &b in &off {
+                            for &c in &off {
+                                let p = Vec3::new(i as f64 + a, j as f64 + b, k as f64 + c);
+                                pos.push(p * 0.1);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        for tau in [0.05, 0.1, 0.25] {
+            let model = SurfaceModel {
+                radius: soft_particle_radius(grid.dx, 2, tau),
+                sparse_cells: false,
+                sparse_depth: 0.0,
+                softness: tau * grid.dx,
+                per_axis: 2,
+            };
+            let phi = liquid_sdf(&pos, &Bins::new(&pos, &grid), &grid, &model, None);
+            // Away from the walls (the reach short of them).
+            let (below, above) = (phi[grid.cell(5, 6, 5)], phi[grid.cell(5, 7, 5)]);
+            assert!(below < 0.0 && above > 0.0, "τ {tau}: {below} {above}");
+            assert!((below + above).abs() < 1e-12, "τ {tau}: θ off ½: {below} {above}");
+            // Flat up to the walls and into the corners (the particles mirrored there).
+            for (i, k) in [(0, 5), (10, 5), (0, 0), (10, 10), (1, 9)] {
+                let wall = (phi[grid.cell(i, 6, k)], phi[grid.cell(i, 7, k)]);
+                assert!((wall.0 - below).abs() < 1e-12, "τ {tau}: at ({i}, {k}): {wall:?}");
+                assert!((wall.1 - above).abs() < 1e-12, "τ {tau}: at ({i}, {k}): {wall:?}");
+            }
+            // Deep in it a cell reads what a narrow band's deep cells are given.
+            let deep = phi[grid.cell(5, 3, 5)];
+            assert!(deep < below, "τ {tau}: {deep} not below {below}");
+            assert!((deep - model.full_phi(grid.dx)).abs() < 1e-12, "τ {tau}: {deep}");
+        }
+    }
+
+    /// A lone particle moving out of a cell's reach: φ there is its soft distance (its
+    /// distance less r, less τ·ln c_p, softly capped by the far value) and goes over
+    /// continuously into the far value.
+    #[test]
+    fn soft_sdf_fades_continuously_as_a_particle_leaves() {
+        let grid = Grid { n: [9, 5, 5], dx: 0.1 };
+        let tau = 0.1 * grid.dx;
+        let model = SurfaceModel {
+            radius: soft_particle_radius(grid.dx, 2, 0.1),
+            sparse_cells: false,
+            sparse_depth: 0.0,
+            softness: tau,
+            per_axis: 2,
+        };
+        let centre = grid.cells().position(2, 2, 2);
+        let far = SOFT_REACH * grid.dx - model.radius;
+        let offset = |d: f64| Vec3::new(d, 1e-3, -2e-3);
+        let phi_at = |d: f64| {
+            let pos = [centre + offset(d)];
+            liquid_sdf(&pos, &Bins::new(&pos, &grid), &grid, &model, None)[grid.cell(2, 2, 2)]
+        };
+        let samples: Vec<(f64, f64)> =
+            (0..=2000).map(|s| 0.05 + 0.2 * s as f64 / 2000.0).map(|d| (d, phi_at(d))).collect();
+        for w in samples.windows(2) {
+            // |∂φ/∂d| is about 1 (the distance's) but where the cut-off bends it.
+            assert!((w[1].1 - w[0].1).abs() < 3.0 * (w[1].0 - w[0].0), "a jump at {}", w[0].0);
+        }
+        for d in [0.06, 0.1, 0.15] {
+            let len = offset(d).length();
+            let c = (1.0 - len * len / 0.04).powi(3);
+            let expected =
+                -tau * (c * (-(len - model.radius) / tau).exp() + (-far / tau).exp()).ln();
+            assert!((phi_at(d) - expected).abs() < 1e-12, "at {d}: {} vs {expected}", phi_at(d));
+        }
+        assert_eq!(phi_at(0.21), far, "beyond the reach: the far value");
     }
 }
 
@@ -353,6 +453,8 @@ mod adjoint {
             radius: particle_radius(grid.dx, 2),
             sparse_cells: false,
             sparse_depth: 0.0,
+            softness: 0.0,
+            per_axis: 2,
         };
         let bins = Bins::new(&pos, &grid);
         let (phi, who) = liquid_sdf_nearest(&pos, &bins, &grid, &model, None);
@@ -516,6 +618,8 @@ mod adjoint {
             radius: particle_radius(grid.dx, 2),
             sparse_cells: true,
             sparse_depth: 0.0,
+            softness: 0.0,
+            per_axis: 2,
         };
         let sdf = |p: &[Vec3]| {
             let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, None);
@@ -530,7 +634,7 @@ mod adjoint {
         };
         let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model, None);
         let mut g_sdf = vec![Vec3::ZERO; p0.len()];
-        liquid_sdf_adjoint(&p0, &nearest, &grid, &model, &phi_bar, &mut g_sdf);
+        liquid_sdf_adjoint(&p0, &nearest, &grid, &model, None, &phi_bar, &mut g_sdf);
         let mut g_dens = vec![Vec3::ZERO; p0.len()];
         particle_density_adjoint(&p0, &grid, 8, &phi_bar, &mut g_dens);
         let eps = 1e-7;
@@ -552,7 +656,13 @@ mod adjoint {
     fn continuous_sparse_rule_adjoint_matches_central_differences() {
         let grid = grid();
         let radius = particle_radius(grid.dx, 2);
-        let model = SurfaceModel { radius, sparse_cells: true, sparse_depth: 0.05 };
+        let model = SurfaceModel {
+            radius,
+            sparse_cells: true,
+            sparse_depth: 0.05,
+            softness: 0.0,
+            per_axis: 2,
+        };
         // Cells two apart, so each particle's cell has no other particle within reach; each
         // particle near a corner of its cell (farther from its centre than the radius),
         // 0.033–0.038 of a cell inside it along the axis n % 3 and a little deeper along the
@@ -581,13 +691,58 @@ mod adjoint {
         let ruled = nearest.iter().filter(tagged).count();
         assert_eq!(ruled, p0.len(), "each particle's cell set by the rule");
         let mut g = vec![Vec3::ZERO; p0.len()];
-        liquid_sdf_adjoint(&p0, &nearest, &grid, &model, &phi_bar, &mut g);
+        liquid_sdf_adjoint(&p0, &nearest, &grid, &model, None, &phi_bar, &mut g);
         let eps = 1e-7;
         let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
         let fd = (sdf(&shift(eps)) - sdf(&shift(-eps))) / (2.0 * eps);
         let ad = dot(&g, &dp);
         assert!(fd.abs() > 1e-2, "a vanishing derivative checks nothing: {fd:e}");
         assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "adjoint {ad:e}, fd {fd:e}");
+    }
+
+    /// φ_L as the soft minimum (`softmin.rs`) in the particles: scattered particles, whose
+    /// cells see many, few or one (a lone particle's cell goes over into the far value),
+    /// alone and beside a band's deep cells (counted as a sub-lattice each).
+    #[test]
+    fn soft_sdf_adjoint_matches_central_differences() {
+        let grid = grid();
+        let mut p0 = particles(120);
+        // Two lone particles near the tank's far corners, 1.2 and 1.7 cells from the centres
+        // nearest them: cells whose φ the far value holds in part.
+        p0.push(Vec3::new(0.7312, 0.6187, 0.5121));
+        p0.push(Vec3::new(0.0433, 0.6621, 0.0617));
+        let dp = dir(p0.len(), 5);
+        let cells = grid.num_cells();
+        let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
+        let model = SurfaceModel {
+            radius: soft_particle_radius(grid.dx, 2, 0.1),
+            sparse_cells: false,
+            sparse_depth: 0.0,
+            softness: 0.1 * grid.dx,
+            per_axis: 2,
+        };
+        let band: Vec<bool> = (0..cells).map(|c| grid.cells().ijk(c) == [3, 0, 2]).collect();
+        for deep in [None, Some(band.as_slice())] {
+            let deep_of = || deep.map(|cells| Deep { cells, phi: -0.05 });
+            let sdf = |p: &[Vec3]| {
+                let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, deep_of());
+                phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
+            };
+            let bins = Bins::new(&p0, &grid);
+            let (phi, marks) = liquid_sdf_nearest(&p0, &bins, &grid, &model, deep_of());
+            let far = SOFT_REACH * grid.dx - model.radius;
+            let capped = phi.iter().filter(|&&f| f > far - 0.05 * grid.dx && f < far).count();
+            assert!(capped > 0, "no cell the far value holds in part: it goes unchecked");
+            let mut g = vec![Vec3::ZERO; p0.len()];
+            liquid_sdf_adjoint(&p0, &marks, &grid, &model, deep, &phi_bar, &mut g);
+            let eps = 1e-7;
+            let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+            let fd = (sdf(&shift(eps)) - sdf(&shift(-eps))) / (2.0 * eps);
+            let ad = dot(&g, &dp);
+            assert!(fd.abs() > 1e-2, "a vanishing derivative checks nothing: {fd:e}");
+            let with = deep.is_some();
+            assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "deep {with}: adjoint {ad:e}, fd {fd:e}");
+        }
     }
 }
 

@@ -385,12 +385,7 @@ impl Simulation {
 
     /// How φ_L is made from the particles.
     pub(crate) fn surface_model(&self) -> SurfaceModel {
-        let solver = &self.settings.solver;
-        SurfaceModel {
-            radius: self.radius,
-            sparse_cells: solver.sparse_cells,
-            sparse_depth: solver.sparse_depth,
-        }
+        SurfaceModel { radius: self.radius, ..self.settings.solver.surface_model(self.grid.dx) }
     }
 
     /// What the density projection of a step with `geometry` and `bodies` reads (None when
