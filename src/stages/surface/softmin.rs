@@ -210,19 +210,24 @@ pub fn soft_particle_radius(dx: f64, m: usize, tau: f64) -> f64 {
 pub(super) fn soft_full_phi(dx: f64, model: &SurfaceModel) -> f64 {
     let off = sub_offsets(model.per_axis);
     let kernel = Kernel::new(SOFT_REACH * dx, model.softness);
-    let mut sum = kernel.far;
-    for o in block(SOFT_REACH) {
-        for &oz in &off {
-            for &oy in &off {
-                for &ox in &off {
-                    let p = Vec3::new(ox, oy, oz) - Vec3::splat(0.5);
-                    let d = (p + Vec3::new(o[0] as f64, o[1] as f64, o[2] as f64)) * dx;
-                    sum += kernel.term(d.length_squared());
-                }
+    let cells: f64 = block(SOFT_REACH).iter().map(|o| lattice_terms(&kernel, &off, *o, dx)).sum();
+    kernel.phi(kernel.far + cells, model.radius)
+}
+
+/// The terms of a cell `o` cells from a centre holding the seeding sub-lattice `off`: what a
+/// deep cell there adds to the centre's sum.
+fn lattice_terms(kernel: &Kernel, off: &[f64], o: [i64; 3], dx: f64) -> f64 {
+    let mut sum = 0.0;
+    for &oz in off {
+        for &oy in off {
+            for &ox in off {
+                let p = Vec3::new(ox, oy, oz) - Vec3::splat(0.5);
+                let d = (p + Vec3::new(o[0] as f64, o[1] as f64, o[2] as f64)) * dx;
+                sum += kernel.term(d.length_squared());
             }
         }
     }
-    kernel.phi(sum, model.radius)
+    sum
 }
 
 /// The soft minimum of φ_L at the cell centres of `grid`, with the softness (metres) of the
@@ -252,22 +257,7 @@ impl<'a> SoftSdf<'a> {
         let kernel = Kernel::new(SOFT_REACH * dx, model.softness);
         let block = block(SOFT_REACH);
         let off = sub_offsets(model.per_axis);
-        let deep_terms = block
-            .iter()
-            .map(|o| {
-                let mut sum = 0.0;
-                for &oz in &off {
-                    for &oy in &off {
-                        for &ox in &off {
-                            let p = Vec3::new(ox, oy, oz) - Vec3::splat(0.5);
-                            let d = (p + Vec3::new(o[0] as f64, o[1] as f64, o[2] as f64)) * dx;
-                            sum += kernel.term(d.length_squared());
-                        }
-                    }
-                }
-                sum
-            })
-            .collect();
+        let deep_terms = block.iter().map(|o| lattice_terms(&kernel, &off, *o, dx)).collect();
         SoftSdf { pos, bins, grid, block, kernel, radius: model.radius, deep, deep_terms }
     }
 
