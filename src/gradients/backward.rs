@@ -603,8 +603,8 @@ fn particles_adjoint(
     let ParticlePieces { pr, phi_bar, rhs, dual_faces } = pieces;
     let (grid, dt, settings) = (*initial.grid(), initial.dt(), initial.settings());
     // The density projection read the band of its own step.
-    let band =
-        pr.deep.as_ref().map(|deep| Band::with_deep(&grid, deep.clone(), &initial.surface_model()));
+    let model = initial.surface_model();
+    let band = pr.deep.as_ref().map(|deep| Band::with_deep(&grid, deep.clone(), &model));
     let stage = ParticleStage {
         grid: &grid,
         dt,
@@ -623,7 +623,6 @@ fn particles_adjoint(
     if pbar.is_empty() {
         pbar = vec![Vec3::ZERO; replayed.end.len()];
     }
-    let model = initial.surface_model();
     let deep = band.as_ref().map(|b| b.deep.as_slice());
     surface::liquid_sdf_adjoint(
         &replayed.end,

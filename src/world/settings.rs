@@ -332,22 +332,26 @@ impl SolverSettings {
         LinearSolve { tolerance: self.density_tolerance, ..self.linear() }
     }
 
-    /// How φ_L is made from the particles on cells of size `dx`: the particles' radius for
-    /// the nearest particle's distance or their soft minimum ([`Self::surface_softness`]),
-    /// and the sparse-cell rule.
-    pub fn surface_model(&self, dx: f64) -> SurfaceModel {
+    /// The marker particles' radius on cells of size `dx`, for the nearest particle's
+    /// distance or their soft minimum ([`Self::surface_softness`]).
+    pub fn particle_radius(&self, dx: f64) -> f64 {
         let m = surface::per_axis(self.particles_per_cell);
-        let tau = self.surface_softness;
+        match self.surface_softness {
+            tau if tau > 0.0 => surface::soft_particle_radius(dx, m, tau),
+            _ => surface::particle_radius(dx, m),
+        }
+    }
+
+    /// How φ_L is made from the particles of radius `radius` (see
+    /// [`Self::particle_radius`]) on cells of size `dx`: the nearest particle's distance or
+    /// their soft minimum, and the sparse-cell rule.
+    pub fn surface_model(&self, dx: f64, radius: f64) -> SurfaceModel {
         SurfaceModel {
-            radius: if tau > 0.0 {
-                surface::soft_particle_radius(dx, m, tau)
-            } else {
-                surface::particle_radius(dx, m)
-            },
+            radius,
             sparse_cells: self.sparse_cells,
             sparse_depth: self.sparse_depth,
-            softness: tau * dx,
-            per_axis: m,
+            softness: self.surface_softness * dx,
+            per_axis: surface::per_axis(self.particles_per_cell),
         }
     }
 

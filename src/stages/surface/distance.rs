@@ -97,6 +97,13 @@ impl SurfaceModel {
         SurfaceModel { radius, sparse_cells: false, sparse_depth: 0.0, softness: 0.0, per_axis: m }
     }
 
+    /// The soft minimum of softness `tau` (cells) of the distances of particles seeded `m`
+    /// per axis on cells of size `dx`, without the sparse-cell rule.
+    pub fn soft(dx: f64, m: usize, tau: f64) -> SurfaceModel {
+        let radius = soft_particle_radius(dx, m, tau);
+        SurfaceModel { softness: tau * dx, ..SurfaceModel::nearest(radius, m) }
+    }
+
     /// φ_L at the centre of a cell deep in freshly seeded liquid, on cells of size `dx`: what
     /// a narrow band's deep cells read.
     pub fn full_phi(&self, dx: f64) -> f64 {

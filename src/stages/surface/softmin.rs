@@ -177,32 +177,22 @@ impl Kernel {
 pub fn soft_particle_radius(dx: f64, m: usize, tau: f64) -> f64 {
     let off = sub_offsets(m);
     let kernel = Kernel::new(SOFT_REACH, tau);
-    // Liquid fills z < 0: cells centred on x, y ∈ ℤ, z ∈ [c, c + 1] for c < 0. With r = 0,
-    // φ is the soft distance.
-    let distance = |cz: f64| {
-        let x = Vec3::new(0.0, 0.0, cz);
+    // Liquid fills z < 0 (cells of size 1 centred on x, y ∈ ℤ, z ∈ [c, c + 1] for c < 0):
+    // seen from (0, 0, ±½) its cells lie (i, j, c) and (i, j, c + 1) away. With r = 0, φ is
+    // the soft distance.
+    let distance = |above: bool| {
         let mut sum = kernel.far;
-        for ci in -3i32..=3 {
-            for cj in -3i32..=3 {
-                for ck in -3i32..=-1 {
-                    for &ox in &off {
-                        for &oy in &off {
-                            for &oz in &off {
-                                let p = Vec3::new(
-                                    ci as f64 - 0.5 + ox,
-                                    cj as f64 - 0.5 + oy,
-                                    ck as f64 + oz,
-                                );
-                                sum += kernel.term((p - x).length_squared());
-                            }
-                        }
-                    }
+        for i in -3..=3 {
+            for j in -3..=3 {
+                for c in -3..=-1 {
+                    let o = [i, j, if above { c } else { c + 1 }];
+                    sum += lattice_terms(&kernel, &off, o, 1.0);
                 }
             }
         }
         kernel.phi(sum, 0.0)
     };
-    0.5 * (distance(0.5) + distance(-0.5)) * dx
+    0.5 * (distance(true) + distance(false)) * dx
 }
 
 /// The soft minimum's φ at the centre of a cell deep in freshly seeded liquid, for the

@@ -323,13 +323,7 @@ mod forward {
             }
         }
         for tau in [0.05, 0.1, 0.25] {
-            let model = SurfaceModel {
-                radius: soft_particle_radius(grid.dx, 2, tau),
-                sparse_cells: false,
-                sparse_depth: 0.0,
-                softness: tau * grid.dx,
-                per_axis: 2,
-            };
+            let model = SurfaceModel::soft(grid.dx, 2, tau);
             let phi = liquid_sdf(&pos, &Bins::new(&pos, &grid), &grid, &model, None);
             // Away from the walls (the reach short of them).
             let (below, above) = (phi[grid.cell(5, 6, 5)], phi[grid.cell(5, 7, 5)]);
@@ -355,13 +349,7 @@ mod forward {
     fn soft_sdf_fades_continuously_as_a_particle_leaves() {
         let grid = Grid { n: [9, 5, 5], dx: 0.1 };
         let tau = 0.1 * grid.dx;
-        let model = SurfaceModel {
-            radius: soft_particle_radius(grid.dx, 2, 0.1),
-            sparse_cells: false,
-            sparse_depth: 0.0,
-            softness: tau,
-            per_axis: 2,
-        };
+        let model = SurfaceModel::soft(grid.dx, 2, 0.1);
         let centre = grid.cells().position(2, 2, 2);
         let far = SOFT_REACH * grid.dx - model.radius;
         let offset = |d: f64| Vec3::new(d, 1e-3, -2e-3);
@@ -428,6 +416,31 @@ mod adjoint {
 
     fn dot(a: &[Vec3], b: &[Vec3]) -> f64 {
         a.iter().zip(b).map(|(x, y)| x.dot(*y)).sum()
+    }
+
+    /// For φ_L of `model` (beside the `deep` cells, whose φ is −0.05) at particles `p0`, the
+    /// derivative of Σ φ̄·φ_L along `dp` by the adjoint and by central differences at 1e-7,
+    /// with φ_L and the particles each cell's φ moves with.
+    fn sdf_adjoint_and_fd(
+        grid: &Grid,
+        model: &SurfaceModel,
+        deep: Option<&[bool]>,
+        p0: &[Vec3],
+        dp: &[Vec3],
+        phi_bar: &[f64],
+    ) -> (f64, f64, Vec<f64>, Vec<u32>) {
+        let deep_of = || deep.map(|cells| Deep { cells, phi: -0.05 });
+        let sdf = |p: &[Vec3]| {
+            let phi = liquid_sdf(p, &Bins::new(p, grid), grid, model, deep_of());
+            phi.iter().zip(phi_bar).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let (phi, marks) = liquid_sdf_nearest(p0, &Bins::new(p0, grid), grid, model, deep_of());
+        let mut g = vec![Vec3::ZERO; p0.len()];
+        liquid_sdf_adjoint(p0, &marks, grid, model, deep, phi_bar, &mut g);
+        let eps = 1e-7;
+        let shift = |s: f64| p0.iter().zip(dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
+        let fd = (sdf(&shift(eps)) - sdf(&shift(-eps))) / (2.0 * eps);
+        (dot(&g, dp), fd, phi, marks)
     }
 
     /// The liquid distance and its nearest particle per cell against a search over every
@@ -682,20 +695,10 @@ mod adjoint {
         let dp = dir(p0.len(), 3);
         let cells = grid.num_cells();
         let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
-        let sdf = |p: &[Vec3]| {
-            let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, None);
-            phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
-        };
-        let (_, nearest) = liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &grid, &model, None);
+        let (ad, fd, _, nearest) = sdf_adjoint_and_fd(&grid, &model, None, &p0, &dp, &phi_bar);
         let tagged = |p: &&u32| **p != crate::geometry::grid::NONE && **p & distance::SPARSE != 0;
         let ruled = nearest.iter().filter(tagged).count();
         assert_eq!(ruled, p0.len(), "each particle's cell set by the rule");
-        let mut g = vec![Vec3::ZERO; p0.len()];
-        liquid_sdf_adjoint(&p0, &nearest, &grid, &model, None, &phi_bar, &mut g);
-        let eps = 1e-7;
-        let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
-        let fd = (sdf(&shift(eps)) - sdf(&shift(-eps))) / (2.0 * eps);
-        let ad = dot(&g, &dp);
         assert!(fd.abs() > 1e-2, "a vanishing derivative checks nothing: {fd:e}");
         assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "adjoint {ad:e}, fd {fd:e}");
     }
@@ -714,31 +717,13 @@ mod adjoint {
         let dp = dir(p0.len(), 5);
         let cells = grid.num_cells();
         let phi_bar: Vec<f64> = (0..cells).map(|c| ((c * 37) % 11) as f64 / 5.0 - 1.0).collect();
-        let model = SurfaceModel {
-            radius: soft_particle_radius(grid.dx, 2, 0.1),
-            sparse_cells: false,
-            sparse_depth: 0.0,
-            softness: 0.1 * grid.dx,
-            per_axis: 2,
-        };
+        let model = SurfaceModel::soft(grid.dx, 2, 0.1);
         let band: Vec<bool> = (0..cells).map(|c| grid.cells().ijk(c) == [3, 0, 2]).collect();
         for deep in [None, Some(band.as_slice())] {
-            let deep_of = || deep.map(|cells| Deep { cells, phi: -0.05 });
-            let sdf = |p: &[Vec3]| {
-                let phi = liquid_sdf(p, &Bins::new(p, &grid), &grid, &model, deep_of());
-                phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
-            };
-            let bins = Bins::new(&p0, &grid);
-            let (phi, marks) = liquid_sdf_nearest(&p0, &bins, &grid, &model, deep_of());
+            let (ad, fd, phi, _) = sdf_adjoint_and_fd(&grid, &model, deep, &p0, &dp, &phi_bar);
             let far = SOFT_REACH * grid.dx - model.radius;
             let capped = phi.iter().filter(|&&f| f > far - 0.05 * grid.dx && f < far).count();
             assert!(capped > 0, "no cell the far value holds in part: it goes unchecked");
-            let mut g = vec![Vec3::ZERO; p0.len()];
-            liquid_sdf_adjoint(&p0, &marks, &grid, &model, deep, &phi_bar, &mut g);
-            let eps = 1e-7;
-            let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
-            let fd = (sdf(&shift(eps)) - sdf(&shift(-eps))) / (2.0 * eps);
-            let ad = dot(&g, &dp);
             assert!(fd.abs() > 1e-2, "a vanishing derivative checks nothing: {fd:e}");
             let with = deep.is_some();
             assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "deep {with}: adjoint {ad:e}, fd {fd:e}");

@@ -11,7 +11,7 @@ use crate::geometry::shape::Solid;
 use crate::geometry::weights::FaceWeights;
 use crate::math::Vec3;
 use crate::stages::band::{self, Band};
-use crate::stages::surface::{self, Bins, SurfaceModel};
+use crate::stages::surface::{self, Bins};
 use crate::world::settings::{
     check_finite, check_positive, NarrowBand, SettingError, SolverSettings, WorldSettings,
 };
@@ -238,7 +238,7 @@ impl SimulationBuilder {
         }
         let how = if setting == NarrowBand::Auto { "auto" } else { "narrow_band" };
         let why = format!("narrow band {width} ({how}: {percent}% of the liquid's cells deep)");
-        let model = SurfaceModel { radius, ..self.settings.solver.surface_model(grid.dx) };
+        let model = self.settings.solver.surface_model(grid.dx, radius);
         (Some(Band::with_deep(grid, deep, &model)), width, why)
     }
 
@@ -253,7 +253,7 @@ impl SimulationBuilder {
         let weights = fractions::face_weights(&grid, &self.obstacles);
         let centre_in_solid = fractions::cell_centre_in_solid(&grid, &node_sdf);
         let ppc = self.settings.solver.particles_per_cell;
-        let radius = self.settings.solver.surface_model(grid.dx).radius;
+        let radius = self.settings.solver.particle_radius(grid.dx);
         let (band, width, model) = self.initial_band(&grid, &centre_in_solid, radius);
         let mut settings = self.settings;
         settings.solver.narrow_band = NarrowBand::Cells(width);
@@ -267,7 +267,7 @@ impl SimulationBuilder {
         };
         let frozen_phi = settings.solver.freeze_surface.then(|| {
             let bins = Bins::new(&particles, &grid);
-            let surface = settings.solver.surface_model(grid.dx);
+            let surface = settings.solver.surface_model(grid.dx, radius);
             let deep = band.as_ref().map(Band::deep);
             Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &surface, deep))
         });

@@ -385,7 +385,7 @@ impl Simulation {
 
     /// How φ_L is made from the particles.
     pub(crate) fn surface_model(&self) -> SurfaceModel {
-        SurfaceModel { radius: self.radius, ..self.settings.solver.surface_model(self.grid.dx) }
+        self.settings.solver.surface_model(self.grid.dx, self.radius)
     }
 
     /// What the density projection of a step with `geometry` and `bodies` reads (None when
