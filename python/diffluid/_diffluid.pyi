@@ -245,8 +245,9 @@ def value_and_grad(
     smoothing: Optional[dict[str, Any]] = None,
 ) -> Tuple[float, dict[str, Any]]:
     """(loss, {param: gradient}): v, w, x, q (tangent) as (3,) arrays; mass as a float; u
-    as a tuple of three face arrays. With smoothing ({samples, sigma: {v, w, x, q}, seed}),
-    the smoothed loss and gradient, and grads["standard_error"] per param."""
+    as a tuple of three face arrays. With smoothing ({samples, sigma: {v, w, x, q}, seed,
+    estimator: "gradients" or "values"}), the smoothed loss and gradient, and
+    grads["standard_error"] per param."""
 
 def optimize(scene: Scene, *, epochs: Optional[int] = None) -> dict[str, Any]:
     """Ctrl-C after an epoch raises KeyboardInterrupt with the result so far as .result."""

@@ -16,7 +16,7 @@ use diffluid::geometry::grid::Mac;
 use diffluid::gradients::{
     value_and_gradient, value_and_smoothed_gradient, AdjointState, BodyAdjoint,
     BodyTargetLoss as RLoss, GradientOptions, GradientSettings, Rollout as RRollout, Smoothing,
-    SmoothingScale,
+    SmoothingEstimator, SmoothingScale,
 };
 use diffluid::math::{so3, Rotation, Vec3};
 use diffluid::Simulation as RSim;
@@ -220,14 +220,26 @@ pub fn value_and_grad<'py>(
 }
 
 /// A `smoothing` dict as [`Smoothing`]: samples (default 8), sigma {v, w, x, q} (each
-/// default 0), seed (default 0); an unknown key or a bad value is a ValueError naming it.
+/// default 0), seed (default 0), estimator ("gradients", the default, or "values"); an
+/// unknown key or a bad value is a ValueError naming it.
 fn smoothing_from(d: &Bound<'_, PyDict>) -> PyResult<Smoothing> {
-    let mut out =
-        Smoothing { samples: 8, sigma: SmoothingScale { v: 0.0, w: 0.0, x: 0.0, q: 0.0 }, seed: 0 };
+    let mut out = Smoothing::new(8, SmoothingScale { v: 0.0, w: 0.0, x: 0.0, q: 0.0 }, 0);
     for (k, v) in d.iter() {
         let key: String = k.extract()?;
         match key.as_str() {
             "samples" => out.samples = v.extract()?,
+            "estimator" => {
+                let name: String = v.extract()?;
+                out.estimator = match name.as_str() {
+                    "gradients" => SmoothingEstimator::Gradients,
+                    "values" => SmoothingEstimator::Values,
+                    other => {
+                        return Err(value_error(format!(
+                            "smoothing.estimator: unknown estimator {other:?} (gradients, values)"
+                        )))
+                    }
+                };
+            }
             "seed" => out.seed = v.extract()?,
             "sigma" => {
                 let sigma = v
@@ -251,7 +263,7 @@ fn smoothing_from(d: &Bound<'_, PyDict>) -> PyResult<Smoothing> {
             }
             other => {
                 return Err(value_error(format!(
-                    "smoothing: unknown key {other:?} (samples, sigma, seed)"
+                    "smoothing: unknown key {other:?} (samples, sigma, seed, estimator)"
                 )))
             }
         }

@@ -868,11 +868,8 @@ pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
         let fds: Vec<(f64, f64)> =
             params.iter().map(|&c| Ok((fd(c, 1e-4)?, fd(c, 1e-6)?))).collect::<Result<_>>()?;
         for &sigma in sigmas {
-            let smoothing = Smoothing {
-                samples,
-                sigma: SmoothingScale { v: sigma, w: 0.0, x: 0.1 * sigma, q: 0.0 },
-                seed: 1,
-            };
+            let scale = SmoothingScale { v: sigma, w: 0.0, x: 0.1 * sigma, q: 0.0 };
+            let smoothing = Smoothing::new(samples, scale, 1);
             let run = value_and_smoothed_gradient(&sim, h, &loss, &settings, &smoothing)?;
             for (&c, &(fd_1e4, fd_1e6)) in params.iter().zip(&fds) {
                 let (ex, sm) = (c.of(&exact), c.of(&run.gradient.bodies[0]));

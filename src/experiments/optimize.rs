@@ -289,8 +289,9 @@ impl Optimization {
         s
     }
 
-    /// Loss and gradient (over the optimised parameters, 3 numbers each) at `p`.
-    pub fn evaluate(&self, p: &BodyState) -> Result<(f64, Vec<f64>)> {
+    /// Loss and gradient (over the optimised parameters, 3 numbers each) at `p`, in epoch
+    /// `epoch` (which sets the smoothing's σ, see [`Smoothing::at_epoch`]).
+    pub fn evaluate(&self, p: &BodyState, epoch: usize) -> Result<(f64, Vec<f64>)> {
         let sim = self.simulation(p);
         let settings = GradientSettings::from(self.gradient);
         let steps = self.scene.time.steps;
@@ -300,7 +301,8 @@ impl Optimization {
                 (run.loss, run.gradient.bodies[self.body])
             }
             Some(s) => {
-                let run = value_and_smoothed_gradient(&sim, steps, &self.loss, &settings, s)?;
+                let s = s.at_epoch(epoch);
+                let run = value_and_smoothed_gradient(&sim, steps, &self.loss, &settings, &s)?;
                 (run.loss, run.gradient.bodies[self.body])
             }
         };
@@ -569,7 +571,7 @@ impl Optimization {
     ) -> Result<Outcome> {
         let mut stopped = None;
         while ck.next_epoch < self.epochs {
-            let (loss, g) = match self.evaluate(&ck.params) {
+            let (loss, g) = match self.evaluate(&ck.params, ck.next_epoch) {
                 Ok(x) => x,
                 Err(e) => {
                     stopped = Some(format!("epoch {}: {e}", ck.next_epoch));
@@ -653,7 +655,8 @@ impl Optimization {
 
     /// Loss and gradient in the coordinates of [`Optimization::to_vector`].
     pub fn evaluate_vector(&self, x: &[f64]) -> Result<(f64, Vec<f64>)> {
-        let (loss, mut g) = self.evaluate(&self.from_vector(x))?;
+        // L-BFGS keeps one σ (the scene's check refuses a sigma_decay with it).
+        let (loss, mut g) = self.evaluate(&self.from_vector(x), 0)?;
         for (k, param) in self.params.iter().enumerate() {
             if *param == Param::Q {
                 let r = Vec3::new(x[3 * k], x[3 * k + 1], x[3 * k + 2]);

@@ -25,5 +25,7 @@ pub use control::{
 pub use loss::{AdjointState, BodyAdjoint, BodyGradient, BodyTargetLoss, Gradient, Loss};
 pub use run::{value_and_gradient, GradientRun, GradientSettings, Rollout};
 pub use schedule::{ActionKind, Actions, Schedule};
-pub use smooth::{value_and_smoothed_gradient, SmoothedRun, Smoothing, SmoothingScale};
+pub use smooth::{
+    value_and_smoothed_gradient, SmoothedRun, Smoothing, SmoothingEstimator, SmoothingScale,
+};
 pub use trajectory::{FinalTarget, LiquidInBox, TrajectoryTerms, Waypoint};

@@ -4,7 +4,8 @@
 //! L_σ(s) = E_ξ[L(s ⊕ σ·ξ)],  ∇L_σ(s) = E_ξ[∇L(s ⊕ σ·ξ)],  ξ ~ N(0, 1),
 //!
 //! estimated as the mean of exact gradients ([`value_and_gradient`]) over K perturbed runs in
-//! antithetic pairs (ξ and −ξ), with its standard error. `s ⊕ σξ` moves every moving body's
+//! antithetic pairs (ξ and −ξ), with its standard error; or, with
+//! [`SmoothingEstimator::Values`], from the runs' losses alone (see there). `s ⊕ σξ` moves every moving body's
 //! velocity, angular velocity and position by σ·ξ and turns its orientation by exp(σ_q·ξ_q)
 //! on the left; each run's orientation gradient is taken back to the unperturbed frame, so the
 //! mean is the exact gradient of L_σ's estimate (not an approximation of it).
@@ -25,6 +26,7 @@ use crate::math::{Rotation, Vec3};
 use crate::world::Simulation;
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
+use rayon::prelude::*;
 
 /// The perturbation's standard deviations, per kind of initial state parameter.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -44,6 +46,24 @@ pub struct SmoothingScale {
     pub q: f64,
 }
 
+/// What [`value_and_smoothed_gradient`] estimates ∇L_σ from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SmoothingEstimator {
+    /// The mean of the perturbed runs' exact gradients (a forward and a backward pass each):
+    /// ∇L_σ = E[∇L(s ⊕ σξ)]. Unbiased where L is continuous; where L jumps between the
+    /// samples, the slopes on either side of a jump do not see the jump itself.
+    #[default]
+    Gradients,
+    /// The perturbed runs' losses alone (a forward pass each, the runs in parallel): Gaussian
+    /// smoothing's identity ∇L_σ = E[L(s ⊕ σξ)·ξ]/σ, per antithetic pair
+    /// (L(s ⊕ σξ) − L(s ⊖ σξ))·ξ/(2σ), per coordinate with its own σ. It holds where L jumps
+    /// too, and it needs no adjoint, at a variance that grows with the number of perturbed
+    /// coordinates (every coordinate of every moving body whose kind has σ > 0; a kind with
+    /// σ = 0, and the mass, get no gradient).
+    Values,
+}
+
 /// How [`value_and_smoothed_gradient`] smooths.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -55,11 +75,52 @@ pub struct Smoothing {
     /// The random perturbations' seed: the same seed, the same runs.
     #[serde(default)]
     pub seed: u64,
+    /// What the gradient is estimated from (default `gradients`).
+    #[serde(default, skip_serializing_if = "is_gradients")]
+    pub estimator: SmoothingEstimator,
+    /// σ's factor per epoch of `diffluid optimize` (gradient descent and Adam): epoch k
+    /// perturbs by σ·sigma_decay^k, so the run narrows onto a minimum of L itself as it
+    /// settles. In (0, 1], default 1 (the same σ every epoch).
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub sigma_decay: f64,
+}
+
+fn is_gradients(e: &SmoothingEstimator) -> bool {
+    *e == SmoothingEstimator::Gradients
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+fn is_one(x: &f64) -> bool {
+    *x == 1.0
 }
 
 impl Smoothing {
+    /// `samples` runs in antithetic pairs of perturbations with standard deviations `sigma`,
+    /// drawn from `seed`, the mean of their exact gradients, the same σ every epoch.
+    pub fn new(samples: usize, sigma: SmoothingScale, seed: u64) -> Smoothing {
+        Smoothing {
+            samples,
+            sigma,
+            seed,
+            estimator: SmoothingEstimator::Gradients,
+            sigma_decay: 1.0,
+        }
+    }
+
+    /// The smoothing of epoch `epoch` of an optimisation: σ scaled by sigma_decay^epoch.
+    pub fn at_epoch(&self, epoch: usize) -> Smoothing {
+        let f = self.sigma_decay.powi(epoch.min(i32::MAX as usize) as i32);
+        let s = self.sigma;
+        let sigma = SmoothingScale { v: s.v * f, w: s.w * f, x: s.x * f, q: s.q * f };
+        Smoothing { sigma, ..*self }
+    }
+
     /// Refuses what cannot be estimated: fewer than 2 or an odd number of samples, a σ that
-    /// is negative or not finite, or all σ zero (that is [`value_and_gradient`]).
+    /// is negative or not finite, all σ zero (that is [`value_and_gradient`]), or a
+    /// `sigma_decay` outside (0, 1].
     pub fn validate(&self) -> Result<()> {
         let bad = |message: String| {
             Err(Error::InvalidSettings { key: "optimize.smoothing".into(), message })
@@ -79,6 +140,10 @@ impl Smoothing {
         if [s.v, s.w, s.x, s.q].iter().all(|&x| x == 0.0) {
             return bad("every sigma is 0: that is the plain gradient".into());
         }
+        let d = self.sigma_decay;
+        if !(d.is_finite() && d > 0.0 && d <= 1.0) {
+            return bad(format!("sigma_decay must be in (0, 1], got {d}"));
+        }
         Ok(())
     }
 }
@@ -88,11 +153,12 @@ impl Smoothing {
 pub struct SmoothedRun {
     /// The mean of L over the runs (L_σ's estimate).
     pub loss: f64,
-    /// The mean of the runs' gradients (∇L_σ's estimate); ∂L/∂u₀ and the particles' are
-    /// left out (zero and empty): the smoothing is over the bodies.
+    /// ∇L_σ's estimate (the mean of the runs' gradients, or with
+    /// [`SmoothingEstimator::Values`] of the pairs' loss differences); ∂L/∂u₀ and the
+    /// particles' are left out (zero and empty): the smoothing is over the bodies.
     pub gradient: Gradient,
     /// Per body, the standard error of each gradient coordinate's mean (over the antithetic
-    /// pairs' means: the pairs are independent, their two runs are not).
+    /// pairs' estimates: the pairs are independent, their two runs are not).
     pub standard_error: Vec<BodyGradient>,
     /// Each run's loss, in the order run.
     pub losses: Vec<f64>,
@@ -139,33 +205,98 @@ pub fn value_and_smoothed_gradient(
         .collect();
     let zero =
         BodyGradient { v: Vec3::ZERO, w: Vec3::ZERO, x: Vec3::ZERO, q: Vec3::ZERO, mass: 0.0 };
-    let mut losses = Vec::with_capacity(smoothing.samples);
-    let mut pair_means: Vec<Vec<BodyGradient>> = Vec::with_capacity(pairs);
-    for draw in &draws {
-        let mut mean = vec![zero; n];
-        for sign in [1.0, -1.0] {
-            let mut sim = initial.clone();
-            for (b, xi) in sim.bodies_mut().iter_mut().zip(draw) {
-                if b.moves() {
-                    let s = perturbed(&b.state(), &smoothing.sigma, xi, sign);
-                    b.set_state(&s);
-                }
-            }
-            let run = value_and_gradient(&sim, steps, loss, settings)?;
-            losses.push(run.loss);
-            for ((m, g), xi) in mean.iter_mut().zip(&run.gradient.bodies).zip(draw) {
-                // Back to the unperturbed frame: L(exp(σξ)·exp(θ)·q) = L(exp(Rθ)·exp(σξ)·q),
-                // R the perturbation's rotation, so ∂/∂θ = Rᵀ·g.
-                let r = Rotation::from_scaled_axis(sign * smoothing.sigma.q * xi[3]);
-                m.v += 0.5 * g.v;
-                m.w += 0.5 * g.w;
-                m.x += 0.5 * g.x;
-                m.q += 0.5 * (r.inverse() * g.q);
-                m.mass += 0.5 * g.mass;
+    // `initial` with every moving body's state moved by sign·σ·ξ.
+    let perturb = |draw: &Draw, sign: f64| {
+        let mut sim = initial.clone();
+        for (b, xi) in sim.bodies_mut().iter_mut().zip(draw) {
+            if b.moves() {
+                let s = perturbed(&b.state(), &smoothing.sigma, xi, sign);
+                b.set_state(&s);
             }
         }
-        pair_means.push(mean);
-    }
+        sim
+    };
+    let (losses, pair_means) = match smoothing.estimator {
+        SmoothingEstimator::Gradients => {
+            let mut losses = Vec::with_capacity(smoothing.samples);
+            let mut pair_means: Vec<Vec<BodyGradient>> = Vec::with_capacity(pairs);
+            for draw in &draws {
+                let mut mean = vec![zero; n];
+                for sign in [1.0, -1.0] {
+                    let run = value_and_gradient(&perturb(draw, sign), steps, loss, settings)?;
+                    losses.push(run.loss);
+                    for ((m, g), xi) in mean.iter_mut().zip(&run.gradient.bodies).zip(draw) {
+                        // Back to the unperturbed frame: L(exp(σξ)·exp(θ)·q) =
+                        // L(exp(Rθ)·exp(σξ)·q), R the perturbation's rotation, so
+                        // ∂/∂θ = Rᵀ·g.
+                        let r = Rotation::from_scaled_axis(sign * smoothing.sigma.q * xi[3]);
+                        m.v += 0.5 * g.v;
+                        m.w += 0.5 * g.w;
+                        m.x += 0.5 * g.x;
+                        m.q += 0.5 * (r.inverse() * g.q);
+                        m.mass += 0.5 * g.mass;
+                    }
+                }
+                pair_means.push(mean);
+            }
+            (losses, pair_means)
+        }
+        SmoothingEstimator::Values => {
+            // Forward passes only, a pair to a thread (a small grid's step keeps few
+            // threads busy), each run's loss in the order of the draws. Each pair runs in a
+            // pool of its own thread: a small grid steps on one shared serial pool otherwise
+            // (`Spread::Serial`), and the pairs would queue for it.
+            let runs: Vec<[f64; 2]> = draws
+                .par_iter()
+                .map(|draw| -> Result<[f64; 2]> {
+                    let value = |sign: f64| -> Result<f64> {
+                        let mut sim = perturb(draw, sign);
+                        sim.set_report_measures(false);
+                        for _ in 0..steps {
+                            sim.step()?;
+                        }
+                        Ok(loss.value(&sim))
+                    };
+                    let pair = || -> Result<[f64; 2]> { Ok([value(1.0)?, value(-1.0)?]) };
+                    match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
+                        Ok(own) => own.install(pair),
+                        Err(_) => pair(),
+                    }
+                })
+                .collect::<Result<_>>()?;
+            let sigma = smoothing.sigma;
+            // (L₊ − L₋)·ξ/(2σ) per coordinate, 0 where σ is.
+            let slope = |diff: f64, xi: Vec3, s: f64| {
+                if s > 0.0 {
+                    diff / (2.0 * s) * xi
+                } else {
+                    Vec3::ZERO
+                }
+            };
+            let pair_means = runs
+                .iter()
+                .zip(&draws)
+                .map(|([plus, minus], draw)| {
+                    let d = plus - minus;
+                    let moving = initial.bodies().iter().map(|b| b.moves());
+                    draw.iter()
+                        .zip(moving)
+                        .map(|(xi, moves)| match moves {
+                            false => zero,
+                            true => BodyGradient {
+                                v: slope(d, xi[0], sigma.v),
+                                w: slope(d, xi[1], sigma.w),
+                                x: slope(d, xi[2], sigma.x),
+                                q: slope(d, xi[3], sigma.q),
+                                mass: 0.0,
+                            },
+                        })
+                        .collect()
+                })
+                .collect();
+            (runs.iter().flatten().copied().collect(), pair_means)
+        }
+    };
     let k = pairs as f64;
     let combine = |f: &dyn Fn(&BodyGradient) -> Vec3, b: usize| -> (Vec3, Vec3) {
         let mean = pair_means.iter().map(|m| f(&m[b])).fold(Vec3::ZERO, |a, x| a + x) / k;

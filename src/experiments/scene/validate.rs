@@ -305,6 +305,9 @@ impl Scene {
             {
                 return Err(problem(key, message));
             }
+            if let Some(s) = &o.smoothing {
+                check_smoothing(s, &o.params, &o.optimizer)?;
+            }
         }
         if self.output.every == 0 {
             return Err(problem("output.every", "must be at least 1"));
@@ -320,6 +323,47 @@ impl Scene {
         }
         Ok(())
     }
+}
+
+/// What a smoothing must hold for the optimisation that uses it: the losses alone give no
+/// gradient for a kind of parameter they do not perturb, and L-BFGS's line search needs one
+/// function, so one σ.
+fn check_smoothing(
+    s: &crate::gradients::Smoothing,
+    params: &[crate::geometry::body::Param],
+    optimizer: &OptimizerSpec,
+) -> Result<(), Problem> {
+    use crate::geometry::body::Param;
+    use crate::gradients::SmoothingEstimator;
+    if s.estimator == SmoothingEstimator::Values {
+        for p in params {
+            let sigma = match p {
+                Param::V => s.sigma.v,
+                Param::W => s.sigma.w,
+                Param::X => s.sigma.x,
+                Param::Q => s.sigma.q,
+            };
+            if sigma == 0.0 {
+                let name = p.name();
+                return Err(problem(
+                    format!("optimize.smoothing.sigma.{name}"),
+                    format!(
+                        "estimator = \"values\" needs a σ > 0 for every optimised parameter: \
+                         {name} is optimised and its σ is 0 (the losses alone give no gradient \
+                         along what they do not perturb)"
+                    ),
+                ));
+            }
+        }
+    }
+    if s.sigma_decay != 1.0 && matches!(optimizer, OptimizerSpec::Lbfgs { .. }) {
+        return Err(problem(
+            "optimize.smoothing.sigma_decay",
+            "L-BFGS's line search needs the same function every iteration: sigma_decay is for gd \
+             and adam",
+        ));
+    }
+    Ok(())
 }
 
 /// A learning-rate decay of section `section` must be in (0, 1].
