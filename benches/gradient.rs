@@ -58,7 +58,8 @@ fn passes(c: &mut Criterion, name: &str) {
     });
     if name == "block_drop" {
         let p = opt.initial_params();
-        group.bench_function("epoch", |b| b.iter(|| opt.evaluate(black_box(&p)).expect("epoch")));
+        group
+            .bench_function("epoch", |b| b.iter(|| opt.evaluate(black_box(&p), 0).expect("epoch")));
     }
     group.finish();
 }

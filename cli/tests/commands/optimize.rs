@@ -173,6 +173,26 @@ fn bad_optimisation_input_is_rejected() {
         ("learning_rate = 5.0", "learning_rate = 5.0, decay = 0.0", "optimize.optimizer.decay"),
         ("learning_rate = 5.0", "learning_rate = 5.0, decay = 1.5", "optimize.optimizer.decay"),
         ("epochs = 60", "epochs = 0", "optimize.epochs"),
+        (
+            "epochs = 60",
+            "epochs = 60\nsmoothing = { samples = 4, sigma = { x = 0.01 }, estimator = \"values\" }",
+            "optimize.smoothing.sigma.v",
+        ),
+        (
+            "epochs = 60",
+            "epochs = 60\nsmoothing = { samples = 4, sigma = { v = 0.01 }, sigma_decay = 1.2 }",
+            "sigma_decay must be in (0, 1]",
+        ),
+        (
+            "{ kind = \"gd\", learning_rate = 5.0 }",
+            "{ kind = \"lbfgs\" }\nsmoothing = { samples = 4, sigma = { v = 0.01 }, sigma_decay = 0.9 }",
+            "optimize.smoothing.sigma_decay",
+        ),
+        (
+            "epochs = 60",
+            "epochs = 60\nsmoothing = { samples = 4, sigma = { v = 0.01 }, estimator = \"guess\" }",
+            "unknown variant `guess`",
+        ),
         ("target = [0.4, 0.2, 0.4]", "target = [0.4, 2.0, 0.4]", "outside the tank"),
         ("body = \"box\"", "body = \"crate\"", "no body named \"crate\""),
     ];
