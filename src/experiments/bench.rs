@@ -808,6 +808,9 @@ pub struct SmoothedRow {
     pub sigma: f64,
     /// Runs (antithetic pairs × 2).
     pub samples: usize,
+    /// What the estimate is taken from: `gradients` (the mean of the runs' exact gradients)
+    /// or `values` (the runs' losses alone, see [`crate::gradients::SmoothingEstimator`]).
+    pub estimator: String,
     /// Which coordinate.
     pub param: String,
     /// The exact (live-surface) adjoint at the unperturbed state.
@@ -816,7 +819,7 @@ pub struct SmoothedRow {
     pub fd_1e4: f64,
     /// At ε = 1e-6.
     pub fd_1e6: f64,
-    /// The smoothed gradient's estimate (the mean of the runs' exact gradients).
+    /// The smoothed gradient's estimate.
     pub smoothed: f64,
     /// Its standard error.
     pub standard_error: f64,
@@ -828,19 +831,25 @@ pub struct SmoothedRow {
 
 /// The smoothed gradient ([`crate::gradients::smooth`]) against the exact one on the surge
 /// (`surge_ball`): at 25 and 50 steps, σ_v = 1e-3 and 1e-2 m/s (σ_x a tenth of it, in m),
-/// 16 runs each, the estimate of ∂L/∂x₀ and ∂L/∂v_y with its standard error beside the exact
-/// adjoint and the central differences at 1e-4 and 1e-6 (where the map jumps, those two
-/// disagree and the exact gradient is one smooth piece's slope). The quick study: 6 steps,
-/// σ_v = 1e-2, 4 runs, ∂L/∂x₀ and ∂L/∂v_x.
+/// 16 runs each, from the runs' exact gradients and from their losses alone, the estimate of
+/// ∂L/∂x₀ and ∂L/∂v_y with its standard error beside the exact adjoint and the central
+/// differences at 1e-4 and 1e-6 (where the map jumps, those two disagree and the exact
+/// gradient is one smooth piece's slope). The quick study: 6 steps, σ_v = 1e-2, 4 runs, from
+/// the gradients, ∂L/∂x₀ and ∂L/∂v_x.
 pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
     use crate::geometry::body::Param;
     use crate::gradients::{
         value_and_gradient, value_and_smoothed_gradient, GradientSettings, Loss, Smoothing,
-        SmoothingScale,
+        SmoothingEstimator, SmoothingScale,
     };
     let horizons: &[usize] = if quick { &[6] } else { &[25, 50] };
     let sigmas: &[f64] = if quick { &[1e-2] } else { &[1e-3, 1e-2] };
     let samples = if quick { 4 } else { 16 };
+    let estimators: &[(SmoothingEstimator, &str)] = if quick {
+        &[(SmoothingEstimator::Gradients, "gradients")]
+    } else {
+        &[(SmoothingEstimator::Gradients, "gradients"), (SmoothingEstimator::Values, "values")]
+    };
     // The quick study's v_x: at 6 steps v_y's gradient is small and curved at the scale of
     // σ_v with the blended surface (docs/gradients.md, "The smooth defaults").
     let v_axis = if quick { 0 } else { 1 };
@@ -867,9 +876,11 @@ pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
             |c: Coordinate, e: f64| -> Result<f64> { Ok((at(c, e)? - at(c, -e)?) / (2.0 * e)) };
         let fds: Vec<(f64, f64)> =
             params.iter().map(|&c| Ok((fd(c, 1e-4)?, fd(c, 1e-6)?))).collect::<Result<_>>()?;
-        for &sigma in sigmas {
+        for (&sigma, &(estimator, name)) in
+            sigmas.iter().flat_map(|s| estimators.iter().map(move |e| (s, e)))
+        {
             let scale = SmoothingScale { v: sigma, w: 0.0, x: 0.1 * sigma, q: 0.0 };
-            let smoothing = Smoothing::new(samples, scale, 1);
+            let smoothing = Smoothing { estimator, ..Smoothing::new(samples, scale, 1) };
             let run = value_and_smoothed_gradient(&sim, h, &loss, &settings, &smoothing)?;
             for (&c, &(fd_1e4, fd_1e6)) in params.iter().zip(&fds) {
                 let (ex, sm) = (c.of(&exact), c.of(&run.gradient.bodies[0]));
@@ -877,6 +888,7 @@ pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
                     horizon: h,
                     sigma,
                     samples,
+                    estimator: name.into(),
                     param: c.name(),
                     exact: ex,
                     fd_1e4,

@@ -78,8 +78,8 @@ pub fn write_bench(
         write_csv(&at("smoothed_gradient.csv"), &rows)?;
         for r in &rows {
             lines.push(format!(
-                "{} steps, σ_v {:.0e}: {} exact {:+.4e} (fd 1e-4 {:+.4e}, 1e-6 {:+.4e}), smoothed {:+.4e} ± {:.1e}",
-                r.horizon, r.sigma, r.param, r.exact, r.fd_1e4, r.fd_1e6, r.smoothed, r.standard_error
+                "{} steps, σ_v {:.0e}: {} exact {:+.4e} (fd 1e-4 {:+.4e}, 1e-6 {:+.4e}), smoothed from the {} {:+.4e} ± {:.1e}",
+                r.horizon, r.sigma, r.param, r.exact, r.fd_1e4, r.fd_1e6, r.estimator, r.smoothed, r.standard_error
             ));
         }
     }
