@@ -183,6 +183,15 @@ pub fn value_and_grad<'py>(
                     "params: \"u\" has no smoothed gradient (smoothing perturbs the bodies)",
                 ));
             }
+            if how.estimator == SmoothingEstimator::Values {
+                if let Some(name) = params.iter().find_map(|p| unperturbed(p, &how.sigma)) {
+                    return Err(value_error(format!(
+                        "params: {name:?} has no gradient from the losses alone (estimator \
+                         \"values\"): it is not perturbed (give it a sigma > 0, or use the \
+                         gradients)"
+                    )));
+                }
+            }
             let out = run(py, || value_and_smoothed_gradient(&sim, steps, &loss, &settings, how))?;
             (out.loss, out.gradient, Some(out.standard_error))
         }
@@ -217,6 +226,24 @@ pub fn value_and_grad<'py>(
         }
     }
     Ok((value, grads))
+}
+
+/// The name of `p` if a smoothing of scales `sigma` does not perturb it (the mass never is;
+/// ∂L/∂u₀ is refused before).
+fn unperturbed(p: &Wrt, sigma: &SmoothingScale) -> Option<&'static str> {
+    let zero = match *p {
+        Wrt::Body(Param::V) => sigma.v == 0.0,
+        Wrt::Body(Param::W) => sigma.w == 0.0,
+        Wrt::Body(Param::X) => sigma.x == 0.0,
+        Wrt::Body(Param::Q) => sigma.q == 0.0,
+        Wrt::Mass => true,
+        Wrt::U => false,
+    };
+    match *p {
+        Wrt::Body(part) if zero => Some(part.name()),
+        Wrt::Mass => Some("mass"),
+        _ => None,
+    }
 }
 
 /// A `smoothing` dict as [`Smoothing`]: samples (default 8), sigma {v, w, x, q} (each

@@ -190,14 +190,17 @@ def test_smoothed_gradient_is_the_mean_of_perturbed_gradients(box_scene):
 
 def test_smoothed_gradient_from_the_losses_alone(box_scene):
     """smoothing's estimator "values": forward runs only, (L+ - L-)·ξ/(2σ) per pair; on this
-    smooth map within four standard errors of the exact gradient; an unknown estimator is a
-    ValueError naming the choices."""
+    smooth map within four standard errors of the exact gradient; a parameter it does not
+    perturb (σ = 0, or the mass) and an unknown estimator are ValueErrors."""
     _, exact = diffluid.value_and_grad(box_scene, params=["v"])
     how = {"samples": 32, "sigma": {"v": 1e-4}, "seed": 3, "estimator": "values"}
     value, g = diffluid.value_and_grad(box_scene, params=["v"], smoothing=how)
     se = g["standard_error"]["v"]
     assert np.all(se > 0.0)
     assert np.all(np.abs(g["v"] - exact["v"]) <= 4 * se), (g["v"], se, exact["v"])
+    for params in (["v", "x"], ["mass"]):
+        with pytest.raises(ValueError, match="no gradient from the losses alone"):
+            diffluid.value_and_grad(box_scene, params=params, smoothing=how)
     with pytest.raises(ValueError, match="gradients, values"):
         diffluid.value_and_grad(
             box_scene, params=["v"], smoothing={"sigma": {"v": 1e-3}, "estimator": "guess"}

@@ -5,10 +5,11 @@
 //!
 //! estimated as the mean of exact gradients ([`value_and_gradient`]) over K perturbed runs in
 //! antithetic pairs (ξ and −ξ), with its standard error; or, with
-//! [`SmoothingEstimator::Values`], from the runs' losses alone (see there). `s ⊕ σξ` moves every moving body's
-//! velocity, angular velocity and position by σ·ξ and turns its orientation by exp(σ_q·ξ_q)
-//! on the left; each run's orientation gradient is taken back to the unperturbed frame, so the
-//! mean is the exact gradient of L_σ's estimate (not an approximation of it).
+//! [`SmoothingEstimator::Values`], from the runs' losses alone (see there). `s ⊕ σξ` moves
+//! every moving body's velocity, angular velocity and position by σ·ξ and turns its
+//! orientation by exp(σ_q·ξ_q) on the left; each run's orientation gradient is taken back to
+//! the unperturbed frame, so the mean is the exact gradient of L_σ's estimate (not an
+//! approximation of it).
 //!
 //! Where the map is smooth at the scale σ, L_σ's gradient is L's to O(σ²); where L jumps (a
 //! cell changing kind, a particle crossing a face) between s and s ± σ, the mean of the slopes
