@@ -28,8 +28,9 @@ pub enum Study {
     Energy,
     /// Smoothness over long horizons.
     Smoothness,
-    /// The smoothed gradient's bias and noise against the exact one on the surge: run only
-    /// when asked for (`--only smoothed`; 64 gradients of up to 50 steps).
+    /// The smoothed gradient's bias and noise against the exact one on the surge, from the
+    /// runs' gradients and from their losses alone: run only when asked for (`--only
+    /// smoothed`; 64 gradients and 64 forward runs of up to 50 steps, about 90 s).
     Smoothed,
     /// Time per step and peak memory against grid size up to 8.4M cells: run only when
     /// asked for (`--only scale`; it takes about a minute and 4 GB).
