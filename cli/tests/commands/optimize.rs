@@ -243,11 +243,17 @@ fn block_drop_loss_falls_nearly_three_thousandfold_in_fifty_epochs() {
 /// water is about 3.5 cm deep (0.28 m³ over 8 m²), too shallow to float a ball of radius
 /// 0.2 m, so at t = 2.5 s the ball rests on the floor with its centre at y = 0.2, 0.4 m below
 /// the target's 0.6. The loss is then at least 0.4² = 0.16, and the start's 1.590 can fall at
-/// most 9.9×. Checked from rest and from a velocity Adam (lr 0.3) found at loss 0.161.
+/// most 9.9×. Checked from rest, from a velocity Adam (lr 0.3) once found at loss 0.161 (1.83
+/// on today's map), and from the one the scene's own optimisation ends at (loss 0.1603,
+/// issue 37).
 #[test]
 fn dam_break_ball_ends_on_the_floor_so_its_loss_is_at_least_0_16() {
     let problem = Optimization::new(Scene::builtin("dam_break_ball").unwrap()).unwrap();
-    for v in [[0.0; 3], [2.356917571565773, 2.453500736110804, -0.7403118479015697]] {
+    for v in [
+        [0.0; 3],
+        [2.356917571565773, 2.453500736110804, -0.7403118479015697],
+        [0.9434906400641141, -0.9691371887701522, -0.292924484141406],
+    ] {
         let mut p = problem.initial_params();
         p.v = v.into();
         let mut sim = problem.simulation(&p);
