@@ -181,7 +181,7 @@ fn perturbed(s: &BodyState, sigma: &SmoothingScale, xi: &[Vec3; 4], sign: f64) -
 }
 
 /// L_σ and ∇L_σ at `initial`'s state, by `smoothing.samples` runs of `steps` steps (see the
-/// module's text). The first run that fails ends it with that run's error.
+/// module's text). A run that fails ends it with that run's error.
 pub fn value_and_smoothed_gradient(
     initial: &Simulation,
     steps: usize,
