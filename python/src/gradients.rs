@@ -301,7 +301,8 @@ fn smoothing_from(d: &Bound<'_, PyDict>) -> PyResult<Smoothing> {
 
 /// Runs the scene's `[optimize]` section with diffluid's own optimiser (gradient descent,
 /// Adam or L-BFGS), exactly as ``diffluid optimize`` does (without its files), and returns a
-/// dict: history (a list of {epoch, loss, grad_norm, params, evaluations}), params (the
+/// dict: history (a list of {epoch, loss, grad_norm, params, evaluations, and with smoothing
+/// unsmoothed_loss}), params (the
 /// final state {v, w, x, q}), final_loss, stopped, converged, evaluations. `epochs`
 /// overrides the scene's (at least 1, as ``--epochs``). The GIL is released while it runs.
 ///

@@ -92,12 +92,21 @@ impl Optimization {
                 stopped = Some(m);
                 break;
             }
+            let params = self.from_vector(&x);
+            let unsmoothed_loss = match self.unsmoothed_loss(&params) {
+                Ok(x) => x,
+                Err(e) => {
+                    stopped = Some(format!("epoch {}: {e}", ck.next_epoch));
+                    break;
+                }
+            };
             let rec = EpochRecord {
                 epoch: ck.next_epoch,
                 loss,
                 grad_norm: norm,
-                params: self.from_vector(&x),
+                params,
                 evaluations: ck.evaluations,
+                unsmoothed_loss,
             };
             let flow = on_epoch(&rec);
             ck.history.push(rec);

@@ -43,6 +43,10 @@ pub struct EpochRecord {
     /// line search may take several.
     #[serde(default)]
     pub evaluations: usize,
+    /// With `optimize.smoothing`: the loss L itself at these parameters (one forward run;
+    /// `loss` is then L_σ's estimate). None without smoothing, where `loss` is L.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unsmoothed_loss: Option<f64>,
 }
 
 /// Optimiser state carried between epochs.
@@ -308,6 +312,11 @@ impl Optimization {
         };
         let out: Vec<f64> = self.params.iter().flat_map(|&p| g.get(p).to_array()).collect();
         Ok((loss, out))
+    }
+
+    /// With smoothing, the loss L itself at `p` for the epoch's record (None without).
+    pub(super) fn unsmoothed_loss(&self, p: &BodyState) -> Result<Option<f64>> {
+        self.smoothing.as_ref().map(|_| self.loss_at(p)).transpose()
     }
 
     /// The loss at `p` (forward only).
@@ -584,12 +593,20 @@ impl Optimization {
                 stopped = Some(m);
                 break;
             }
+            let unsmoothed_loss = match self.unsmoothed_loss(&ck.params) {
+                Ok(x) => x,
+                Err(e) => {
+                    stopped = Some(format!("epoch {}: {e}", ck.next_epoch));
+                    break;
+                }
+            };
             let rec = EpochRecord {
                 epoch: ck.next_epoch,
                 loss,
                 grad_norm: norm,
                 params: ck.params,
                 evaluations: ck.evaluations,
+                unsmoothed_loss,
             };
             let flow = on_epoch(&rec);
             ck.history.push(rec);

@@ -166,7 +166,15 @@ fn optimize_on_the_smoothed_loss_recovers_the_initial_velocity() {
     );
     let scene = Scene::from_toml(&text, "<recover_smooth>").unwrap();
     let vstar = scene.optimize.as_ref().unwrap().recover_velocity.unwrap();
-    let out = Optimization::new(scene).unwrap().run(None, None, |_| {}).unwrap();
+    let problem = Optimization::new(scene).unwrap();
+    let out = problem.run(None, None, |_| {}).unwrap();
+    // Each epoch records L itself beside L_σ: a forward run at its parameters, not the
+    // smoothed estimate (which differs from it by O(σ²) here).
+    for r in [&out.history[0], &out.history[out.history.len() / 2]] {
+        let plain = problem.loss_at(&r.params).unwrap();
+        assert_eq!(r.unsmoothed_loss, Some(plain), "epoch {}", r.epoch);
+        assert_ne!(r.loss, plain, "epoch {}: L_σ is not L", r.epoch);
+    }
     let v = out.params.v;
     let err = ((0..3).map(|d| (v[d] - vstar[d]).powi(2)).sum::<f64>()
         / vstar.iter().map(|x| x * x).sum::<f64>())

@@ -230,6 +230,8 @@ fn block_drop_loss_falls_nearly_three_thousandfold_in_fifty_epochs() {
     assert_eq!(problem.epochs, 50);
     let out = problem.run(None, None, |_| {}).unwrap();
     assert!(out.stopped.is_none(), "{:?}", out.stopped);
+    // Without smoothing the loss is L itself, and no second one is recorded.
+    assert!(out.history.iter().all(|r| r.unsmoothed_loss.is_none()));
     let first = out.history[0].loss;
     eprintln!(
         "block drop: loss {first:.3e} -> {:.3e} ({:.0}x)",

@@ -34,6 +34,8 @@ struct LossRow {
     qx: f64,
     qy: f64,
     qz: f64,
+    /// With smoothing, L itself (`loss` is then L_σ's estimate); empty without.
+    loss_unsmoothed: Option<f64>,
 }
 
 /// `result.json`.
@@ -83,6 +85,7 @@ pub fn write_optimization(
                 qx: p.q.x,
                 qy: p.q.y,
                 qz: p.q.z,
+                loss_unsmoothed: r.unsmoothed_loss,
             }
         })
         .collect();
