@@ -231,16 +231,8 @@ pub fn value_and_grad<'py>(
 /// The name of `p` if a smoothing of scales `sigma` does not perturb it (the mass never is;
 /// ∂L/∂u₀ is refused before).
 fn unperturbed(p: &Wrt, sigma: &SmoothingScale) -> Option<&'static str> {
-    let zero = match *p {
-        Wrt::Body(Param::V) => sigma.v == 0.0,
-        Wrt::Body(Param::W) => sigma.w == 0.0,
-        Wrt::Body(Param::X) => sigma.x == 0.0,
-        Wrt::Body(Param::Q) => sigma.q == 0.0,
-        Wrt::Mass => true,
-        Wrt::U => false,
-    };
     match *p {
-        Wrt::Body(part) if zero => Some(part.name()),
+        Wrt::Body(part) if sigma.of(part) == 0.0 => Some(part.name()),
         Wrt::Mass => Some("mass"),
         _ => None,
     }
@@ -257,15 +249,14 @@ fn smoothing_from(d: &Bound<'_, PyDict>) -> PyResult<Smoothing> {
             "samples" => out.samples = v.extract()?,
             "estimator" => {
                 let name: String = v.extract()?;
-                out.estimator = match name.as_str() {
-                    "gradients" => SmoothingEstimator::Gradients,
-                    "values" => SmoothingEstimator::Values,
-                    other => {
-                        return Err(value_error(format!(
-                            "smoothing.estimator: unknown estimator {other:?} (gradients, values)"
-                        )))
-                    }
-                };
+                let all = SmoothingEstimator::ALL;
+                out.estimator = all.into_iter().find(|e| e.name() == name).ok_or_else(|| {
+                    let names: Vec<&str> = all.iter().map(|e| e.name()).collect();
+                    value_error(format!(
+                        "smoothing.estimator: unknown estimator {name:?} ({})",
+                        names.join(", ")
+                    ))
+                })?;
             }
             "seed" => out.seed = v.extract()?,
             "sigma" => {

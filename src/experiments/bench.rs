@@ -839,17 +839,14 @@ pub struct SmoothedRow {
 pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
     use crate::geometry::body::Param;
     use crate::gradients::{
-        value_and_gradient, value_and_smoothed_gradient, GradientSettings, Loss, Smoothing,
-        SmoothingEstimator, SmoothingScale,
+        central_difference, value_and_gradient, value_and_smoothed_gradient, GradientSettings,
+        Smoothing, SmoothingEstimator, SmoothingScale,
     };
     let horizons: &[usize] = if quick { &[6] } else { &[25, 50] };
     let sigmas: &[f64] = if quick { &[1e-2] } else { &[1e-3, 1e-2] };
     let samples = if quick { 4 } else { 16 };
-    let estimators: &[(SmoothingEstimator, &str)] = if quick {
-        &[(SmoothingEstimator::Gradients, "gradients")]
-    } else {
-        &[(SmoothingEstimator::Gradients, "gradients"), (SmoothingEstimator::Values, "values")]
-    };
+    let estimators: &[SmoothingEstimator] =
+        if quick { &[SmoothingEstimator::Gradients] } else { &SmoothingEstimator::ALL };
     // The quick study's v_x: at 6 steps v_y's gradient is small and curved at the scale of
     // σ_v with the blended surface (docs/gradients.md, "The smooth defaults").
     let v_axis = if quick { 0 } else { 1 };
@@ -862,21 +859,10 @@ pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
     let mut rows = Vec::new();
     for &h in horizons {
         let exact = value_and_gradient(&sim, h, &loss, &settings)?.gradient.bodies[0];
-        let at = |c: Coordinate, e: f64| -> Result<f64> {
-            let mut s = sim.clone();
-            let b = &mut s.bodies_mut()[0];
-            let st = c.param.perturbed(&b.state(), c.axis, e);
-            b.set_state(&st);
-            for _ in 0..h {
-                s.step()?;
-            }
-            Ok(loss.value(&s))
-        };
-        let fd =
-            |c: Coordinate, e: f64| -> Result<f64> { Ok((at(c, e)? - at(c, -e)?) / (2.0 * e)) };
+        let fd = |c: Coordinate, e: f64| central_difference(&sim, h, &loss, 0, c, e);
         let fds: Vec<(f64, f64)> =
             params.iter().map(|&c| Ok((fd(c, 1e-4)?, fd(c, 1e-6)?))).collect::<Result<_>>()?;
-        for (&sigma, &(estimator, name)) in
+        for (&sigma, &estimator) in
             sigmas.iter().flat_map(|s| estimators.iter().map(move |e| (s, e)))
         {
             let scale = SmoothingScale { v: sigma, w: 0.0, x: 0.1 * sigma, q: 0.0 };
@@ -888,7 +874,7 @@ pub fn smoothed_gradient(quick: bool) -> Result<Vec<SmoothedRow>> {
                     horizon: h,
                     sigma,
                     samples,
-                    estimator: name.into(),
+                    estimator: estimator.name().into(),
                     param: c.name(),
                     exact: ex,
                     fd_1e4,

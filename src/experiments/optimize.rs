@@ -19,7 +19,7 @@ use crate::geometry::body::{BodyState, Param};
 use crate::gradients::backward::SurfaceGradient;
 use crate::gradients::{
     value_and_gradient, value_and_smoothed_gradient, BodyTargetLoss, GradientOptions,
-    GradientSettings, Loss, Smoothing,
+    GradientSettings, Smoothing,
 };
 use crate::math::{so3, Rotation, Vec3};
 use crate::world::Simulation;
@@ -321,13 +321,7 @@ impl Optimization {
 
     /// The loss at `p` (forward only).
     pub fn loss_at(&self, p: &BodyState) -> Result<f64> {
-        let mut s = self.simulation(p);
-        // The loss reads the bodies, none of the reports' measures.
-        s.set_report_measures(false);
-        for _ in 0..self.scene.time.steps {
-            s.step()?;
-        }
-        Ok(self.loss.value(&s))
+        crate::gradients::run::value(self.simulation(p), self.scene.time.steps, &self.loss)
     }
 
     fn start_state(&self) -> OptimizerState {

@@ -73,10 +73,7 @@ fn perturbed_loss(
     let b = &mut s.bodies_mut()[body];
     let state = c.param.perturbed(&b.state(), c.axis, h);
     b.set_state(&state);
-    for _ in 0..steps {
-        s.step()?;
-    }
-    Ok(loss.value(&s))
+    super::run::value(s, steps, loss)
 }
 
 /// How [`gradcheck`] checks.

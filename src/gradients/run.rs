@@ -270,6 +270,16 @@ pub struct GradientRun {
     pub adjoint_seconds: AdjointSeconds,
 }
 
+/// The loss after `steps` steps from `sim` (forward only, untaped, the reports' liquid
+/// measures off: the loss reads the bodies).
+pub fn value(mut sim: Simulation, steps: usize, loss: &dyn Loss) -> Result<f64> {
+    sim.set_report_measures(false);
+    for _ in 0..steps {
+        sim.step()?;
+    }
+    Ok(loss.value(&sim))
+}
+
 /// Runs `steps` steps from `initial`, evaluates `loss` and its gradient with respect to the
 /// initial state.
 pub fn value_and_gradient(

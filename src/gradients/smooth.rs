@@ -19,9 +19,9 @@
 //! to Ray workers.
 
 use super::loss::{BodyGradient, Gradient, Loss};
-use super::run::{value_and_gradient, GradientSettings};
+use super::run::{value, value_and_gradient, GradientSettings};
 use crate::error::{Error, Result};
-use crate::geometry::body::BodyState;
+use crate::geometry::body::{BodyState, Param};
 use crate::geometry::grid::Mac;
 use crate::math::{Rotation, Vec3};
 use crate::world::Simulation;
@@ -47,6 +47,18 @@ pub struct SmoothingScale {
     pub q: f64,
 }
 
+impl SmoothingScale {
+    /// σ of the kind of parameter `p`.
+    pub fn of(&self, p: Param) -> f64 {
+        match p {
+            Param::V => self.v,
+            Param::W => self.w,
+            Param::X => self.x,
+            Param::Q => self.q,
+        }
+    }
+}
+
 /// What [`value_and_smoothed_gradient`] estimates ∇L_σ from.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -63,6 +75,20 @@ pub enum SmoothingEstimator {
     /// coordinates (every coordinate of every moving body whose kind has σ > 0; a kind with
     /// σ = 0, and the mass, get no gradient).
     Values,
+}
+
+impl SmoothingEstimator {
+    /// Both, in the order of their names' list.
+    pub const ALL: [SmoothingEstimator; 2] =
+        [SmoothingEstimator::Gradients, SmoothingEstimator::Values];
+
+    /// Its name in a scene file (`gradients`, `values`).
+    pub fn name(self) -> &'static str {
+        match self {
+            SmoothingEstimator::Gradients => "gradients",
+            SmoothingEstimator::Values => "values",
+        }
+    }
 }
 
 /// How [`value_and_smoothed_gradient`] smooths.
@@ -250,14 +276,7 @@ pub fn value_and_smoothed_gradient(
             let runs: Vec<[f64; 2]> = draws
                 .par_iter()
                 .map(|draw| -> Result<[f64; 2]> {
-                    let value = |sign: f64| -> Result<f64> {
-                        let mut sim = perturb(draw, sign);
-                        sim.set_report_measures(false);
-                        for _ in 0..steps {
-                            sim.step()?;
-                        }
-                        Ok(loss.value(&sim))
-                    };
+                    let value = |sign: f64| value(perturb(draw, sign), steps, loss);
                     let pair = || -> Result<[f64; 2]> { Ok([value(1.0)?, value(-1.0)?]) };
                     match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
                         Ok(own) => own.install(pair),

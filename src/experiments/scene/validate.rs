@@ -333,17 +333,10 @@ fn check_smoothing(
     params: &[crate::geometry::body::Param],
     optimizer: &OptimizerSpec,
 ) -> Result<(), Problem> {
-    use crate::geometry::body::Param;
     use crate::gradients::SmoothingEstimator;
     if s.estimator == SmoothingEstimator::Values {
-        for p in params {
-            let sigma = match p {
-                Param::V => s.sigma.v,
-                Param::W => s.sigma.w,
-                Param::X => s.sigma.x,
-                Param::Q => s.sigma.q,
-            };
-            if sigma == 0.0 {
+        for &p in params {
+            if s.sigma.of(p) == 0.0 {
                 let name = p.name();
                 return Err(problem(
                     format!("optimize.smoothing.sigma.{name}"),
