@@ -624,15 +624,20 @@ fn particles_adjoint(
         pbar = vec![Vec3::ZERO; replayed.end.len()];
     }
     let deep = band.as_ref().map(|b| b.deep.as_slice());
+    let ghosts = initial.ghosts_at(bodies);
+    let mut gbar = vec![Vec3::ZERO; ghosts.len()];
     surface::liquid_sdf_adjoint(
         &replayed.end,
+        &ghosts,
         &pr.nearest,
         &grid,
         &model,
         deep,
         phi_bar,
         &mut pbar,
+        &mut gbar,
     );
+    surface::ghost_pose_adjoint(bodies, initial.displaced(), &gbar, pose);
     // Volume control: the solve's sources read the particles' density here.
     if rec.volume_control {
         let rate = settings.solver.volume_rate();

@@ -291,6 +291,9 @@ pub struct DensityInputs<'a> {
     /// The bodies where the step's geometry has them (their clearance weighs the cells'
     /// deficit, see `interior_weights`).
     pub bodies: &'a [RigidBody],
+    /// The sites each of `bodies` displaced (the soft minimum of φ_L counts them where the
+    /// bodies are, see `stages/surface/ghosts.rs`).
+    pub displaced: &'a [surface::Displaced],
     /// Gravity, m/s² (φ_L is carried into the solids across it, see [`SolidExtension`]).
     pub gravity: [f64; 3],
     /// How φ_L is made from the particles.
@@ -316,6 +319,15 @@ pub struct DensityInputs<'a> {
 }
 
 impl DensityInputs<'_> {
+    /// The bodies' ghosts where they are, for a soft minimum of φ_L (none otherwise).
+    fn ghosts(&self) -> Vec<Vec3> {
+        if self.surface.softness > 0.0 {
+            surface::ghost_sites(self.bodies, self.displaced)
+        } else {
+            Vec::new()
+        }
+    }
+
     /// A face field to overwrite (the pool's, when there is one).
     fn field(&self) -> Mac {
         self.systems.map_or_else(|| Mac::zeros(self.grid), |pool| pool.field(self.grid))
@@ -395,10 +407,12 @@ impl DensityProjection {
         // The bins serve φ_L only, so they are gone before the deposit's arrays are made.
         let (mut phi, nearest) = {
             let bins = Bins::new(particles, grid);
+            let ghosts = g.ghosts();
             if adjoint {
-                surface::liquid_sdf_nearest(particles, &bins, grid, &g.surface, deep)
+                surface::liquid_sdf_nearest(particles, &bins, &ghosts, grid, &g.surface, deep)
             } else {
-                (surface::liquid_sdf(particles, &bins, grid, &g.surface, deep), Vec::new())
+                let phi = surface::liquid_sdf(particles, &bins, &ghosts, grid, &g.surface, deep);
+                (phi, Vec::new())
             }
         };
         // The weights closed at the deep cells beside φ's extension into the solids, which
@@ -745,15 +759,20 @@ impl DensityProjection {
         let sbar = self.extension.transpose(&self.phi, &mut phi_bar);
         solidity_pose_adjoint(grid, g.bodies, &sbar, pose);
         let deep = g.band.map(|b| b.deep.as_slice());
+        let ghosts = g.ghosts();
+        let mut gbar = vec![Vec3::ZERO; ghosts.len()];
         surface::liquid_sdf_adjoint(
             particles,
+            &ghosts,
             &self.nearest,
             grid,
             &g.surface,
             deep,
             &phi_bar,
             pbar,
+            &mut gbar,
         );
+        surface::ghost_pose_adjoint(g.bodies, g.displaced, &gbar, pose);
         (s, stats)
     }
 }
@@ -1048,6 +1067,7 @@ mod tests {
                 partial: &[],
                 near_solid: &self.centre_in_solid,
                 bodies: &[],
+                displaced: &[],
                 gravity: [0.0, -9.81, 0.0],
                 surface: surface::SurfaceModel {
                     radius: surface::particle_radius(self.grid.dx, 2),

@@ -157,11 +157,12 @@ fn sparse_phi_gradient(offset: Vec3, dx: f64, radius: f64, depth: f64) -> Vec3 {
 pub fn liquid_sdf(
     pos: &[Vec3],
     bins: &Bins,
+    ghosts: &[Vec3],
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
 ) -> Vec<f64> {
-    liquid_sdf_with(Vec::new(), pos, bins, grid, model, deep, false).0
+    liquid_sdf_with(Vec::new(), pos, bins, ghosts, grid, model, deep, false).0
 }
 
 /// [`liquid_sdf`] written into the memory of `phi` (whatever it holds).
@@ -169,11 +170,12 @@ pub fn liquid_sdf_into(
     phi: &mut Vec<f64>,
     pos: &[Vec3],
     bins: &Bins,
+    ghosts: &[Vec3],
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
 ) {
-    *phi = liquid_sdf_with(std::mem::take(phi), pos, bins, grid, model, deep, false).0;
+    *phi = liquid_sdf_with(std::mem::take(phi), pos, bins, ghosts, grid, model, deep, false).0;
 }
 
 /// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
@@ -188,19 +190,22 @@ pub fn liquid_sdf_into(
 pub fn liquid_sdf_nearest(
     pos: &[Vec3],
     bins: &Bins,
+    ghosts: &[Vec3],
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
 ) -> (Vec<f64>, Vec<u32>) {
-    liquid_sdf_with(Vec::new(), pos, bins, grid, model, deep, true)
+    liquid_sdf_with(Vec::new(), pos, bins, ghosts, grid, model, deep, true)
 }
 
 /// [`liquid_sdf_nearest`] in the memory of `phi`, the nearest particles only when `nearest`
 /// (empty otherwise: 4 bytes a cell that the forward pass never reads).
+#[allow(clippy::too_many_arguments)]
 fn liquid_sdf_with(
     mut phi: Vec<f64>,
     pos: &[Vec3],
     bins: &Bins,
+    ghosts: &[Vec3],
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
@@ -211,12 +216,14 @@ fn liquid_sdf_with(
     let cells = grid.cells();
     let dx = grid.dx;
     let slab = grid.n[0] * grid.n[1];
-    let soft =
-        (model.softness > 0.0).then(|| SoftSdf::new(pos, bins, grid, model, deep.map(|d| d.cells)));
+    let soft = (model.softness > 0.0)
+        .then(|| SoftSdf::new(pos, bins, ghosts, grid, model, deep.map(|d| d.cells)));
     // How far (L∞, in cells) the nearest cell holding a particle is: nothing to search in
     // the air beyond two cells of the liquid (most of a tall tank's cells). The soft minimum
-    // counts the deep cells' particles too.
-    let counted = |c: usize| soft.is_some() && deep.is_some_and(|d| d.cells[c]);
+    // counts the deep cells' particles, and the bodies' ghosts, too.
+    let counted = |c: usize| {
+        soft.as_ref().is_some_and(|s| deep.is_some_and(|d| d.cells[c]) || s.has_ghost(c))
+    };
     let occupied: Vec<bool> =
         (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty() || counted(c)).collect();
     let reach = linf_distance(grid, &occupied, 3);
@@ -340,20 +347,24 @@ fn nearest_particle(
 /// Adjoint of [`liquid_sdf_nearest`] (of surface model `model`, a narrow band's `deep`
 /// cells) in the particles: ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c| for the particle p whose
 /// distance φ_c is, the soft minimum's derivative where it set φ_c (see `softmin.rs`), or the
-/// derivative of `sparse_phi` where the sparse-cell rule set φ_c. Adds into `pbar`.
+/// derivative of `sparse_phi` where the sparse-cell rule set φ_c. Adds into `pbar`, and the
+/// soft minimum's derivative in the bodies' `ghosts` (see `ghosts.rs`) into `gbar`.
+#[allow(clippy::too_many_arguments)]
 pub fn liquid_sdf_adjoint(
     pos: &[Vec3],
+    ghosts: &[Vec3],
     nearest: &[u32],
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<&[bool]>,
     phi_bar: &[f64],
     pbar: &mut [Vec3],
+    gbar: &mut [Vec3],
 ) {
     let cells = grid.cells();
     if model.softness > 0.0 {
         let bins = Bins::new(pos, grid);
-        SoftSdf::new(pos, &bins, grid, model, deep).adjoint(nearest, phi_bar, pbar);
+        SoftSdf::new(pos, &bins, ghosts, grid, model, deep).adjoint(nearest, phi_bar, pbar, gbar);
     }
     for (c, (&p, &g)) in nearest.iter().zip(phi_bar).enumerate() {
         if g == 0.0 || p == crate::geometry::grid::NONE || p == SOFT {

@@ -225,6 +225,9 @@ fn lattice_terms(kernel: &Kernel, off: &[f64], o: [i64; 3], dx: f64) -> f64 {
 pub(super) struct SoftSdf<'a> {
     pos: &'a [Vec3],
     bins: &'a Bins,
+    /// The bodies' ghosts (see `ghosts.rs`), counted as particles, and their bins.
+    ghosts: &'a [Vec3],
+    ghost_bins: Bins,
     grid: &'a Grid,
     block: Vec<[i64; 3]>,
     kernel: Kernel,
@@ -239,6 +242,7 @@ impl<'a> SoftSdf<'a> {
     pub(super) fn new(
         pos: &'a [Vec3],
         bins: &'a Bins,
+        ghosts: &'a [Vec3],
         grid: &'a Grid,
         model: &SurfaceModel,
         deep: Option<&'a [bool]>,
@@ -248,7 +252,24 @@ impl<'a> SoftSdf<'a> {
         let block = block(SOFT_REACH);
         let off = sub_offsets(model.per_axis);
         let deep_terms = block.iter().map(|o| lattice_terms(&kernel, &off, *o, dx)).collect();
-        SoftSdf { pos, bins, grid, block, kernel, radius: model.radius, deep, deep_terms }
+        let ghost_bins = Bins::new(ghosts, grid);
+        SoftSdf {
+            pos,
+            bins,
+            ghosts,
+            ghost_bins,
+            grid,
+            block,
+            kernel,
+            radius: model.radius,
+            deep,
+            deep_terms,
+        }
+    }
+
+    /// Whether cell `c` holds a ghost.
+    pub(super) fn has_ghost(&self, c: usize) -> bool {
+        !self.ghost_bins.cell(c).is_empty()
     }
 
     /// φ beyond every particle's reach (the nearest particle's distance's cap).
@@ -277,6 +298,10 @@ impl<'a> SoftSdf<'a> {
                     let q = reflect(self.pos[p as usize], flip, size);
                     sum += self.kernel.term((q - x).length_squared());
                 }
+                for &p in self.ghost_bins.cell(c) {
+                    let q = reflect(self.ghosts[p as usize], flip, size);
+                    sum += self.kernel.term((q - x).length_squared());
+                }
             }
         }
         (sum + self.kernel.far, sum > 0.0)
@@ -288,12 +313,17 @@ impl<'a> SoftSdf<'a> {
         (self.kernel.phi(sum, self.radius), if moves { SOFT } else { NONE })
     }
 
-    /// Adjoint: adds ∂φ_c/∂x_p · φ̄_c over the cells `marks` tags [`SOFT`] into `pbar`.
-    /// ∂φ/∂x_p is particle p's share of the sum times the gradient of its distance less
-    /// τ·ln c_p.
-    pub(super) fn adjoint(&self, marks: &[u32], phi_bar: &[f64], pbar: &mut [Vec3]) {
-        let grid = self.grid;
-        let cells = grid.cells();
+    /// Adjoint: adds ∂φ_c/∂x_p · φ̄_c over the cells `marks` tags [`SOFT`] into `pbar` (the
+    /// particles) and `gbar` (the ghosts). ∂φ/∂x_p is particle p's share of the sum times
+    /// the gradient of its distance less τ·ln c_p.
+    pub(super) fn adjoint(
+        &self,
+        marks: &[u32],
+        phi_bar: &[f64],
+        pbar: &mut [Vec3],
+        gbar: &mut [Vec3],
+    ) {
+        let cells = self.grid.cells();
         // Per cell φ̄ over its sum: a particle's share of φ̄ is its term times this.
         let per_term: Vec<f64> = (0..marks.len())
             .into_par_iter()
@@ -305,39 +335,48 @@ impl<'a> SoftSdf<'a> {
                 g / self.sum(cells.ijk(c)).0
             })
             .collect();
+        let point = |x: Vec3| self.point_adjoint(&per_term, x);
+        pbar.par_iter_mut().zip(self.pos).for_each(|(bar, &x)| *bar += point(x));
+        gbar.par_iter_mut().zip(self.ghosts).for_each(|(bar, &x)| *bar += point(x));
+    }
+
+    /// Σ_c per_term_c · ∂(term of a point at `xp` in cell c's sum)/∂x_p: the adjoint of one
+    /// particle (or ghost) at `xp`.
+    fn point_adjoint(&self, per_term: &[f64], xp: Vec3) -> Vec3 {
+        let grid = self.grid;
+        let cells = grid.cells();
         let size = grid.size();
         let n = grid.n.map(|n| n as i64);
-        pbar.par_iter_mut().enumerate().for_each(|(p, bar)| {
-            let xp = self.pos[p];
-            let own = cell_of(grid, xp);
-            // A deep cell's sums count its sub-lattice, not what it holds.
-            if self.deep.is_some_and(|d| d[own]) {
-                return;
-            }
-            let own = cells.ijk(own).map(|i| i as i64);
-            // The particle and its mirror images in the cells beyond the walls within a block
-            // of the tank: each seen from the cells whose block holds its (virtual) cell.
-            for_images(own, n, |at, flip| {
-                let q = reflect(xp, flip, size);
-                let signs = Vec3::from_array(flip.map(|f| if f == 0 { 1.0 } else { -1.0 }));
-                for o in &self.block {
-                    let c = [0, 1, 2].map(|d| at[d] - o[d]);
-                    if !(0..3).all(|d| (0..n[d]).contains(&c[d])) {
-                        continue;
-                    }
-                    let c = grid.cell(c[0] as usize, c[1] as usize, c[2] as usize);
-                    let g = per_term[c];
-                    if g == 0.0 {
-                        continue;
-                    }
-                    let [i, j, k] = cells.ijk(c);
-                    let d = q - cells.position(i, j, k);
-                    let term = self.kernel.term(d.length_squared());
-                    if term > 0.0 {
-                        *bar += (g * term) * signs * self.kernel.gradient(d);
-                    }
+        let own = cell_of(grid, xp);
+        // A deep cell's sums count its sub-lattice, not what it holds.
+        if self.deep.is_some_and(|d| d[own]) {
+            return Vec3::ZERO;
+        }
+        let own = cells.ijk(own).map(|i| i as i64);
+        let mut bar = Vec3::ZERO;
+        // The point and its mirror images in the cells beyond the walls within a block of
+        // the tank: each seen from the cells whose block holds its (virtual) cell.
+        for_images(own, n, |at, flip| {
+            let q = reflect(xp, flip, size);
+            let signs = Vec3::from_array(flip.map(|f| if f == 0 { 1.0 } else { -1.0 }));
+            for o in &self.block {
+                let c = [0, 1, 2].map(|d| at[d] - o[d]);
+                if !(0..3).all(|d| (0..n[d]).contains(&c[d])) {
+                    continue;
                 }
-            });
+                let c = grid.cell(c[0] as usize, c[1] as usize, c[2] as usize);
+                let g = per_term[c];
+                if g == 0.0 {
+                    continue;
+                }
+                let [i, j, k] = cells.ijk(c);
+                let d = q - cells.position(i, j, k);
+                let term = self.kernel.term(d.length_squared());
+                if term > 0.0 {
+                    bar += (g * term) * signs * self.kernel.gradient(d);
+                }
+            }
         });
+        bar
     }
 }

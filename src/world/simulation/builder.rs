@@ -260,6 +260,8 @@ impl SimulationBuilder {
         let deep = band.as_ref().map(|b| b.deep.as_slice());
         let mut particles = surface::seed(&grid, &self.liquid, ppc, &node_sdf, deep);
         let margin = 1e-3 * grid.dx;
+        let displaced: Vec<surface::Displaced> =
+            self.bodies.iter().map(|b| surface::Displaced::of(b, &particles, margin)).collect();
         particles.retain(|x| self.bodies.iter().all(|b| b.sdf(*x) > margin));
         let start_volume = {
             let base = band.as_ref().map(|b| b.density.as_slice());
@@ -269,14 +271,16 @@ impl SimulationBuilder {
             let bins = Bins::new(&particles, &grid);
             let surface = settings.solver.surface_model(grid.dx, radius);
             let deep = band.as_ref().map(Band::deep);
-            Arc::new(surface::liquid_sdf(&particles, &bins, &grid, &surface, deep))
+            let ghosts = if surface.softness > 0.0 {
+                surface::ghost_sites(&self.bodies, &displaced)
+            } else {
+                Vec::new()
+            };
+            Arc::new(surface::liquid_sdf(&particles, &bins, &ghosts, &grid, &surface, deep))
         });
         let n = self.bodies.len();
         let mut warnings = self.notes.clone();
         warnings.extend(self.bodies.iter().filter_map(|b| thin_body_warning(b, grid.dx)));
-        if settings.solver.surface_softness > 0.0 && !self.bodies.is_empty() {
-            warnings.push(SOFT_BODY_WARNING.into());
-        }
         let band = band.map(Arc::new);
         let world = super::next_world();
         let mut sim = Simulation {
@@ -288,6 +292,7 @@ impl SimulationBuilder {
             next_handle: n as u32,
             fluid_forces: vec![[0.0; 6]; n],
             bodies: self.bodies,
+            displaced,
             u: Mac::zeros(&grid),
             particles,
             pressure: vec![0.0; grid.num_cells()],
@@ -430,12 +435,6 @@ pub(super) fn overlap_message(other: &str) -> String {
 
 /// A body's face fractions may miss its volume by this much (relative) before a step warns.
 const VOLUME_TOLERANCE: f64 = 1e-3;
-
-/// The warning of a scene with bodies and φ_L as the particles' soft minimum.
-pub(super) const SOFT_BODY_WARNING: &str = "solver.surface_softness with bodies: the soft \
-    minimum reads the particles a body displaces as liquid missing beside it, so a body at \
-    rest stirs still water (a floating ball: 6.7e-4 J in 1.5 s, against 1e-11 J with the \
-    nearest particle; docs/gradients.md, \"A soft minimum for φ_L\")";
 
 /// The warning about a body whose face fractions miss the fraction `error` of its volume,
 /// if that is more than [`VOLUME_TOLERANCE`].

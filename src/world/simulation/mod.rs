@@ -76,6 +76,9 @@ pub struct Simulation {
     /// next update.
     band: Option<Arc<Band>>,
     bodies: Vec<RigidBody>,
+    /// Per body, the seeding sites it displaced when placed (see
+    /// `stages/surface/ghosts.rs`).
+    displaced: Vec<surface::Displaced>,
     handles: Vec<BodyHandle>,
     /// This simulation's identity in its handles (its clones share it).
     world: u32,
@@ -452,6 +455,7 @@ impl Simulation {
             }
         }
         let margin = 1e-3 * self.grid.dx;
+        let displaced = surface::Displaced::of(&body, &self.particles, margin);
         self.particles.retain(|x| body.sdf(*x) > margin);
         let h = BodyHandle { world: self.world, id: self.next_handle };
         self.next_handle += 1;
@@ -478,6 +482,7 @@ impl Simulation {
             self.warn_about(&mut warnings, "volume", h, w);
         }
         self.bodies.push(body);
+        self.displaced.push(displaced);
         self.handles.push(h);
         self.fluid_forces.push([0.0; 6]);
         Ok(h)
@@ -488,6 +493,7 @@ impl Simulation {
         let i = self.index(h)?;
         self.handles.remove(i);
         self.fluid_forces.remove(i);
+        self.displaced.remove(i);
         Ok(self.bodies.remove(i))
     }
 
@@ -567,6 +573,7 @@ impl Simulation {
                     phi,
                     &self.particles,
                     &bins,
+                    &self.ghosts_at(&self.bodies),
                     &self.grid,
                     &self.surface_model(),
                     self.band.as_deref().map(Band::deep),

@@ -333,8 +333,15 @@ impl Simulation {
                 let bins = Bins::new(&self.particles, &self.grid);
                 let deep = self.band.as_deref().map(Band::deep);
                 let model = self.surface_model();
-                let (phi, nearest) =
-                    surface::liquid_sdf_nearest(&self.particles, &bins, &self.grid, &model, deep);
+                let ghosts = self.ghosts_at(&self.bodies);
+                let (phi, nearest) = surface::liquid_sdf_nearest(
+                    &self.particles,
+                    &bins,
+                    &ghosts,
+                    &self.grid,
+                    &model,
+                    deep,
+                );
                 r.nearest = nearest;
                 phi
             }

@@ -388,6 +388,23 @@ impl Simulation {
         self.settings.solver.surface_model(self.grid.dx, self.radius)
     }
 
+    /// The sites each body displaced when it was placed, in its frame (see
+    /// `stages/surface/ghosts.rs`), body by body.
+    pub(crate) fn displaced(&self) -> &[crate::stages::surface::Displaced] {
+        &self.displaced
+    }
+
+    /// The bodies' ghosts where `bodies` (this simulation's, or a step's record of them)
+    /// are: what the soft minimum of φ_L counts besides the particles; none for the nearest
+    /// particle's distance.
+    pub(crate) fn ghosts_at(&self, bodies: &[RigidBody]) -> Vec<Vec3> {
+        if self.settings.solver.surface_softness > 0.0 {
+            crate::stages::surface::ghost_sites(bodies, &self.displaced)
+        } else {
+            Vec::new()
+        }
+    }
+
     /// What the density projection of a step with `geometry` and `bodies` reads (None when
     /// it is off).
     pub(crate) fn density_inputs<'a>(
@@ -404,6 +421,7 @@ impl Simulation {
             partial: &geometry.partial,
             near_solid: &self.statics.near_solid,
             bodies,
+            displaced: &self.displaced,
             gravity: self.settings.fluid.gravity,
             surface: self.surface_model(),
             particles_per_cell: solver.particles_per_cell,
