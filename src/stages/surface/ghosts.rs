@@ -69,13 +69,17 @@ pub fn ghost_sites(bodies: &[RigidBody], displaced: &[Displaced]) -> Vec<Vec3> {
 
 /// Adjoint of [`ghost_sites`]: adds ∂L/∂pose of each body, [δx; δθ] (world frame, about its
 /// centre of mass, as [`RigidBody::sdf_pose_dual`]), from ∂L/∂(each ghost's position)
-/// `gbar` into `pose`. A ghost at x_g moves by δx + δθ × (x_g − x).
+/// `gbar` into `pose`. A ghost at x_g moves by δx + δθ × (x_g − x). Nothing when `gbar` is
+/// empty (φ_L the nearest particle's distance, which counts no ghosts).
 pub fn ghost_pose_adjoint(
     bodies: &[RigidBody],
     displaced: &[Displaced],
     gbar: &[Vec3],
     pose: &mut [Twist],
 ) {
+    if gbar.is_empty() {
+        return;
+    }
     let mut at = 0;
     for ((b, d), p) in bodies.iter().zip(displaced).zip(pose.iter_mut()) {
         let (mut force, mut torque) = (Vec3::ZERO, Vec3::ZERO);
