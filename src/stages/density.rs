@@ -305,6 +305,9 @@ pub struct DensityInputs<'a> {
     /// How many times a step runs the projection (`solver.density_passes`; see
     /// [`crate::stages::particles::ParticleStage::settle`]).
     pub passes: usize,
+    /// Below this weight a face carries its weight's share of the displacement
+    /// (`solver.density_face_ramp`; 0: every open face all of it).
+    pub face_ramp: f64,
     /// The ghost-fluid θ of the projection's operator.
     pub ghost: GhostFluid,
     /// How the displacement's liquid–air faces blend into its extrapolation layer (see
@@ -571,7 +574,49 @@ impl DensityProjection {
             c.par_chunks_mut(crate::math::par::MIN_LEN).for_each(|c| c.fill(0.0));
         }
         let valid0 = self.sys.velocity_update_into(q, &mut d);
+        let ramp = g.face_ramp;
+        if ramp > 0.0 {
+            let weights = self.weights(g);
+            for (a, field) in d.c.iter_mut().enumerate() {
+                for pf in &self.sys.faces[a] {
+                    let f = pf.face as usize;
+                    let w = weights.weight(a, f);
+                    if w < ramp {
+                        field[f] *= w / ramp;
+                    }
+                }
+            }
+        }
         (d, valid0)
+    }
+
+    /// Adjoint of the face ramp of [`DensityProjection::updated`] (`g.face_ramp`): scales
+    /// `dbar` on the faded faces by their share and returns, per faded face (axis, face),
+    /// ∂L/∂w: the displacement it would carry unfaded, over the ramp, times its d̄.
+    fn face_ramp_adjoint(
+        &self,
+        q: &[f64],
+        g: &DensityInputs<'_>,
+        dbar: &mut Mac,
+    ) -> Vec<(usize, u32, f64)> {
+        let ramp = g.face_ramp;
+        let mut out = Vec::new();
+        if ramp <= 0.0 {
+            return out;
+        }
+        let weights = self.weights(g);
+        for (a, field) in dbar.c.iter_mut().enumerate() {
+            for pf in &self.sys.faces[a] {
+                let f = pf.face as usize;
+                let w = weights.weight(a, f);
+                if w < ramp {
+                    let full = -self.sys.velocity_update_at(a, f, q);
+                    out.push((a, pf.face, field[f] * full / ramp));
+                    field[f] *= w / ramp;
+                }
+            }
+        }
+        out
     }
 
     /// Whether the operator is closed at face `f` of `axis`: the inputs' closed faces, and
@@ -634,7 +679,8 @@ impl DensityProjection {
     /// there. `particles` are the positions the system was built from, `q` its solution.
     /// The bodies' ∂L/∂[δx; δθ] through the interior weights is added to `pose` (one per
     /// body of the inputs). Returns the adjoint solve's solution s (for the pose derivative of
-    /// the weights, which the caller takes) and its statistics.
+    /// the weights, which the caller takes) and its statistics, and ∂L/∂w of the faces the
+    /// face ramp faded (axis, face, ∂L/∂w; for the same).
     pub fn adjoint(
         &self,
         particles: &[Vec3],
@@ -642,7 +688,7 @@ impl DensityProjection {
         pbar: &mut [Vec3],
         pose: &mut [Twist],
         g: &DensityInputs<'_>,
-    ) -> (Vec<f64>, CgStats) {
+    ) -> WeightAdjoint {
         let disp = self.displacement(q, g);
         let out = self.adjoint_with(particles, q, &disp, pbar, pose, g);
         g.give_back(None, Some(disp.d));
@@ -659,7 +705,7 @@ impl DensityProjection {
         pbar: &mut [Vec3],
         pose: &mut [Twist],
         g: &DensityInputs<'_>,
-    ) -> (Vec<f64>, CgStats) {
+    ) -> WeightAdjoint {
         let grid = g.grid;
         assert_eq!(
             self.nearest.len(),
@@ -713,6 +759,7 @@ impl DensityProjection {
             }
             g.give_back(None, Some(input));
         }
+        let ramp_bar = self.face_ramp_adjoint(q, g, &mut dbar);
         let qbar = self.sys.update_velocity_adjoint(&dbar);
         let (s, stats) = self.sys.solve(&qbar, &g.solve);
         // b = gain·excess(dens, interior, depth)·dx³ on the rows (0 on a band's deep cells).
@@ -773,9 +820,14 @@ impl DensityProjection {
             &mut gbar,
         );
         surface::ghost_pose_adjoint(g.bodies, g.displaced, &gbar, pose);
-        (s, stats)
+        (s, stats, ramp_bar)
     }
 }
+
+/// What [`DensityProjection::adjoint`] leaves for the pose derivative of the operator's
+/// weights: the adjoint solve's solution s, its statistics, and per face the face ramp faded
+/// (axis, face) its ∂L/∂w.
+pub type WeightAdjoint = (Vec<f64>, CgStats, Vec<(usize, u32, f64)>);
 
 /// Sets every face of a `deep` cell of `field` (the faces normal to `axis`, in the face
 /// lattice's order) to `shut`, and leaves the others as they are. A deep cell is full by
@@ -1079,6 +1131,7 @@ mod tests {
                 particles_per_cell: 8,
                 gain: 1.75,
                 passes: 1,
+                face_ramp: 0.0,
                 ghost: GhostFluid::clamped(0.01),
                 blend: SurfaceBlend { theta: 0.0 },
                 solve: LinearSolve::new(Preconditioner::Mic0, 1e-13, 10_000),

@@ -250,7 +250,7 @@ impl ParticleStage<'_> {
         add_pose(pose, push);
         // The passes in reverse, each taking ∂L/∂(its positions after) to ∂L/∂(before).
         for KeptPass { proj, q, disp, before } in kept.into_iter().rev() {
-            let (s, stats) = proj.adjoint_with(&before, &q, &disp, pbar, pose, g);
+            let (s, stats, ramp_bar) = proj.adjoint_with(&before, &q, &disp, pbar, pose, g);
             if !stats.converged {
                 return Err(Error::NotConverged {
                     solve: Solve::DensityAdjoint,
@@ -260,7 +260,8 @@ impl ParticleStage<'_> {
                     tolerance: g.solve.tolerance,
                 });
             }
-            density_weight_pose(&proj, &q, &s, g, dual_faces, statics, pose);
+            let weight_bar = WeightBar { s: &s, ramp: &ramp_bar };
+            density_weight_pose(&proj, &q, weight_bar, g, dual_faces, statics, pose);
             g.give_back(None, Some(disp.d));
             proj.give_back(g);
         }
@@ -308,13 +309,21 @@ fn add_pose(pose: &mut [Twist], g: Vec<Twist>) {
     }
 }
 
+/// ∂L/∂(the density operator's weights), in the two parts the adjoint leaves them: the
+/// adjoint solve's solution `s` (through the operator) and the face ramp's faded faces
+/// (axis, face, ∂L/∂w; sorted).
+struct WeightBar<'a> {
+    s: &'a [f64],
+    ramp: &'a [(usize, u32, f64)],
+}
+
 /// The density system's part of the pose derivative: its weights lose what a body covers,
 /// so −sᵀ·δA·q = Σ_f ∂β_f/∂pose · Δt·dx/ρ·θ·(g·s)(g·q) over the faces the body covers in
 /// part (inside the clamp of w = w_static − β).
 fn density_weight_pose(
     proj: &DensityProjection,
     q: &[f64],
-    s: &[f64],
+    bar: WeightBar<'_>,
     g: &DensityInputs<'_>,
     dual_faces: &[DualFaces],
     statics: &FaceWeights,
@@ -322,6 +331,10 @@ fn density_weight_pose(
 ) {
     // A face the projection closed at a deep cell does not see the body.
     let weights = proj.weights(g);
+    let ramp = |axis: usize, f: usize| {
+        let key = (axis, f as u32);
+        bar.ramp.binary_search_by_key(&key, |r| (r.0, r.1)).map_or(0.0, |k| bar.ramp[k].2)
+    };
     for (i, faces) in dual_faces.iter().enumerate() {
         for (axis, list) in faces.iter().enumerate() {
             for (f, beta) in list {
@@ -329,7 +342,8 @@ fn density_weight_pose(
                 if !(raw > 0.0 && raw < 1.0 && weights.weight(axis, *f) > 0.0) {
                     continue;
                 }
-                let w = proj.sys.weight_adjoint(axis, *f, weights, &proj.phi, s, q);
+                let w = proj.sys.weight_adjoint(axis, *f, weights, &proj.phi, bar.s, q)
+                    - ramp(axis, *f);
                 for k in 0..6 {
                     pose[i][k] += beta.d[k] * w;
                 }

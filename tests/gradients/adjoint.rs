@@ -242,6 +242,35 @@ fn two_density_passes_gradient_matches_central_differences() {
     check_at("two density passes", &scene, 1e-7, 1e-5);
 }
 
+/// The live-surface gradient with the density projection's faces fading with their weight
+/// (`solver.density_face_ramp = 0.5`: a face the box covers by more than half carries that
+/// share of its displacement less): the backward pass scales their d̄ by the same share and
+/// carries ∂L/∂w to the box's pose through the faces' weights. Every parameter within 1e-5
+/// of central differences of the same map at ε = 1e-7; the map is another than without the
+/// ramp (some parameter's gradient moves by more than 1e-3 of itself), so the check reaches
+/// the faded faces.
+#[test]
+fn density_face_ramp_gradient_matches_central_differences() {
+    let plain = tank_with_surface(FLOATING_BOX, 20, false);
+    let mut scene = plain.clone();
+    scene.solver.density_face_ramp = 0.5;
+    check_at("face ramp", &scene, 1e-7, 1e-5);
+    let loss = test_loss();
+    let gradient = |s: &Scene| {
+        let sim = s.build().unwrap();
+        let run = value_and_gradient(&sim, s.time.steps, &loss, &Default::default()).unwrap();
+        let b = &run.gradient.bodies[0];
+        [b.v, b.w, b.x]
+    };
+    let (a, b) = (gradient(&scene), gradient(&plain));
+    let moved = (0..3)
+        .flat_map(|k| (0..3).map(move |d| (k, d)))
+        .map(|(k, d)| (a[k][d] - b[k][d]).abs() / a[k][d].abs().max(1e-8))
+        .fold(0.0f64, f64::max);
+    eprintln!("face ramp: the gradient moved by {moved:.2e} of itself at most");
+    assert!(moved > 1e-3, "the ramp changed nothing: {moved:e}");
+}
+
 /// The floating box with φ_L ramping into it (`solver.body_ramp`): the extension reads the
 /// cells within half a cell outside the box by how near they are, so its pose reaches φ_L
 /// there, under a frozen surface as under a moving one, and the backward pass follows it

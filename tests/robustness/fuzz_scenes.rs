@@ -137,6 +137,8 @@ fn scene() -> impl Strategy<Value = String> {
         1 => num(-0.5, 3.0).prop_map(|v| format!("density_gain = {v}")),
         1 => hostile().prop_map(|v| format!("density_gain = {v}")),
         1 => (0u64..6).prop_map(|v| format!("density_passes = {v}")),
+        1 => num(-0.2, 1.2).prop_map(|v| format!("density_face_ramp = {v}")),
+        1 => hostile().prop_map(|v| format!("density_face_ramp = {v}")),
         2 => any::<bool>().prop_map(|v| format!("sparse_cells = {v}")),
         2 => num(0.0, 0.6).prop_map(|v| format!("sparse_depth = {v}")),
         1 => hostile().prop_map(|v| format!("sparse_depth = {v}")),

@@ -256,8 +256,8 @@ fn zero_density_tolerance() {
     assert_refused(&output, &dir.out(), &["solver.density_tolerance", "got 0", &line]);
 }
 
-/// The density projection's gain is refused outside (0, 2] and its passes outside 1 to 4,
-/// naming the key and the line: a gain or passes of zero would turn the projection off
+/// The density projection's gain is refused outside (0, 2], its passes outside 1 to 4 and its
+/// face ramp outside [0, 1), naming the key and the line: a gain or passes of zero would turn the projection off
 /// without saying so, and above a gain of 2 the displacement overshoots (the surge lost 7%
 /// of its volume at 2.5).
 #[test]
@@ -268,6 +268,8 @@ fn density_settings_out_of_range() {
         ("density_gain", "nan", "got NaN"),
         ("density_passes", "0", "got 0"),
         ("density_passes", "5", "got 5"),
+        ("density_face_ramp", "1.0", "got 1"),
+        ("density_face_ramp", "-0.1", "got -0.1"),
     ] {
         let dir = TempDir::new(key);
         let text = broken(

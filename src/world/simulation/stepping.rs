@@ -427,6 +427,7 @@ impl Simulation {
             particles_per_cell: solver.particles_per_cell,
             gain: solver.density_gain,
             passes: solver.density_passes,
+            face_ramp: solver.density_face_ramp,
             ghost: solver.ghost_fluid(),
             blend: solver.blend(),
             solve: solver.density_linear(),
