@@ -574,20 +574,30 @@ impl DensityProjection {
             c.par_chunks_mut(crate::math::par::MIN_LEN).for_each(|c| c.fill(0.0));
         }
         let valid0 = self.sys.velocity_update_into(q, &mut d);
+        for (a, f, share) in self.faded_faces(g) {
+            d.c[a][f as usize] *= share;
+        }
+        (d, valid0)
+    }
+
+    /// The faces the face ramp fades (`g.face_ramp`): (axis, face, its share w/`face_ramp`)
+    /// of each face the update acts on whose weight w is under the ramp, in face order.
+    fn faded_faces(&self, g: &DensityInputs<'_>) -> Vec<(usize, u32, f64)> {
         let ramp = g.face_ramp;
-        if ramp > 0.0 {
-            let weights = self.weights(g);
-            for (a, field) in d.c.iter_mut().enumerate() {
-                for pf in &self.sys.faces[a] {
-                    let f = pf.face as usize;
-                    let w = weights.weight(a, f);
-                    if w < ramp {
-                        field[f] *= w / ramp;
-                    }
+        let mut out = Vec::new();
+        if ramp <= 0.0 {
+            return out;
+        }
+        let weights = self.weights(g);
+        for (a, faces) in self.sys.faces.iter().enumerate() {
+            for pf in faces {
+                let w = weights.weight(a, pf.face as usize);
+                if w < ramp {
+                    out.push((a, pf.face, w / ramp));
                 }
             }
         }
-        (d, valid0)
+        out
     }
 
     /// Adjoint of the face ramp of [`DensityProjection::updated`] (`g.face_ramp`): scales
@@ -599,24 +609,18 @@ impl DensityProjection {
         g: &DensityInputs<'_>,
         dbar: &mut Mac,
     ) -> Vec<(usize, u32, f64)> {
+        let faded = self.faded_faces(g);
         let ramp = g.face_ramp;
-        let mut out = Vec::new();
-        if ramp <= 0.0 {
-            return out;
-        }
-        let weights = self.weights(g);
-        for (a, field) in dbar.c.iter_mut().enumerate() {
-            for pf in &self.sys.faces[a] {
-                let f = pf.face as usize;
-                let w = weights.weight(a, f);
-                if w < ramp {
-                    let full = -self.sys.velocity_update_at(a, f, q);
-                    out.push((a, pf.face, field[f] * full / ramp));
-                    field[f] *= w / ramp;
-                }
-            }
-        }
-        out
+        faded
+            .into_iter()
+            .map(|(a, f, share)| {
+                let bar = &mut dbar.c[a][f as usize];
+                let full = -self.sys.velocity_update_at(a, f as usize, q);
+                let wbar = *bar * full / ramp;
+                *bar *= share;
+                (a, f, wbar)
+            })
+            .collect()
     }
 
     /// Whether the operator is closed at face `f` of `axis`: the inputs' closed faces, and
