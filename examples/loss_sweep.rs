@@ -11,7 +11,7 @@
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `sparse`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
 //! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `density-gain=G`,
-//! `density-passes=N`, `surface-softness=T`, `body-ramp`, `surface-blend=T`, `smooth` (`surface-blend=0.5`,
+//! `density-passes=N`, `density-face-ramp=W`, `surface-softness=T`, `body-ramp`, `surface-blend=T`, `smooth` (`surface-blend=0.5`,
 //! `body-ramp`, `close-pockets=0.5`, `no-sparse`, `theta-min=1e-5`: the defaults since
 //! 6 December 2026), `yes-no` (the surface rules that were the defaults before: no blend, no
 //! ramp, pockets open, the sparse-cell rule, θ clamped at 0.01), and
@@ -69,6 +69,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "density-tolerance" => s.density_tolerance = value.parse()?,
             "density-gain" => s.density_gain = value.parse()?,
             "density-passes" => s.density_passes = value.parse()?,
+            "density-face-ramp" => s.density_face_ramp = value.parse()?,
             other => return Err(format!("unknown setting {other}").into()),
         }
     }
