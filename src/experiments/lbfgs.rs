@@ -4,9 +4,7 @@
 //! checked and checkpointed like a gradient-descent epoch. Its state (correction pairs, line
 //! search, iteration state) is saved with argmin's serde support.
 
-use super::optimize::{
-    interrupted, Checkpoint, EpochRecord, Optimization, OptimizerState, Outcome,
-};
+use super::optimize::{Checkpoint, EpochRecord, Optimization, OptimizerState, Outcome};
 use super::scene::OptimizerSpec;
 use crate::error::{Error, Result};
 use argmin::core::{CostFunction, Gradient, IterState, Problem, Solver, State, TerminationStatus};
@@ -88,30 +86,9 @@ impl Optimization {
             let loss = state.get_cost();
             let g = state.get_gradient().expect("L-BFGS keeps its gradient");
             let norm = g.iter().map(|x| x * x).sum::<f64>().sqrt();
-            if let Some(m) = self.stop_message(ck.next_epoch, loss, norm) {
-                stopped = Some(m);
-                break;
-            }
             let params = self.from_vector(&x);
-            let unsmoothed_loss = match self.unsmoothed_loss(&params) {
-                Ok(x) => x,
-                Err(e) => {
-                    stopped = Some(format!("epoch {}: {e}", ck.next_epoch));
-                    break;
-                }
-            };
-            let rec = EpochRecord {
-                epoch: ck.next_epoch,
-                loss,
-                grad_norm: norm,
-                params,
-                evaluations: ck.evaluations,
-                unsmoothed_loss,
-            };
-            let flow = on_epoch(&rec);
-            ck.history.push(rec);
-            if flow.is_break() {
-                stopped = Some(interrupted(ck.next_epoch));
+            if let Some(m) = self.record_epoch(&mut ck, (loss, norm), params, &mut on_epoch) {
+                stopped = Some(m);
                 break;
             }
             problem.problem.as_ref().expect("the objective").epoch.set(ck.next_epoch);

@@ -314,6 +314,34 @@ impl Optimization {
         Ok((loss, out))
     }
 
+    /// Records the epoch `ck` is at, with its loss and gradient norm (`loss_norm`) at
+    /// `params`, after the checks every optimiser makes, into `ck`'s history and to
+    /// `on_epoch`: a loss or gradient that is not finite or explodes, the loss itself with
+    /// smoothing (a failed run), and `on_epoch` asking to stop. What stops the run, in words
+    /// (None to go on).
+    pub(super) fn record_epoch(
+        &self,
+        ck: &mut Checkpoint,
+        (loss, norm): (f64, f64),
+        params: BodyState,
+        on_epoch: &mut impl FnMut(&EpochRecord) -> ControlFlow<()>,
+    ) -> Option<String> {
+        let epoch = ck.next_epoch;
+        if let Some(m) = self.stop_message(epoch, loss, norm) {
+            return Some(m);
+        }
+        let unsmoothed_loss = match self.unsmoothed_loss(&params) {
+            Ok(x) => x,
+            Err(e) => return Some(format!("epoch {epoch}: {e}")),
+        };
+        let evaluations = ck.evaluations;
+        let rec =
+            EpochRecord { epoch, loss, grad_norm: norm, params, evaluations, unsmoothed_loss };
+        let flow = on_epoch(&rec);
+        ck.history.push(rec);
+        flow.is_break().then(|| interrupted(epoch))
+    }
+
     /// With smoothing, the loss L itself at `p` for the epoch's record (None without).
     pub(super) fn unsmoothed_loss(&self, p: &BodyState) -> Result<Option<f64>> {
         self.smoothing.as_ref().map(|_| self.loss_at(p)).transpose()
@@ -583,29 +611,9 @@ impl Optimization {
             };
             ck.evaluations += 1;
             let norm = g.iter().map(|x| x * x).sum::<f64>().sqrt();
-            if let Some(m) = self.stop_message(ck.next_epoch, loss, norm) {
+            let params = ck.params;
+            if let Some(m) = self.record_epoch(&mut ck, (loss, norm), params, &mut on_epoch) {
                 stopped = Some(m);
-                break;
-            }
-            let unsmoothed_loss = match self.unsmoothed_loss(&ck.params) {
-                Ok(x) => x,
-                Err(e) => {
-                    stopped = Some(format!("epoch {}: {e}", ck.next_epoch));
-                    break;
-                }
-            };
-            let rec = EpochRecord {
-                epoch: ck.next_epoch,
-                loss,
-                grad_norm: norm,
-                params: ck.params,
-                evaluations: ck.evaluations,
-                unsmoothed_loss,
-            };
-            let flow = on_epoch(&rec);
-            ck.history.push(rec);
-            if flow.is_break() {
-                stopped = Some(interrupted(ck.next_epoch));
                 break;
             }
             let s = self.step(&mut ck.optimizer, &g, ck.next_epoch);
