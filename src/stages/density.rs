@@ -581,14 +581,16 @@ impl DensityProjection {
     }
 
     /// The faces the face ramp fades (`g.face_ramp`): (axis, face, its share w/`face_ramp`)
-    /// of each face the update acts on whose weight w is under the ramp, in face order.
+    /// of each face the update acts on whose weight w is under the ramp, in face order. The
+    /// weights are the inputs': a face the update acts on is open, so not one the projection
+    /// closed at a deep cell, whose weights a forward step's projection no longer keeps.
     fn faded_faces(&self, g: &DensityInputs<'_>) -> Vec<(usize, u32, f64)> {
         let ramp = g.face_ramp;
         let mut out = Vec::new();
         if ramp <= 0.0 {
             return out;
         }
-        let weights = self.weights(g);
+        let weights = g.weights;
         for (a, faces) in self.sys.faces.iter().enumerate() {
             for pf in faces {
                 let w = weights.weight(a, pf.face as usize);

@@ -100,6 +100,43 @@ fn floating_box_with_a_band_floats_as_without() {
     assert!((a - b).abs() < 1e-9 * dx, "{a} against {b}");
 }
 
+/// The sinking ball of the test below with the density projection's faces fading with
+/// their weight (`solver.density_face_ramp = 0.2`), whose forward step read the weights the
+/// band's projection closes at its deep cells and no longer keeps (it panicked): with a band
+/// it sinks as without, within the same bounds, and the ramp moves its path.
+#[test]
+fn a_ball_sinking_with_a_band_and_the_face_ramp_sinks_as_without() {
+    let run = |band: usize, ramp: f64| {
+        let text = tank_toml("sink", [0.8, 0.8, 0.8], 0.04, 0.7, 40)
+            + &format!(
+                r#"
+[[body]]
+name = "ball"
+shape = {{ kind = "ball", radius = 0.08 }}
+density = 3000.0
+position = [0.41, 0.5, 0.39]
+[solver]
+narrow_band = {band}
+density_face_ramp = {ramp}
+"#
+            );
+        let mut sim = Scene::from_toml(&text, "<test>").unwrap().build().unwrap();
+        assert_eq!(sim.band().is_some_and(|b| b.deep_cells() > 1000), band > 0);
+        for _ in 0..40 {
+            sim.step().unwrap();
+        }
+        let b = &sim.bodies()[0];
+        (b.x.y, b.v.y)
+    };
+    let (a, b, plain) = (run(2, 0.2), run(0, 0.2), run(0, 0.0));
+    eprintln!(
+        "face ramp: height, v_y {a:?} with a band, {b:?} without; {plain:?} without the ramp"
+    );
+    assert!((a.0 - b.0).abs() < 0.075 * 0.04, "{a:?} against {b:?}");
+    assert!((a.1 - b.1).abs() < 0.015 * b.1.abs(), "{a:?} against {b:?}");
+    assert!(b != plain, "the ramp faded no face: it goes unchecked");
+}
+
 /// The live-surface gradient through a band (particles taken out and seeded, deep cells
 /// traded) agrees with central differences of the same map as the full-volume one does
 /// (measured worst 3.6e-5 with a band of 2, whose density projection is closed at the
