@@ -324,11 +324,7 @@ pub struct DensityInputs<'a> {
 impl DensityInputs<'_> {
     /// The bodies' ghosts where they are, for a soft minimum of φ_L (none otherwise).
     fn ghosts(&self) -> Vec<Vec3> {
-        if self.surface.softness > 0.0 {
-            surface::ghost_sites(self.bodies, self.displaced)
-        } else {
-            Vec::new()
-        }
+        surface::counted_ghosts(&self.surface, self.bodies, self.displaced)
     }
 
     /// A face field to overwrite (the pool's, when there is one).

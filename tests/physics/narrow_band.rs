@@ -100,16 +100,12 @@ fn floating_box_with_a_band_floats_as_without() {
     assert!((a - b).abs() < 1e-9 * dx, "{a} against {b}");
 }
 
-/// The sinking ball of the test below with the density projection's faces fading with
-/// their weight (`solver.density_face_ramp = 0.2`), whose forward step read the weights the
-/// band's projection closes at its deep cells and no longer keeps (it panicked): with a band
-/// it sinks as without, within the same bounds, and the ramp moves its path.
-#[test]
-fn a_ball_sinking_with_a_band_and_the_face_ramp_sinks_as_without() {
-    let run = |band: usize, ramp: f64| {
-        let text = tank_toml("sink", [0.8, 0.8, 0.8], 0.04, 0.7, 40)
-            + &format!(
-                r#"
+/// A heavy ball (density 3000, radius 0.08 m) in a deep pool at 4 cm cells, 40 steps, with a
+/// narrow band of `band` cells (0: none).
+fn sinking_ball(band: usize) -> Scene {
+    let text = tank_toml("sink", [0.8, 0.8, 0.8], 0.04, 0.7, 40)
+        + &format!(
+            r#"
 [[body]]
 name = "ball"
 shape = {{ kind = "ball", radius = 0.08 }}
@@ -117,10 +113,21 @@ density = 3000.0
 position = [0.41, 0.5, 0.39]
 [solver]
 narrow_band = {band}
-density_face_ramp = {ramp}
 "#
-            );
-        let mut sim = Scene::from_toml(&text, "<test>").unwrap().build().unwrap();
+        );
+    Scene::from_toml(&text, "<test>").unwrap()
+}
+
+/// The sinking ball of the test below with the density projection's faces fading with
+/// their weight (`solver.density_face_ramp = 0.2`), whose forward step read the weights the
+/// band's projection closes at its deep cells and no longer keeps (it panicked): with a band
+/// it sinks as without, within the same bounds, and the ramp moves its path.
+#[test]
+fn a_ball_sinking_with_a_band_and_the_face_ramp_sinks_as_without() {
+    let run = |band: usize, ramp: f64| {
+        let mut scene = sinking_ball(band);
+        scene.solver.density_face_ramp = ramp;
+        let mut sim = scene.build().unwrap();
         assert_eq!(sim.band().is_some_and(|b| b.deep_cells() > 1000), band > 0);
         for _ in 0..40 {
             sim.step().unwrap();
@@ -163,22 +170,8 @@ fn live_gradient_with_a_band_matches_central_differences() {
 /// not), and the volume within 0.3% every step.
 #[test]
 fn a_ball_sinking_through_the_deep_cells_sinks_as_without_a_band() {
-    let text = |band: usize| {
-        tank_toml("sink", [0.8, 0.8, 0.8], 0.04, 0.7, 40)
-            + &format!(
-                r#"
-[[body]]
-name = "ball"
-shape = {{ kind = "ball", radius = 0.08 }}
-density = 3000.0
-position = [0.41, 0.5, 0.39]
-[solver]
-narrow_band = {band}
-"#
-            )
-    };
-    let mut band = Scene::from_toml(&text(2), "<test>").unwrap().build().unwrap();
-    let mut full = Scene::from_toml(&text(0), "<test>").unwrap().build().unwrap();
+    let mut band = sinking_ball(2).build().unwrap();
+    let mut full = sinking_ball(0).build().unwrap();
     assert!(band.band().unwrap().deep_cells() > 1000);
     let v0 = band.liquid_volume();
     let mut worst = 0.0f64;

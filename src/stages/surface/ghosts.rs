@@ -67,6 +67,20 @@ pub fn ghost_sites(bodies: &[RigidBody], displaced: &[Displaced]) -> Vec<Vec3> {
     out
 }
 
+/// What φ_L of surface model `model` counts of the ghosts of `bodies`: their
+/// [`ghost_sites`] for a soft minimum, none for the nearest particle's distance.
+pub fn counted_ghosts(
+    model: &super::SurfaceModel,
+    bodies: &[RigidBody],
+    displaced: &[Displaced],
+) -> Vec<Vec3> {
+    if model.softness > 0.0 {
+        ghost_sites(bodies, displaced)
+    } else {
+        Vec::new()
+    }
+}
+
 /// Adjoint of [`ghost_sites`]: adds ∂L/∂pose of each body, [δx; δθ] (world frame, about its
 /// centre of mass, as [`RigidBody::sdf_pose_dual`]), from ∂L/∂(each ghost's position)
 /// `gbar` into `pose`. A ghost at x_g moves by δx + δθ × (x_g − x). Nothing when `gbar` is

@@ -225,9 +225,10 @@ fn lattice_terms(kernel: &Kernel, off: &[f64], o: [i64; 3], dx: f64) -> f64 {
 pub(super) struct SoftSdf<'a> {
     pos: &'a [Vec3],
     bins: &'a Bins,
-    /// The bodies' ghosts (see `ghosts.rs`), counted as particles, and their bins.
+    /// The bodies' ghosts (see `ghosts.rs`), counted as particles, and their bins (None
+    /// without ghosts: no bins to build or read a cell).
     ghosts: &'a [Vec3],
-    ghost_bins: Bins,
+    ghost_bins: Option<Bins>,
     grid: &'a Grid,
     block: Vec<[i64; 3]>,
     kernel: Kernel,
@@ -252,7 +253,7 @@ impl<'a> SoftSdf<'a> {
         let block = block(SOFT_REACH);
         let off = sub_offsets(model.per_axis);
         let deep_terms = block.iter().map(|o| lattice_terms(&kernel, &off, *o, dx)).collect();
-        let ghost_bins = Bins::new(ghosts, grid);
+        let ghost_bins = (!ghosts.is_empty()).then(|| Bins::new(ghosts, grid));
         SoftSdf {
             pos,
             bins,
@@ -269,7 +270,7 @@ impl<'a> SoftSdf<'a> {
 
     /// Whether cell `c` holds a ghost.
     pub(super) fn has_ghost(&self, c: usize) -> bool {
-        !self.ghost_bins.cell(c).is_empty()
+        self.ghost_bins.as_ref().is_some_and(|b| !b.cell(c).is_empty())
     }
 
     /// φ beyond every particle's reach (the nearest particle's distance's cap).
@@ -298,7 +299,7 @@ impl<'a> SoftSdf<'a> {
                     let q = reflect(self.pos[p as usize], flip, size);
                     sum += self.kernel.term((q - x).length_squared());
                 }
-                for &p in self.ghost_bins.cell(c) {
+                for &p in self.ghost_bins.as_ref().map_or(&[][..], |b| b.cell(c)) {
                     let q = reflect(self.ghosts[p as usize], flip, size);
                     sum += self.kernel.term((q - x).length_squared());
                 }

@@ -271,11 +271,7 @@ impl SimulationBuilder {
             let bins = Bins::new(&particles, &grid);
             let surface = settings.solver.surface_model(grid.dx, radius);
             let deep = band.as_ref().map(Band::deep);
-            let ghosts = if surface.softness > 0.0 {
-                surface::ghost_sites(&self.bodies, &displaced)
-            } else {
-                Vec::new()
-            };
+            let ghosts = surface::counted_ghosts(&surface, &self.bodies, &displaced);
             Arc::new(surface::liquid_sdf(&particles, &bins, &ghosts, &grid, &surface, deep))
         });
         let n = self.bodies.len();

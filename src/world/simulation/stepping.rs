@@ -398,11 +398,7 @@ impl Simulation {
     /// are: what the soft minimum of φ_L counts besides the particles; none for the nearest
     /// particle's distance.
     pub(crate) fn ghosts_at(&self, bodies: &[RigidBody]) -> Vec<Vec3> {
-        if self.settings.solver.surface_softness > 0.0 {
-            crate::stages::surface::ghost_sites(bodies, &self.displaced)
-        } else {
-            Vec::new()
-        }
+        crate::stages::surface::counted_ghosts(&self.surface_model(), bodies, &self.displaced)
     }
 
     /// What the density projection of a step with `geometry` and `bodies` reads (None when
