@@ -237,6 +237,39 @@ pub(super) struct SoftSdf<'a> {
     /// Per entry of `block`, what a deep cell there adds to a centre's sum: its m³
     /// sub-lattice particles' terms (the same for every centre).
     deep_terms: Vec<f64>,
+    /// The block as rows along x (see [`Row`]), for a centre whose block is inside the tank.
+    rows: Vec<Row>,
+    /// The largest L∞ offset of the block: a centre at least this far from every wall
+    /// sees no mirror image.
+    span: usize,
+    /// The particles' positions in bin order (a row of cells' particles lie together), and
+    /// the ghosts'.
+    sorted: Vec<Vec3>,
+    sorted_ghosts: Vec<Vec3>,
+}
+
+/// A run of the block's cells along x, at linear offsets `first..=last` from the centre's
+/// cell, whose deep terms start at `deep` in `SoftSdf::deep_terms`.
+#[derive(Clone, Copy, Debug)]
+struct Row {
+    first: isize,
+    last: isize,
+    deep: usize,
+}
+
+/// The rows of `block` (listed x fastest, as [`block`] makes it) on a grid of `n` cells.
+fn rows(block: &[[i64; 3]], n: [usize; 3]) -> Vec<Row> {
+    let lin = |o: &[i64; 3]| (o[0] + n[0] as i64 * (o[1] + n[1] as i64 * o[2])) as isize;
+    let mut out: Vec<Row> = Vec::new();
+    for (e, o) in block.iter().enumerate() {
+        match out.last_mut() {
+            Some(r) if e > 0 && block[e - 1][1..] == o[1..] && block[e - 1][0] + 1 == o[0] => {
+                r.last = lin(o);
+            }
+            _ => out.push(Row { first: lin(o), last: lin(o), deep: e }),
+        }
+    }
+    out
 }
 
 impl<'a> SoftSdf<'a> {
@@ -254,6 +287,12 @@ impl<'a> SoftSdf<'a> {
         let off = sub_offsets(model.per_axis);
         let deep_terms = block.iter().map(|o| lattice_terms(&kernel, &off, *o, dx)).collect();
         let ghost_bins = (!ghosts.is_empty()).then(|| Bins::new(ghosts, grid));
+        let rows = rows(&block, grid.n);
+        let span = block.iter().flatten().map(|o| o.unsigned_abs() as usize).max().unwrap_or(0);
+        let in_order =
+            |b: &Bins, at: &[Vec3]| b.items.par_iter().map(|&p| at[p as usize]).collect();
+        let sorted = in_order(bins, pos);
+        let sorted_ghosts = ghost_bins.as_ref().map_or_else(Vec::new, |b| in_order(b, ghosts));
         SoftSdf {
             pos,
             bins,
@@ -265,6 +304,10 @@ impl<'a> SoftSdf<'a> {
             radius: model.radius,
             deep,
             deep_terms,
+            rows,
+            span,
+            sorted,
+            sorted_ghosts,
         }
     }
 
@@ -282,8 +325,24 @@ impl<'a> SoftSdf<'a> {
     /// binned in its block, and m³ on the seeding sub-lattice in each deep cell there (a
     /// narrow band's deep cells are full by construction and carry no particles). The block's
     /// cells beyond a wall are the mirror images of those inside (see [`mirror`]). And whether
-    /// a particle is within reach.
+    /// a particle is within reach. A centre whose block lies inside the tank (most) reads
+    /// the block a row of cells at a time ([`SoftSdf::inner_sum`]).
     fn sum(&self, ijk: [usize; 3]) -> (f64, bool) {
+        if self.is_inner(ijk) {
+            self.inner_sum(ijk)
+        } else {
+            self.walled_sum(ijk)
+        }
+    }
+
+    /// Whether the block of the centre of cell `ijk` lies inside the tank.
+    pub(super) fn is_inner(&self, ijk: [usize; 3]) -> bool {
+        (0..3).all(|d| ijk[d] >= self.span && ijk[d] + self.span < self.grid.n[d])
+    }
+
+    /// [`SoftSdf::sum`] a block cell at a time, the cells beyond a wall read as mirror
+    /// images.
+    pub(super) fn walled_sum(&self, ijk: [usize; 3]) -> (f64, bool) {
         let grid = self.grid;
         let x = grid.cells().position(ijk[0], ijk[1], ijk[2]);
         let size = grid.size();
@@ -305,6 +364,45 @@ impl<'a> SoftSdf<'a> {
                 }
             }
         }
+        (sum + self.kernel.far, sum > 0.0)
+    }
+
+    /// [`SoftSdf::sum`] for a centre whose block lies inside the tank: a row of the block's
+    /// cells at a time, their particles (and ghosts) together in bin order.
+    pub(super) fn inner_sum(&self, ijk: [usize; 3]) -> (f64, bool) {
+        let grid = self.grid;
+        let x = grid.cells().position(ijk[0], ijk[1], ijk[2]);
+        let own = grid.cell(ijk[0], ijk[1], ijk[2]) as isize;
+        let mut sum = 0.0;
+        let mut particles = |from: usize, to: usize| {
+            let start = &self.bins.start;
+            for &q in &self.sorted[start[from] as usize..start[to + 1] as usize] {
+                sum += self.kernel.term((q - x).length_squared());
+            }
+            if let Some(ghosts) = &self.ghost_bins {
+                let start = &ghosts.start;
+                for &q in &self.sorted_ghosts[start[from] as usize..start[to + 1] as usize] {
+                    sum += self.kernel.term((q - x).length_squared());
+                }
+            }
+        };
+        let mut deep_sum = 0.0;
+        for row in &self.rows {
+            let (first, last) = ((own + row.first) as usize, (own + row.last) as usize);
+            match self.deep {
+                Some(deep) if deep[first..=last].iter().any(|&d| d) => {
+                    for (e, c) in (first..=last).enumerate() {
+                        if deep[c] {
+                            deep_sum += self.deep_terms[row.deep + e];
+                        } else {
+                            particles(c, c);
+                        }
+                    }
+                }
+                _ => particles(first, last),
+            }
+        }
+        let sum = sum + deep_sum;
         (sum + self.kernel.far, sum > 0.0)
     }
 

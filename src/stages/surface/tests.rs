@@ -342,6 +342,48 @@ mod forward {
         }
     }
 
+    /// The soft minimum's sum a row of block cells at a time (a centre whose block lies
+    /// inside the tank) against the same sum a block cell at a time: scattered particles
+    /// bunched in places, ghosts, and a band's deep cells beside both.
+    #[test]
+    fn soft_sdf_sums_rows_as_it_sums_cells() {
+        use super::super::softmin::SoftSdf;
+        let grid = Grid { n: [12, 10, 9], dx: 0.1 };
+        let scatter = |n: usize, seed: usize, lo: Vec3, span: Vec3| -> Vec<Vec3> {
+            (0..n)
+                .map(|i| {
+                    let f = |k: usize| ((i * k * 7919 + k * 104729 + seed) % 1000) as f64 / 1e3;
+                    lo + span * Vec3::new(f(3), f(5), f(7))
+                })
+                .collect()
+        };
+        let mut pos = scatter(900, 0, Vec3::splat(0.0), Vec3::new(1.2, 0.7, 0.9));
+        pos.extend(scatter(200, 11, Vec3::new(0.4, 0.3, 0.3), Vec3::splat(0.15)));
+        let ghosts = scatter(150, 23, Vec3::new(0.5, 0.4, 0.2), Vec3::new(0.3, 0.3, 0.4));
+        let cells = grid.num_cells();
+        let band: Vec<bool> = (0..cells).map(|c| grid.cells().ijk(c)[1] < 3).collect();
+        let model = SurfaceModel::soft(grid.dx, 2, 0.35);
+        let bins = Bins::new(&pos, &grid);
+        let mut inner = 0;
+        for deep in [None, Some(band.as_slice())] {
+            for g in [&[][..], &ghosts[..]] {
+                let soft = SoftSdf::new(&pos, &bins, g, &grid, &model, deep);
+                for c in 0..cells {
+                    let ijk = grid.cells().ijk(c);
+                    if !soft.is_inner(ijk) {
+                        continue;
+                    }
+                    inner += 1;
+                    let (rows, by_cell) = (soft.inner_sum(ijk), soft.walled_sum(ijk));
+                    assert_eq!(rows.1, by_cell.1, "at {ijk:?}");
+                    let diff = (rows.0 - by_cell.0).abs();
+                    assert!(diff <= 1e-14 * by_cell.0, "at {ijk:?}: {rows:?} {by_cell:?}");
+                }
+            }
+        }
+        assert!(inner > 4 * 100, "too few centres read by rows: {inner}");
+    }
+
     /// A lone particle moving out of a cell's reach: φ there is its soft distance (its
     /// distance less r, less τ·ln c_p, softly capped by the far value) and goes over
     /// continuously into the far value.
