@@ -35,11 +35,11 @@ fn spread(scene: &Scene, steps: usize) -> (f64, f64, f64) {
 }
 
 /// `surge_ball` at 50 steps, the ball's initial height: with the nearest particle's
-/// distance (the default) central differences at 1e-4 and 1e-6 part by more than 50%
-/// (measured 12.9-fold: the loss has a kink about every micrometre); with the soft minimum
-/// of softness 0.35 cells they agree within issue 37's 5% (measured 2.7%; 0.38% before the
-/// ball's ghosts, which move with its pose), and the adjoint, the ghosts' pose derivative
-/// included, is within 1e-4 of the differences at 1e-6 (measured 1.8e-5).
+/// distance (the default) central differences at 1e-4 and 1e-6 part by more than 25%
+/// (measured 40%; 12.9-fold before the blend's share had its corner rounded: the loss has
+/// a kink about every micrometre); with the soft minimum of softness 0.35 cells they agree
+/// within issue 37's 5% (measured 0.31%), and the adjoint, the ghosts' pose derivative
+/// included, is within 1e-4 of the differences at 1e-6 (measured 1.3e-5).
 #[test]
 fn a_soft_surface_keeps_the_surges_height_row_smooth() {
     let nearest = Scene::builtin("surge_ball").unwrap();
@@ -56,7 +56,7 @@ fn a_soft_surface_keeps_the_surges_height_row_smooth() {
         value_and_gradient(&sim, steps, &loss as &dyn Loss, &GradientSettings::default()).unwrap();
     let adjoint = run.gradient.bodies[0].x.y;
     eprintln!("soft: adjoint {adjoint:e}");
-    assert!(rough > 0.5, "the nearest particle's map should be rough: {:.1}%", 100.0 * rough);
+    assert!(rough > 0.25, "the nearest particle's map should be rough: {:.1}%", 100.0 * rough);
     assert!(smooth < 0.05, "the soft surface's spread {:.2}%", 100.0 * smooth);
     assert!((adjoint - f).abs() <= 1e-4 * f.abs(), "adjoint {adjoint:e} against fd {f:e}");
 }

@@ -6,9 +6,9 @@
 //! and angular velocity, a floating ball by an external force and torque; each action is held
 //! for 5 steps. The loss asks the ball to pass a waypoint half-way and end near a target, and
 //! charges the effort of the actions: every action entry's adjoint must agree with
-//! (L(a + ε) − L(a − ε)) / 2ε (measured: worst 5.9e-6 with the surface frozen, on an entry
-//! whose derivative is the effort's 4e-6 alone; 8.7e-5 with it moving), and so must the
-//! ball's mass gradient (measured 2.9e-9 frozen, 1.2e-8 moving).
+//! (L(a + ε) − L(a − ε)) / 2ε (measured: worst 7.6e-6 with the surface frozen at ε = 1e-5,
+//! on an entry whose derivative is the effort's alone; 6.2e-5 with it moving at 1e-6), and
+//! so must the ball's mass gradient (measured 8.3e-10 frozen, 7.3e-9 moving).
 
 use crate::common::{builtin_text, tank_toml, EXE};
 use diffluid::geometry::body::Motion;
@@ -104,7 +104,10 @@ fn check(frozen: bool, rtol: f64) {
     let settings = GradientSettings { options, ..Default::default() };
     let out = value_and_gradient_controlled(&sim, &schedule, &loss, &settings).unwrap();
     assert!((out.loss - run(&sim, &schedule, &loss)).abs() < 1e-12 * out.loss.abs());
-    let eps = 1e-6;
+    // With the surface frozen the map is smooth at 1e-5, and an entry whose derivative is
+    // the effort's 2e-6 alone reads the loss's rounding at 1e-6 (2.00006e-6; 2.000005e-6 at
+    // 1e-5, 2.0003e-6 at 1e-7: the error goes as 1/ε).
+    let eps = if frozen { 1e-5 } else { 1e-6 };
     let mut worst = 0.0f64;
     for k in 0..schedule.actions.len() {
         for j in 0..2 {

@@ -7,8 +7,9 @@
 //!
 //! Here every face carries a share m ∈ [0, 1] of what it knows and w = m·(its velocity).
 //! A face whose liquid side meets air nearer than θ₁ (ghost-fluid fraction θ < θ₁) knows
-//! only a share c = θ/θ₁ of its projected velocity; a face a body covers in part knows the
-//! body's part of it wholly and its fluid part by that part's share (c on a liquid–air face,
+//! only a share c = θ/θ₁ of its projected velocity (the corner at θ₁ rounded, see
+//! [`SurfaceBlend`]); a face a body covers in part knows the body's part of it wholly and its
+//! fluid part by that part's share (c on a liquid–air face,
 //! 1 on one between liquid cells, 0 on one in air), so a face a body starts to cover starts
 //! with a share near zero. Each layer updates, from the values before it, the faces it
 //! reaches and those still known in part: with z = Σ m and s = Σ w over the face's lattice
@@ -31,8 +32,16 @@ use crate::geometry::weights::FaceWeights;
 use crate::stages::pressure::{GhostFluid, PressureSystem};
 use rayon::prelude::*;
 
+/// How far (in t = θ/θ₁) either side of t = 1 [`SurfaceBlend::share`] rounds its corner.
+pub const ROUNDING: f64 = 0.1;
+
 /// How liquid–air faces blend from projected into extrapolated velocity: a face's share of
-/// its projected velocity is min(1, θ/θ₁), with θ the unclamped ghost-fluid fraction.
+/// its projected velocity is c = min(1, t), t = θ/θ₁ with θ the unclamped ghost-fluid
+/// fraction, its corner rounded: within [`ROUNDING`] of t = 1 a quartic joins the two with
+/// continuous first and second derivatives (c = 1 − 3·ROUNDING/16 at t = 1). The corner
+/// alone was a kink of the map, and a freshly seeded flat surface, which puts θ at exactly
+/// ½ on its faces, sat on it at the default θ₁ = ½ (docs/gradients.md, "The blend's share
+/// at the seeded surface").
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SurfaceBlend {
     /// θ₁, the fraction from which a face is wholly projected; 0 for the yes/no rule.
@@ -44,17 +53,31 @@ impl SurfaceBlend {
     /// (< 0) to an air cell at `phi_air` (≥ 0).
     #[inline]
     pub fn share(&self, phi_liquid: f64, phi_air: f64) -> f64 {
-        (GhostFluid::fraction(phi_liquid, phi_air) / self.theta).min(1.0)
+        let t = GhostFluid::fraction(phi_liquid, phi_air) / self.theta;
+        if t <= 1.0 - ROUNDING {
+            t
+        } else if t >= 1.0 + ROUNDING {
+            1.0
+        } else {
+            // s over the rounding; g(s) = s − s³ + s⁴/2 leaves t with slope 1 and no
+            // curvature and meets 1 with neither.
+            let s = (t - 1.0 + ROUNDING) / (2.0 * ROUNDING);
+            1.0 - ROUNDING + 2.0 * ROUNDING * (s - s.powi(3) + 0.5 * s.powi(4))
+        }
     }
 
     /// (∂c/∂φ_l, ∂c/∂φ_a) of [`SurfaceBlend::share`] (zero where it is 1).
     #[inline]
     pub fn share_gradient(&self, phi_liquid: f64, phi_air: f64) -> (f64, f64) {
-        if GhostFluid::fraction(phi_liquid, phi_air) >= self.theta {
+        let t = GhostFluid::fraction(phi_liquid, phi_air) / self.theta;
+        if t >= 1.0 + ROUNDING {
             return (0.0, 0.0);
         }
+        let s = ((t - 1.0 + ROUNDING) / (2.0 * ROUNDING)).max(0.0);
+        let dc_dt = (1.0 - s).powi(2) * (1.0 + 2.0 * s);
         let (dl, da) = GhostFluid::fraction_gradient(phi_liquid, phi_air);
-        (dl / self.theta, da / self.theta)
+        let k = dc_dt / self.theta;
+        (dl * k, da * k)
     }
 }
 
@@ -67,8 +90,8 @@ impl SurfaceBlend {
 pub struct SurfaceFace {
     /// Face index on its axis's lattice.
     pub face: u32,
-    /// c, the share of its fluid velocity known: θ/θ₁ (below one) on a liquid–air face, 1 on
-    /// a face between liquid cells, 0 on a face in air.
+    /// c, the share of its fluid velocity known: [`SurfaceBlend::share`] (about θ/θ₁, below
+    /// one) on a liquid–air face, 1 on a face between liquid cells, 0 on a face in air.
     pub share: f64,
     /// The weight of the fluid velocity in its value: its fluid weight w where a body
     /// covers it, 1 where none does.
@@ -375,6 +398,33 @@ mod tests {
 
     fn lattice() -> Lattice {
         Lattice { n: [7, 6, 5], off: [0.0; 3], dx: 1.0 }
+    }
+
+    /// The share of a liquid–air face's projected velocity against central differences in
+    /// both φ, and smooth through θ₁: at θ = θ₁ = ½, which a freshly seeded flat surface
+    /// puts on its faces, and at the ends of the rounding, its one-sided differences agree
+    /// (the corner of min(1, θ/θ₁) had slopes 0 and 1/θ₁ there).
+    #[test]
+    fn the_share_matches_its_gradient_and_is_smooth_through_theta_one() {
+        let blend = SurfaceBlend { theta: 0.5 };
+        let h = 1e-7;
+        for theta in [0.05, 0.2, 0.37, 0.45, 0.49, 0.5, 0.51, 0.55, 0.8] {
+            // φ_l = −θ, φ_a = 1 − θ: the fraction θ.
+            let (l, a) = (-theta, 1.0 - theta);
+            let (dl, da) = blend.share_gradient(l, a);
+            let fd_l = (blend.share(l + h, a) - blend.share(l - h, a)) / (2.0 * h);
+            let fd_a = (blend.share(l, a + h) - blend.share(l, a - h)) / (2.0 * h);
+            assert!((dl - fd_l).abs() < 1e-6, "θ {theta}: ∂c/∂φ_l {dl} against {fd_l}");
+            assert!((da - fd_a).abs() < 1e-6, "θ {theta}: ∂c/∂φ_a {da} against {fd_a}");
+            let c = blend.share(l, a);
+            let right = (blend.share(l, a + h) - c) / h;
+            let left = (c - blend.share(l, a - h)) / h;
+            assert!((right - left).abs() < 1e-5, "θ {theta}: slopes {left} and {right}");
+        }
+        // θ/θ₁ below the rounding, 1 above it, 1 − 3·ROUNDING/16 at θ₁.
+        assert!((blend.share(-0.1, 0.9) - 0.2).abs() < 1e-12);
+        assert_eq!(blend.share(-0.6, 0.4), 1.0);
+        assert!((blend.share(-0.5, 0.5) - (1.0 - 3.0 * ROUNDING / 16.0)).abs() < 1e-12);
     }
 
     /// A mask with scattered known faces and a block of them (fronts that meet), values, and
