@@ -26,7 +26,7 @@ fn worst_spread(scene: &Scene) -> (f64, String) {
 
 /// The box floating under a moving surface (`gradcheck_live`, 20 steps, every body
 /// parameter and the mass): with the defaults, central differences at ε = 1e-4 and 1e-6
-/// agree within 1% in every row (measured 0.67% at worst, q₀; 1.02% with the blend's
+/// agree within 1% in every row (measured 0.67% at worst, x₂; 1.02% with the blend's
 /// corner rounded to a continuous slope only, see `SurfaceBlend`), the long-horizon work's
 /// target; with the yes/no rules they part by more than 5% (measured 15%, x₂): the map
 /// jumps between the two scales.
