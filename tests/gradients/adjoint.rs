@@ -230,9 +230,9 @@ fn live_surface_floating_box_gradient_matches_central_differences() {
 /// The floating box under a moving surface with the soft φ_L (`surface_softness = 0.35`),
 /// whose ghosts put the seeded lattice back beside the box: its faces there start at
 /// θ = ½ exactly, as a seeded flat surface's do, and move with the box's pose. Every
-/// parameter within 3e-5 of central differences at 1e-7 (measured worst 1.6e-5, q₀; at
-/// 1e-6, with the corner rounded over twice the width, the differences of x₀ met an event
-/// within 1e-5 of the start and parted from those at 1e-5 by 1.1e-4). With the blend's share min(1, θ/θ₁), whose corner at θ₁ = ½ is a
+/// parameter within 3e-5 of central differences at 1e-7 (measured worst 1.3e-5, q₀; at
+/// 1e-6 the differences of x₀ meet an event within 1e-5 of the start and part from those
+/// at 1e-5 by 1.1e-4). With the blend's share min(1, θ/θ₁), whose corner at θ₁ = ½ is a
 /// kink, the pose rows read a mixture of its two slopes and missed by 1e-4 to 3e-3 (q₀
 /// 2.7e-3), where central differences at every ε read their mean.
 #[test]

@@ -36,10 +36,10 @@ fn spread(scene: &Scene, steps: usize) -> (f64, f64, f64) {
 
 /// `surge_ball` at 50 steps, the ball's initial height: with the nearest particle's
 /// distance (the default) central differences at 1e-4 and 1e-6 part by more than 25%
-/// (measured 56%; 12.9-fold before the blend's share had its corner rounded: the loss has
+/// (measured 40%; 12.9-fold before the blend's share had its corner rounded: the loss has
 /// a kink about every micrometre); with the soft minimum of softness 0.35 cells they agree
-/// within issue 37's 5% (measured 2.6%), and the adjoint, the ghosts' pose derivative
-/// included, is within 1e-4 of the differences at 1e-6 (measured 2.2e-6).
+/// within issue 37's 5% (measured 0.31%), and the adjoint, the ghosts' pose derivative
+/// included, is within 1e-4 of the differences at 1e-6 (measured 1.3e-5).
 #[test]
 fn a_soft_surface_keeps_the_surges_height_row_smooth() {
     let nearest = Scene::builtin("surge_ball").unwrap();

@@ -33,7 +33,7 @@ use crate::stages::pressure::{GhostFluid, PressureSystem};
 use rayon::prelude::*;
 
 /// How far (in t = θ/θ₁) either side of t = 1 [`SurfaceBlend::share`] rounds its corner.
-pub const ROUNDING: f64 = 0.05;
+pub const ROUNDING: f64 = 0.1;
 
 /// How liquid–air faces blend from projected into extrapolated velocity: a face's share of
 /// its projected velocity is c = min(1, t), t = θ/θ₁ with θ the unclamped ghost-fluid
