@@ -37,7 +37,7 @@ pub const ROUNDING: f64 = 0.1;
 
 /// How liquid–air faces blend from projected into extrapolated velocity: a face's share of
 /// its projected velocity is c = min(1, t), t = θ/θ₁ with θ the unclamped ghost-fluid
-/// fraction, its corner rounded: within [`ROUNDING`] of t = 1 a quartic joins the two with
+/// fraction, its corner rounded: within `ROUNDING` of t = 1 a quartic joins the two with
 /// continuous first and second derivatives (c = 1 − 3·ROUNDING/16 at t = 1). The corner
 /// alone was a kink of the map, and a freshly seeded flat surface, which puts θ at exactly
 /// ½ on its faces, sat on it at the default θ₁ = ½ (docs/gradients.md, "The blend's share
