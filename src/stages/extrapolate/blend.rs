@@ -53,31 +53,35 @@ impl SurfaceBlend {
     /// (< 0) to an air cell at `phi_air` (≥ 0).
     #[inline]
     pub fn share(&self, phi_liquid: f64, phi_air: f64) -> f64 {
-        let t = GhostFluid::fraction(phi_liquid, phi_air) / self.theta;
-        if t <= 1.0 - ROUNDING {
-            t
-        } else if t >= 1.0 + ROUNDING {
-            1.0
-        } else {
-            // s over the rounding; g(s) = s − s³ + s⁴/2 leaves t with slope 1 and no
-            // curvature and meets 1 with neither.
-            let s = (t - 1.0 + ROUNDING) / (2.0 * ROUNDING);
-            1.0 - ROUNDING + 2.0 * ROUNDING * (s - s.powi(3) + 0.5 * s.powi(4))
-        }
+        rounded_min(GhostFluid::fraction(phi_liquid, phi_air) / self.theta).0
     }
 
     /// (∂c/∂φ_l, ∂c/∂φ_a) of [`SurfaceBlend::share`] (zero where it is 1).
     #[inline]
     pub fn share_gradient(&self, phi_liquid: f64, phi_air: f64) -> (f64, f64) {
-        let t = GhostFluid::fraction(phi_liquid, phi_air) / self.theta;
-        if t >= 1.0 + ROUNDING {
+        let (_, dc_dt) = rounded_min(GhostFluid::fraction(phi_liquid, phi_air) / self.theta);
+        if dc_dt == 0.0 {
             return (0.0, 0.0);
         }
-        let s = ((t - 1.0 + ROUNDING) / (2.0 * ROUNDING)).max(0.0);
-        let dc_dt = (1.0 - s).powi(2) * (1.0 + 2.0 * s);
         let (dl, da) = GhostFluid::fraction_gradient(phi_liquid, phi_air);
         let k = dc_dt / self.theta;
         (dl * k, da * k)
+    }
+}
+
+/// min(1, t) with its corner rounded over [1 − `ROUNDING`, 1 + `ROUNDING`], and its
+/// derivative in t: over the rounding, with s its fraction, g(s) = s − s³ + s⁴/2 leaves t
+/// with slope 1 and no curvature and meets 1 with neither.
+#[inline]
+fn rounded_min(t: f64) -> (f64, f64) {
+    if t <= 1.0 - ROUNDING {
+        (t, 1.0)
+    } else if t >= 1.0 + ROUNDING {
+        (1.0, 0.0)
+    } else {
+        let s = (t - 1.0 + ROUNDING) / (2.0 * ROUNDING);
+        let c = 1.0 - ROUNDING + 2.0 * ROUNDING * (s - s.powi(3) + 0.5 * s.powi(4));
+        (c, (1.0 - s).powi(2) * (1.0 + 2.0 * s))
     }
 }
 
