@@ -14,6 +14,7 @@ mod bins;
 mod deposit;
 mod distance;
 mod ghosts;
+mod lanes;
 mod pockets;
 mod push;
 mod seeding;

@@ -24,6 +24,7 @@
 //! near); the radius r is set so that a flat, freshly seeded surface on a cell face is
 //! reconstructed exactly on it (see [`soft_particle_radius`]).
 
+use super::lanes::{Points, Terms};
 use super::*;
 use crate::geometry::grid::{Grid, NONE};
 use crate::math::Vec3;
@@ -127,10 +128,10 @@ fn for_images(own: [i64; 3], n: [i64; 3], mut f: impl FnMut([i64; 3], [i8; 3])) 
 /// exponent taken out, see [`Kernel::phi`]), zero beyond the reach.
 #[derive(Clone, Copy, Debug)]
 struct Kernel {
+    /// The terms' cut-off and softness.
+    terms: Terms,
     /// 1/R².
     inv_r2: f64,
-    /// 1/τ.
-    inv_tau: f64,
     /// τ.
     tau: f64,
     /// The far value's term, e^{−R/τ}.
@@ -140,17 +141,13 @@ struct Kernel {
 impl Kernel {
     /// For reach `reach` and softness `tau` (both in the same unit).
     fn new(reach: f64, tau: f64) -> Kernel {
-        Kernel { inv_r2: 1.0 / (reach * reach), inv_tau: 1.0 / tau, tau, far: (-reach / tau).exp() }
+        let inv_r2 = 1.0 / (reach * reach);
+        Kernel { terms: Terms::new(inv_r2, 1.0 / tau), inv_r2, tau, far: (-reach / tau).exp() }
     }
 
     #[inline(always)]
     fn term(&self, d2: f64) -> f64 {
-        let t = 1.0 - d2 * self.inv_r2;
-        if t <= 0.0 {
-            0.0
-        } else {
-            t * t * t * (-d2.sqrt() * self.inv_tau).exp()
-        }
+        self.terms.term(d2)
     }
 
     /// φ of the sum `sum` of the terms (the far value's included) for radius `radius`:
@@ -244,8 +241,8 @@ pub(super) struct SoftSdf<'a> {
     span: usize,
     /// The particles' positions in bin order (a row of cells' particles lie together), and
     /// the ghosts'.
-    sorted: Vec<Vec3>,
-    sorted_ghosts: Vec<Vec3>,
+    sorted: Points,
+    sorted_ghosts: Points,
 }
 
 /// A run of the block's cells along x, at linear offsets `first..=last` from the centre's
@@ -289,10 +286,9 @@ impl<'a> SoftSdf<'a> {
         let ghost_bins = (!ghosts.is_empty()).then(|| Bins::new(ghosts, grid));
         let rows = rows(&block, grid.n);
         let span = block.iter().flatten().map(|o| o.unsigned_abs() as usize).max().unwrap_or(0);
-        let in_order =
-            |b: &Bins, at: &[Vec3]| b.items.par_iter().map(|&p| at[p as usize]).collect();
-        let sorted = in_order(bins, pos);
-        let sorted_ghosts = ghost_bins.as_ref().map_or_else(Vec::new, |b| in_order(b, ghosts));
+        let sorted = Points::gather(&bins.items, pos);
+        let sorted_ghosts =
+            ghost_bins.as_ref().map_or_else(Points::default, |b| Points::gather(&b.items, ghosts));
         SoftSdf {
             pos,
             bins,
@@ -376,14 +372,12 @@ impl<'a> SoftSdf<'a> {
         let mut sum = 0.0;
         let mut particles = |from: usize, to: usize| {
             let start = &self.bins.start;
-            for &q in &self.sorted[start[from] as usize..start[to + 1] as usize] {
-                sum += self.kernel.term((q - x).length_squared());
-            }
+            let terms = &self.kernel.terms;
+            sum += terms.sum(&self.sorted, start[from] as usize..start[to + 1] as usize, x);
             if let Some(ghosts) = &self.ghost_bins {
                 let start = &ghosts.start;
-                for &q in &self.sorted_ghosts[start[from] as usize..start[to + 1] as usize] {
-                    sum += self.kernel.term((q - x).length_squared());
-                }
+                let range = start[from] as usize..start[to + 1] as usize;
+                sum += terms.sum(&self.sorted_ghosts, range, x);
             }
         };
         let mut deep_sum = 0.0;
