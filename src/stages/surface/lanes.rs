@@ -61,12 +61,19 @@ impl Terms {
     /// The sum of the terms of `points[range]` seen from `x`.
     #[inline]
     pub(super) fn sum(&self, points: &Points, range: std::ops::Range<usize>, x: Vec3) -> f64 {
+        self.sum_runs(points, &[(range.start as u32, range.end as u32)], x)
+    }
+
+    /// The sum of the terms of the points in the runs `runs` (`start..end` each) seen from
+    /// `x`.
+    #[inline]
+    pub(super) fn sum_runs(&self, points: &Points, runs: &[(u32, u32)], x: Vec3) -> f64 {
         #[cfg(target_arch = "x86_64")]
         if self.lanes {
             // SAFETY: `lanes` is set only where the processor has AVX2 and FMA.
-            return unsafe { avx2::sum(self, points, range, x) };
+            return unsafe { avx2::sum(self, points, runs, x) };
         }
-        self.sum_one_by_one(points, range, x)
+        runs.iter().map(|&(a, b)| self.sum_one_by_one(points, a as usize..b as usize, x)).sum()
     }
 
     /// [`Terms::sum`] a point at a time (where there are no lanes, and to test them).
@@ -95,7 +102,9 @@ impl Terms {
         #[cfg(target_arch = "x86_64")]
         if has_lanes() {
             // SAFETY: checked just now.
-            return Some(unsafe { avx2::sum(self, points, range, x) });
+            return Some(unsafe {
+                avx2::sum(self, points, &[(range.start as u32, range.end as u32)], x)
+            });
         }
         None
     }
@@ -133,8 +142,8 @@ mod avx2 {
 
     /// ln 2 in two parts, the first with its low 21 bits zero so that n·ln2_hi is exact for
     /// |n| < 2¹¹ (Cody and Waite; fdlibm's constants).
-    const LN2_HI: f64 = 6.931_471_803_691_238_164_90e-1;
-    const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
+    const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
+    const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
     /// 1.5·2⁵²: added to an integral n of magnitude under 2⁵¹, it leaves n in the low bits.
     const SHIFTER: f64 = 6_755_399_441_055_744.0;
 
@@ -208,48 +217,51 @@ mod avx2 {
         _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(t, t), t), e)
     }
 
-    /// [`Terms::sum`] four points at a time.
+    /// [`Terms::sum_runs`] four points at a time.
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn sum(
         terms_of: &Terms,
         points: &Points,
-        range: std::ops::Range<usize>,
+        runs: &[(u32, u32)],
         x: Vec3,
     ) -> f64 {
-        let (xs, ys, zs) = (&points.x[range.clone()], &points.y[range.clone()], &points.z[range]);
-        let n = xs.len();
-        assert!(ys.len() == n && zs.len() == n);
+        let (xs, ys, zs) = (&points.x[..], &points.y[..], &points.z[..]);
+        let len = xs.len();
+        assert!(ys.len() == len && zs.len() == len);
         let (cx, cy, cz) = (_mm256_set1_pd(x.x), _mm256_set1_pd(x.y), _mm256_set1_pd(x.z));
         let inv_r2 = _mm256_set1_pd(terms_of.inv_r2);
         let inv_tau = _mm256_set1_pd(terms_of.inv_tau);
         let mut acc = _mm256_setzero_pd();
-        let mut i = 0;
-        while i + 4 <= n {
-            // SAFETY: i + 4 ≤ n, the length of each slice.
-            let (px, py, pz) = unsafe {
-                (
-                    _mm256_loadu_pd(xs.as_ptr().add(i)),
-                    _mm256_loadu_pd(ys.as_ptr().add(i)),
-                    _mm256_loadu_pd(zs.as_ptr().add(i)),
-                )
-            };
-            acc = _mm256_add_pd(acc, terms(px, py, pz, cx, cy, cz, inv_r2, inv_tau));
-            i += 4;
-        }
-        if i < n {
-            // The last one to three points: the lanes past the end load nothing and add 0.
-            let left = _mm256_set1_epi64x((n - i) as i64);
-            let mask = _mm256_cmpgt_epi64(left, _mm256_setr_epi64x(0, 1, 2, 3));
-            // SAFETY: a masked load reads only the lanes whose mask is set, all below n.
-            let (px, py, pz) = unsafe {
-                (
-                    _mm256_maskload_pd(xs.as_ptr().add(i), mask),
-                    _mm256_maskload_pd(ys.as_ptr().add(i), mask),
-                    _mm256_maskload_pd(zs.as_ptr().add(i), mask),
-                )
-            };
-            let t = terms(px, py, pz, cx, cy, cz, inv_r2, inv_tau);
-            acc = _mm256_add_pd(acc, _mm256_and_pd(t, _mm256_castsi256_pd(mask)));
+        for &(start, end) in runs {
+            let (mut i, n) = (start as usize, end as usize);
+            assert!(i <= n && n <= len);
+            while i + 4 <= n {
+                // SAFETY: i + 4 ≤ n ≤ the length of each array.
+                let (px, py, pz) = unsafe {
+                    (
+                        _mm256_loadu_pd(xs.as_ptr().add(i)),
+                        _mm256_loadu_pd(ys.as_ptr().add(i)),
+                        _mm256_loadu_pd(zs.as_ptr().add(i)),
+                    )
+                };
+                acc = _mm256_add_pd(acc, terms(px, py, pz, cx, cy, cz, inv_r2, inv_tau));
+                i += 4;
+            }
+            if i < n {
+                // The last one to three points: the lanes past the end load nothing and add 0.
+                let left = _mm256_set1_epi64x((n - i) as i64);
+                let mask = _mm256_cmpgt_epi64(left, _mm256_setr_epi64x(0, 1, 2, 3));
+                // SAFETY: a masked load reads only the lanes whose mask is set, all below n.
+                let (px, py, pz) = unsafe {
+                    (
+                        _mm256_maskload_pd(xs.as_ptr().add(i), mask),
+                        _mm256_maskload_pd(ys.as_ptr().add(i), mask),
+                        _mm256_maskload_pd(zs.as_ptr().add(i), mask),
+                    )
+                };
+                let t = terms(px, py, pz, cx, cy, cz, inv_r2, inv_tau);
+                acc = _mm256_add_pd(acc, _mm256_and_pd(t, _mm256_castsi256_pd(mask)));
+            }
         }
         let mut lanes = [0.0; 4];
         // SAFETY: four f64 into an array of four.

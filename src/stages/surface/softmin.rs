@@ -254,6 +254,43 @@ struct Row {
     deep: usize,
 }
 
+/// Runs of consecutive cells, `first..=last` each, that a centre's sum reads (at most one a
+/// block cell), and their particles' runs in bin order.
+struct Runs {
+    cells: [(u32, u32); 125],
+    len: usize,
+    points: [(u32, u32); 125],
+}
+
+impl Default for Runs {
+    fn default() -> Runs {
+        Runs { cells: [(0, 0); 125], len: 0, points: [(0, 0); 125] }
+    }
+}
+
+impl Runs {
+    /// Adds cells `first..=last`, joined to the last run where it ends at `first`.
+    #[inline]
+    fn push(&mut self, first: usize, last: usize) {
+        match self.cells[..self.len].last_mut() {
+            Some(run) if run.1 as usize + 1 == first => run.1 = last as u32,
+            _ => {
+                self.cells[self.len] = (first as u32, last as u32);
+                self.len += 1;
+            }
+        }
+    }
+
+    /// The runs' particles in bin order, for bins starting at `start`.
+    #[inline]
+    fn of(&mut self, start: &[u32]) -> &[(u32, u32)] {
+        for (p, &(a, b)) in self.points.iter_mut().zip(&self.cells[..self.len]) {
+            *p = (start[a as usize], start[b as usize + 1]);
+        }
+        &self.points[..self.len]
+    }
+}
+
 /// The rows of `block` (listed x fastest, as [`block`] makes it) on a grid of `n` cells.
 fn rows(block: &[[i64; 3]], n: [usize; 3]) -> Vec<Row> {
     let lin = |o: &[i64; 3]| (o[0] + n[0] as i64 * (o[1] + n[1] as i64 * o[2])) as isize;
@@ -350,13 +387,15 @@ impl<'a> SoftSdf<'a> {
                 // The sub-lattice is its own mirror image.
                 sum += deep_term;
             } else {
-                for &p in self.bins.cell(c) {
-                    let q = reflect(self.pos[p as usize], flip, size);
-                    sum += self.kernel.term((q - x).length_squared());
-                }
-                for &p in self.ghost_bins.as_ref().map_or(&[][..], |b| b.cell(c)) {
-                    let q = reflect(self.ghosts[p as usize], flip, size);
-                    sum += self.kernel.term((q - x).length_squared());
+                // A mirrored particle is as far from x as the particle is from x mirrored.
+                let seen_from = reflect(x, flip, size);
+                let terms = &self.kernel.terms;
+                let start = &self.bins.start;
+                let range = start[c] as usize..start[c + 1] as usize;
+                sum += terms.sum(&self.sorted, range, seen_from);
+                if let Some(ghosts) = &self.ghost_bins {
+                    let range = ghosts.start[c] as usize..ghosts.start[c + 1] as usize;
+                    sum += terms.sum(&self.sorted_ghosts, range, seen_from);
                 }
             }
         }
@@ -369,17 +408,9 @@ impl<'a> SoftSdf<'a> {
         let grid = self.grid;
         let x = grid.cells().position(ijk[0], ijk[1], ijk[2]);
         let own = grid.cell(ijk[0], ijk[1], ijk[2]) as isize;
-        let mut sum = 0.0;
-        let mut particles = |from: usize, to: usize| {
-            let start = &self.bins.start;
-            let terms = &self.kernel.terms;
-            sum += terms.sum(&self.sorted, start[from] as usize..start[to + 1] as usize, x);
-            if let Some(ghosts) = &self.ghost_bins {
-                let start = &ghosts.start;
-                let range = start[from] as usize..start[to + 1] as usize;
-                sum += terms.sum(&self.sorted_ghosts, range, x);
-            }
-        };
+        // The runs of sorted particles (and ghosts) the block's cells hold: a row's at once,
+        // or its cells that are not deep, a run of them at a time.
+        let mut runs = Runs::default();
         let mut deep_sum = 0.0;
         for row in &self.rows {
             let (first, last) = ((own + row.first) as usize, (own + row.last) as usize);
@@ -389,12 +420,17 @@ impl<'a> SoftSdf<'a> {
                         if deep[c] {
                             deep_sum += self.deep_terms[row.deep + e];
                         } else {
-                            particles(c, c);
+                            runs.push(c, c);
                         }
                     }
                 }
-                _ => particles(first, last),
+                _ => runs.push(first, last),
             }
+        }
+        let terms = &self.kernel.terms;
+        let mut sum = terms.sum_runs(&self.sorted, runs.of(&self.bins.start), x);
+        if let Some(ghosts) = &self.ghost_bins {
+            sum += terms.sum_runs(&self.sorted_ghosts, runs.of(&ghosts.start), x);
         }
         let sum = sum + deep_sum;
         (sum + self.kernel.far, sum > 0.0)
