@@ -214,8 +214,8 @@ pub struct SolverSettings {
     /// `stages/surface/softmin.rs`), instead of the nearest particle's distance. The nearest
     /// particle's distance has a kink wherever another particle becomes a cell's nearest,
     /// which a surface's cells pass through all the time; the soft minimum is infinitely
-    /// differentiable in the particles' positions. Default 0 (the nearest particle); 0 to
-    /// 0.5 cells.
+    /// differentiable in the particles' positions. Default 0 (the nearest particle); else
+    /// 0.01 to 0.5 cells.
     pub surface_softness: f64,
     /// Sub-steps of the marker particles' advection per step. Default 0: as many as keep
     /// every particle within half a cell per sub-step, from the step's largest velocity
@@ -453,11 +453,13 @@ impl SolverSettings {
                 format!("must be in [0, 0.5] (cells), got {}", self.sparse_depth),
             ));
         }
+        // Below 0.01 cells the far value e^{−R/τ} (R = 2 cells) and a cell's terms underflow
+        // and φ would come out infinite in the air.
         let tau = self.surface_softness;
-        if !(tau.is_finite() && (0.0..=0.5).contains(&tau)) {
+        if !(tau == 0.0 || (0.01..=0.5).contains(&tau)) {
             return Err(SettingError::new(
                 "solver.surface_softness",
-                format!("must be in [0, 0.5] (cells; 0 for the nearest particle), got {tau}"),
+                format!("must be 0 (the nearest particle) or in [0.01, 0.5] (cells), got {tau}"),
             ));
         }
         if let Some(k) = self.close_pockets {
@@ -611,6 +613,19 @@ impl WorldSettings {
 #[cfg(test)]
 mod tests {
     use super::SolverSettings;
+
+    /// The softness is 0 or in [0.01, 0.5] cells; anything else names the key.
+    #[test]
+    fn surface_softness_is_checked() {
+        let with = |tau: f64| SolverSettings { surface_softness: tau, ..Default::default() };
+        for tau in [0.0, 0.01, 0.35, 0.5] {
+            assert!(with(tau).validate().is_ok(), "{tau}");
+        }
+        for tau in [1e-3, 0.009, 0.51, -0.1, f64::NAN, f64::INFINITY] {
+            let err = with(tau).validate().unwrap_err();
+            assert_eq!(err.key, "solver.surface_softness", "{tau}");
+        }
+    }
 
     /// Pockets left open (`None`, not the default) are written so that they read back open,
     /// and the default reads back as itself.
