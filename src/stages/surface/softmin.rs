@@ -128,10 +128,8 @@ fn for_images(own: [i64; 3], n: [i64; 3], mut f: impl FnMut([i64; 3], [i8; 3])) 
 /// exponent taken out, see [`Kernel::phi`]), zero beyond the reach.
 #[derive(Clone, Copy, Debug)]
 struct Kernel {
-    /// The terms' cut-off and softness.
+    /// The terms' cut-off (1/R²) and softness (1/τ).
     terms: Terms,
-    /// 1/R².
-    inv_r2: f64,
     /// τ.
     tau: f64,
     /// The far value's term, e^{−R/τ}.
@@ -141,8 +139,8 @@ struct Kernel {
 impl Kernel {
     /// For reach `reach` and softness `tau` (both in the same unit).
     fn new(reach: f64, tau: f64) -> Kernel {
-        let inv_r2 = 1.0 / (reach * reach);
-        Kernel { terms: Terms::new(inv_r2, 1.0 / tau), inv_r2, tau, far: (-reach / tau).exp() }
+        let terms = Terms::new(1.0 / (reach * reach), 1.0 / tau);
+        Kernel { terms, tau, far: (-reach / tau).exp() }
     }
 
     #[inline(always)]
@@ -164,7 +162,8 @@ impl Kernel {
         let d2 = d.length_squared();
         let len = d2.sqrt();
         let unit = if len > 0.0 { d / len } else { Vec3::ZERO };
-        unit + 6.0 * self.tau * self.inv_r2 / (1.0 - d2 * self.inv_r2) * d
+        let inv_r2 = self.terms.inv_r2;
+        unit + 6.0 * self.tau * inv_r2 / (1.0 - d2 * inv_r2) * d
     }
 }
 
@@ -254,17 +253,21 @@ struct Row {
     deep: usize,
 }
 
+/// The most cells a block holds: 5³, its offsets being at most 2 along each axis (see
+/// [`block`]).
+const BLOCK_CELLS: usize = 125;
+
 /// Runs of consecutive cells, `first..=last` each, that a centre's sum reads (at most one a
 /// block cell), and their particles' runs in bin order.
 struct Runs {
-    cells: [(u32, u32); 125],
+    cells: [(u32, u32); BLOCK_CELLS],
     len: usize,
-    points: [(u32, u32); 125],
+    points: [(u32, u32); BLOCK_CELLS],
 }
 
 impl Default for Runs {
     fn default() -> Runs {
-        Runs { cells: [(0, 0); 125], len: 0, points: [(0, 0); 125] }
+        Runs { cells: [(0, 0); BLOCK_CELLS], len: 0, points: [(0, 0); BLOCK_CELLS] }
     }
 }
 
