@@ -6,6 +6,7 @@
 //! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS HALF
 //! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS --pair T1 T2
 //! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS --volume
+//! cargo run --release --example loss_sweep -- SCENE STEPS SETTINGS --kink T1 T2 T3
 //! ```
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
@@ -24,12 +25,17 @@
 //! the marker particles, φ and the face velocities differ at most, and where (a jump that
 //! changes no cell's kind shows there first, often far from the body). `--volume` runs the
 //! scene once and prints its worst liquid-volume error over the steps, the step, and the
-//! last step's.
+//! last step's. `--kink` steps three runs at equally spaced t together and prints, per step,
+//! the largest second differences of the body's velocity, the particles, φ, the face
+//! velocities and the body's face fractions against their first differences: about 0 where
+//! the map is smooth between the three, of the order of the first where it kinks, so the
+//! first step that shows one names where a kink of the sweep comes from.
 //! docs/gradients.md ("Air pockets") quotes what it measured.
 
 use diffluid::experiments::scene::Scene;
 use diffluid::geometry::body::Param;
 use diffluid::gradients::Loss;
+use diffluid::math::Vec3;
 use diffluid::world::Simulation;
 use rayon::prelude::*;
 use std::path::Path;
@@ -89,6 +95,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let t: Vec<f64> = args[4..].iter().map(|x| x.parse()).collect::<Result<_, _>>()?;
         let [t1, t2] = t[..] else { return Err(usage.into()) };
         return pair(start(t1)?, start(t2)?, steps).map_err(Into::into);
+    }
+    if args[3] == "--kink" {
+        let t: Vec<f64> = args[4..].iter().map(|x| x.parse()).collect::<Result<_, _>>()?;
+        let [t1, t2, t3] = t[..] else { return Err(usage.into()) };
+        return kink([start(t1)?, start(t2)?, start(t3)?], steps).map_err(Into::into);
     }
     let half: f64 = args[3].parse()?;
     let n = 20;
@@ -205,6 +216,88 @@ fn pair(mut a: Simulation, mut b: Simulation, steps: usize) -> diffluid::Result<
             dphi / grid.dx,
             grid.cells().ijk(c),
             grid.faces(axis).ijk(f)
+        );
+    }
+    Ok(())
+}
+
+/// Steps three runs (at equally spaced values of the coordinate) together and prints, per
+/// step, the largest second differences |a − 2b + c| of the body's velocity, the particles,
+/// φ, the face velocities and the body's face fractions against the first |a − c| (about 0
+/// where the map is smooth between them, of the order of the first where it kinks), and
+/// where: the step and the place a kink comes from.
+fn kink(mut s: [Simulation; 3], steps: usize) -> diffluid::Result<()> {
+    let grid = *s[0].grid();
+    for k in 1..=steps {
+        for sim in s.iter_mut() {
+            sim.step()?;
+        }
+        let [a, b, c] = &s;
+        let body = &b.bodies()[0];
+        let (pa, pb, pc) = (a.particles(), b.particles(), c.particles());
+        let second = |x: Vec3, y: Vec3, z: Vec3| (x - 2.0 * y + z).length();
+        let (p, dp) = largest((0..pa.len()).map(|i| second(pa[i], pb[i], pc[i])));
+        let first = largest((0..pa.len()).map(|i| (pa[i] - pc[i]).length())).1;
+        let (fa, fb, fc) = (a.liquid_phi(), b.liquid_phi(), c.liquid_phi());
+        let (cell, dphi) = largest((0..fa.len()).map(|i| (fa[i] - 2.0 * fb[i] + fc[i]).abs()));
+        let phi_first = largest((0..fa.len()).map(|i| (fa[i] - fc[i]).abs())).1;
+        let (ua, ub, uc) = (a.velocity_field(), b.velocity_field(), c.velocity_field());
+        let (axis, (f, du)) = (0..3)
+            .map(|d| {
+                (
+                    d,
+                    largest(
+                        (0..ua.c[d].len())
+                            .map(|i| (ua.c[d][i] - 2.0 * ub.c[d][i] + uc.c[d][i]).abs()),
+                    ),
+                )
+            })
+            .max_by(|x, y| x.1 .1.total_cmp(&y.1 .1))
+            .expect("three axes");
+        let u_first = (0..3)
+            .map(|d| largest(ua.c[d].iter().zip(&uc.c[d]).map(|(x, y)| (x - y).abs())).1)
+            .fold(0.0, f64::max);
+        let (va, vb, vc) = (a.bodies()[0].state().v, body.state().v, c.bodies()[0].state().v);
+        let at = pb.get(p).copied().unwrap_or(Vec3::ZERO);
+        let fpos = grid.faces(axis).ijk(f);
+        println!(
+            "step {k:3}: body v {:.2e} of {:.2e}; particle {p} {:.2e} of {:.2e} (at {:.4?}, body sdf/dx {:+.3}); φ {:.2e} of {:.2e} at {:?} (φ/dx {:+.3}); u {:.2e} of {:.2e} at face {:?} of axis {axis}",
+            (va - 2.0 * vb + vc).length(),
+            (va - vc).length(),
+            dp,
+            first,
+            at.to_array(),
+            body.sdf(at) / grid.dx,
+            dphi,
+            phi_first,
+            grid.cells().ijk(cell),
+            fb[cell] / grid.dx,
+            du,
+            u_first,
+            fpos,
+        );
+        // The body's face fractions where each run has it after the step.
+        let fr: Vec<_> = s.iter().map(|sim| sim.bodies()[0].face_fractions(&grid)).collect();
+        let mut worst = (0.0f64, 0usize, 0usize, 0.0f64);
+        for d in 0..3 {
+            let look = |k: usize, f: usize| {
+                fr[k].faces[d]
+                    .binary_search_by_key(&f, |e| e.0)
+                    .map_or(0.0, |i| fr[k].faces[d][i].1)
+            };
+            for &(f, beta) in &fr[1].faces[d] {
+                let dd = (look(0, f) - 2.0 * beta + look(2, f)).abs();
+                if dd > worst.0 {
+                    worst = (dd, d, f, beta);
+                }
+            }
+        }
+        println!(
+            "  fractions: {:.2e} at face {:?} of axis {} (β {:.4})",
+            worst.0,
+            grid.faces(worst.1).ijk(worst.2),
+            worst.1,
+            worst.3
         );
     }
     Ok(())

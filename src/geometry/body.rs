@@ -8,6 +8,7 @@
 use crate::error::{Error, Result};
 use crate::geometry::fractions;
 use crate::geometry::grid::Grid;
+use crate::geometry::interior::{signed_distance, smooth_interior};
 use crate::math::dual::Dual;
 use crate::math::{twist, Pose, Rotation, SharedShape, Twist, TwistParts, Vec3};
 use parry3d_f64::math::Matrix as Mat3;
@@ -425,18 +426,28 @@ impl RigidBody {
         Pose::from_parts(self.x - self.q * self.local_com, self.q)
     }
 
-    /// Signed distance at a world point (negative inside).
+    /// Signed distance at a world point (negative inside): parry's, but inside a box, a
+    /// convex hull or a cylinder smoothed across the planes that bisect its edges (see
+    /// [`crate::geometry::interior`]), where the true distance has a kink that the face
+    /// fractions would carry into the forward map.
     #[inline]
     pub fn sdf(&self, p: Vec3) -> f64 {
-        self.shape.distance_to_point(&self.pose(), p, false)
+        signed_distance(&self.shape, &self.pose(), p)
     }
 
     /// Signed distance at `p` with its derivative along the six pose directions
     /// [δx (3); δθ (3)], the body translated by δx and turned by δθ (world frame) about its
-    /// centre of mass: ∂φ/∂x = −n, ∂φ/∂θ = −(p − x) × n, with n the unit gradient of the
-    /// distance (from the closest surface point).
+    /// centre of mass: ∂φ/∂x = −n, ∂φ/∂θ = −(p − x) × n, with n the gradient of the
+    /// distance (the unit vector from the closest surface point, or the smoothed interior
+    /// distance's gradient where [`RigidBody::sdf`] smooths it).
     pub fn sdf_pose_dual(&self, p: Vec3) -> Dual<6> {
-        let proj = self.shape.project_point(&self.pose(), p, false);
+        let pose = self.pose();
+        if let Some((phi, g)) = smooth_interior(&self.shape, pose.inverse_transform_point(p)) {
+            let n = self.q * g;
+            let t = (p - self.x).cross(n);
+            return Dual::new(phi, [-n.x, -n.y, -n.z, -t.x, -t.y, -t.z]);
+        }
+        let proj = self.shape.project_point(&pose, p, false);
         let diff = p - proj.point;
         let len = diff.length();
         let phi = if proj.is_inside { -len } else { len };

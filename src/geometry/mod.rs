@@ -3,6 +3,7 @@
 pub mod body;
 pub mod fractions;
 pub mod grid;
+pub mod interior;
 pub mod mesh;
 pub mod seal;
 pub mod shape;

@@ -22,7 +22,7 @@ fn push_one(shape: &SharedShape, pose: &Pose, bounds: (Vec3, Vec3), x: Vec3, mar
     if x.cmplt(lo - reach).any() || x.cmpgt(hi + reach).any() {
         return x;
     }
-    let sdf = |p: Vec3| shape.distance_to_point(pose, p, false);
+    let sdf = |p: Vec3| crate::geometry::interior::signed_distance(shape, pose, p);
     let d = sdf(x);
     if d >= margin {
         return x;
