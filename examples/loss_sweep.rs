@@ -11,7 +11,7 @@
 //!
 //! `SCENE` is a built-in scene or a file with a `[loss]`; `SETTINGS` a comma-separated list of
 //! `default`, `no-density`, `sparse`, `no-sparse`, `substeps=N`, `volume-control=K`, `theta-min=X`,
-//! `close-pockets=K`, `sparse-depth=D`, `density-tolerance=X`, `density-gain=G`,
+//! `close-pockets=K`, `sparse-depth=D`, `tolerance=X`, `density-tolerance=X`, `density-gain=G`,
 //! `density-passes=N`, `density-face-ramp=W`, `surface-softness=T`, `body-ramp`, `surface-blend=T`, `smooth` (`surface-blend=0.5`,
 //! `body-ramp`, `close-pockets=0.5`, `no-sparse`, `theta-min=1e-5`: the defaults since
 //! 6 December 2026), `yes-no` (the surface rules that were the defaults before: no blend, no
@@ -36,7 +36,7 @@ use diffluid::experiments::scene::Scene;
 use diffluid::geometry::body::Param;
 use diffluid::gradients::Loss;
 use diffluid::math::Vec3;
-use diffluid::world::Simulation;
+use diffluid::world::{Simulation, StepRecord, Tape};
 use rayon::prelude::*;
 use std::path::Path;
 
@@ -73,6 +73,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "sparse-depth" => s.sparse_depth = value.parse()?,
             "surface-softness" => s.surface_softness = value.parse()?,
             "density-tolerance" => s.density_tolerance = value.parse()?,
+            "tolerance" => s.tolerance = value.parse()?,
             "density-gain" => s.density_gain = value.parse()?,
             "density-passes" => s.density_passes = value.parse()?,
             "density-face-ramp" => s.density_face_ramp = value.parse()?,
@@ -229,8 +230,11 @@ fn pair(mut a: Simulation, mut b: Simulation, steps: usize) -> diffluid::Result<
 fn kink(mut s: [Simulation; 3], steps: usize) -> diffluid::Result<()> {
     let grid = *s[0].grid();
     for k in 1..=steps {
+        let mut recs = Vec::new();
         for sim in s.iter_mut() {
-            sim.step()?;
+            let mut tape = Tape::default();
+            sim.step_taped(&mut tape)?;
+            recs.push(tape.steps.pop().expect("a taped step"));
         }
         let [a, b, c] = &s;
         let body = &b.bodies()[0];
@@ -298,6 +302,33 @@ fn kink(mut s: [Simulation; 3], steps: usize) -> diffluid::Result<()> {
             grid.faces(worst.1).ijk(worst.2),
             worst.1,
             worst.3
+        );
+        // The step's own records: φ_L its projection read, the pressure, the particles
+        // after advection (before the push), the density projection's potentials.
+        let flat = |f: &dyn Fn(&StepRecord) -> Vec<f64>| -> String {
+            let v: Vec<Vec<f64>> = recs.iter().map(f).collect();
+            if v[0].len() != v[1].len() || v[1].len() != v[2].len() {
+                return format!("lengths {} {} {}", v[0].len(), v[1].len(), v[2].len());
+            }
+            let (i, dd) =
+                largest((0..v[1].len()).map(|i| (v[0][i] - 2.0 * v[1][i] + v[2][i]).abs()));
+            let d1 = largest((0..v[1].len()).map(|i| (v[0][i] - v[2][i]).abs())).1;
+            format!("{dd:.2e} of {d1:.2e} at {i}")
+        };
+        let moved = |r: &StepRecord| -> Vec<f64> {
+            r.particles
+                .as_ref()
+                .map_or(Vec::new(), |p| p.moved.iter().flat_map(|x| x.to_array()).collect())
+        };
+        let dens = |r: &StepRecord| -> Vec<f64> {
+            r.particles.as_ref().map_or(Vec::new(), |p| p.density.concat())
+        };
+        println!(
+            "  taped: φ {}; p {}; moved {}; density q {}",
+            flat(&|r| r.phi.clone()),
+            flat(&|r| r.p.clone()),
+            flat(&moved),
+            flat(&dens)
         );
     }
     Ok(())

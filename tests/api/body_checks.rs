@@ -63,9 +63,12 @@ fn obj_cube_and_cuboid_give_the_same_trajectory() {
     eprintln!(
         "mesh vs cuboid: worst relative trajectory difference {worst:.2e} over {travelled:.3} m"
     );
-    // The issue asks for 1%; the two shapes give the same distances and mass properties,
-    // so the runs agree to round-off (measured 4e-16).
-    assert!(worst < 1e-9, "trajectories differ by {worst}");
+    // The issue asks for 1%. The two shapes have the same mass properties and the same
+    // distance outside; inside, the cuboid's distance is smoothed across the planes that
+    // bisect its edges and the mesh's is not (`geometry/interior.rs`), which is all that
+    // parts them: measured 1.06e-4 (4e-16 before the smoothing). A mesh loaded a hair off
+    // in scale, place or turn would part them by more than 1e-3 (a 1 mm offset: 3e-3).
+    assert!(worst < 1e-3, "trajectories differ by {worst}");
 }
 
 #[test]

@@ -1,7 +1,12 @@
-//! `diffluid gradcheck assets/scenes/gradcheck_box.toml --json` checks the adjoint gradient
-//! of every initial body parameter (and its mass) against central differences of the same forward map
-//! (surface held fixed), and reports the paper's approximation beside it. Every full
-//! rel_error must be at most 1e-6 (measured 7.7e-8; the command itself fails above 1e-3).
+//! `diffluid gradcheck assets/scenes/gradcheck_box.toml --eps 2.5e-7 --json` checks the
+//! adjoint gradient of every initial body parameter (and its mass) against central
+//! differences of the same forward map (surface held fixed), and reports the paper's
+//! approximation beside it. Every full rel_error must be at most 1e-6 (measured 2.3e-7; the
+//! command itself fails above 1e-3). The step is a quarter of the command's default: since
+//! the box's distance inside it is smoothed (`geometry/interior.rs`), the map bends within
+//! 5e-7 of the scene's x₁ over less than 1e-6, and central differences at 2e-6, 1e-6 and
+//! 5e-7 straddle the bend (x₁ off the adjoint by 1.2e-5, 9.8e-6, 5.5e-6) where those at
+//! 2.5e-7 and 1.25e-7 agree with it to 3.5e-9 and 5.9e-9.
 
 use crate::common::EXE;
 use std::process::Command;
@@ -9,7 +14,8 @@ use std::process::Command;
 #[test]
 fn gradcheck_box_json_has_every_rel_error_below_1e_6() {
     let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/scenes/gradcheck_box.toml");
-    let out = Command::new(EXE).args(["gradcheck", scene, "--json"]).output().unwrap();
+    let out =
+        Command::new(EXE).args(["gradcheck", scene, "--eps", "2.5e-7", "--json"]).output().unwrap();
     assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let params = v["params"].as_array().unwrap();
