@@ -86,58 +86,39 @@ const DEPTH_RAMP: f64 = 0.1;
 /// while the cell's deficit fades out (see `interior_weights`).
 const BODY_RAMP: f64 = 0.5;
 
-/// Over how much density (in cells, either side of full) a cell's excess turns from its
-/// deficit's weight to its excess's (see [`excess`]).
-const TURN: f64 = 0.02;
-
 /// A cell's excess density (in cells): over `1 + DEAD_ZONE` it pushes out what it holds
 /// over, times its `depth` weight ([`depth_weight`] of its own φ_L); under `1 − DEAD_ZONE`
-/// it draws in what it lacks, times its `interior` weight (0 to 1). The depth weight fades
-/// the excess of a cell whose centre is within a tenth of a cell of the surface: the deposit
-/// reads the particles of the cells around, so a cell just turning liquid can be over full
-/// (those below it bunched), and its excess came on whole as it entered the operator, a
-/// jump of the step (traced on the surge: a cell at φ_L = −2.4e-6 m with 2% too many
-/// particles).
-///
-/// Within [`TURN`] of full the weight turns smoothly from the deficit's to the excess's:
-/// with x the density less one and the dead zone, the excess is x·(I + (D − I)·σ(x/TURN)),
-/// σ the quintic smooth step from 0 at −1 to 1 at 1. Where the two weights differ (a cell
-/// beside air or a body, which pushes out an excess and draws in no deficit), a yes/no
-/// turn at full was a kink of the forward map each time a cell's density crossed it: on the
-/// surge under a soft φ_L a cell beside the surface crossing full at step 35 bent the
-/// slope of the loss along the ball's z by 5.6%. Continuous in `dens`, `interior` and
-/// `depth`, and smooth in them but on the dead zone's edges (a step of 10⁻⁶).
+/// it draws in what it lacks, times its `interior` weight (0 to 1). Continuous in `dens`,
+/// `interior` and `depth`. The depth weight fades the excess of a cell whose centre is
+/// within a tenth of a cell of the surface: the deposit reads the particles of the cells
+/// around, so a cell just turning liquid can be over full (those below it bunched), and
+/// its excess came on whole as it entered the operator, a jump of the step (traced on the
+/// surge: a cell at φ_L = −2.4e-6 m with 2% too many particles).
 #[inline]
 fn excess(dens: f64, interior: f64, depth: f64) -> f64 {
-    let x = dead_zoned(dens);
-    x * (interior + (depth - interior) * turn(x / TURN).0)
-}
-
-/// The density less one and the dead zone (0 within it).
-#[inline]
-fn dead_zoned(dens: f64) -> f64 {
-    let x = dens - 1.0;
-    x - DEAD_ZONE * (x / DEAD_ZONE).clamp(-1.0, 1.0)
-}
-
-/// The quintic smooth step σ(s) from 0 at s = −1 to 1 at s = 1, and its derivative.
-#[inline]
-fn turn(s: f64) -> (f64, f64) {
-    let t = (0.5 * (s + 1.0)).clamp(0.0, 1.0);
-    let value = t * t * t * (10.0 + t * (6.0 * t - 15.0));
-    (value, 15.0 * t * t * (1.0 - t) * (1.0 - t))
+    let over = dens - 1.0 - DEAD_ZONE;
+    let under = dens - 1.0 + DEAD_ZONE;
+    if over > 0.0 {
+        depth * over
+    } else if under < 0.0 {
+        interior * under
+    } else {
+        0.0
+    }
 }
 
 /// The derivatives of [`excess`] in `dens`, `interior` and `depth`.
 #[inline]
 fn excess_derivatives(dens: f64, interior: f64, depth: f64) -> (f64, f64, f64) {
-    let x = dead_zoned(dens);
-    if x == 0.0 {
-        return (0.0, 0.0, 0.0);
+    let over = dens - 1.0 - DEAD_ZONE;
+    let under = dens - 1.0 + DEAD_ZONE;
+    if over > 0.0 {
+        (depth, 0.0, over)
+    } else if under < 0.0 {
+        (interior, under, 0.0)
+    } else {
+        (0.0, 0.0, 0.0)
     }
-    let (sigma, slope) = turn(x / TURN);
-    let d_dens = interior + (depth - interior) * (sigma + x * slope / TURN);
-    (d_dens, x * (1.0 - sigma), x * sigma)
 }
 
 /// How much of each cell's deficit counts (see [`excess`]), 0 to 1: 1 in the liquid's
@@ -1200,41 +1181,6 @@ mod tests {
             let near = d.velocity(&pool.grid, p)[axis];
             p[axis] = inner * dx;
             assert_eq!(near, d.velocity(&pool.grid, p)[axis], "axis {axis} at {wall} cells");
-        }
-    }
-
-    /// The excess turns from the deficit's weight to the excess's within [`TURN`] of full:
-    /// beyond it, the one-sided rule (the weight of its side times the density less one and
-    /// the dead zone); within it, smooth: its derivatives match central differences, and its
-    /// slope in the density is continuous across full where the yes/no turn jumped from the
-    /// deficit's weight to the excess's.
-    #[test]
-    fn the_excess_turns_smoothly_at_full() {
-        let (interior, depth) = (0.3, 0.9);
-        for dens in [0.5, 1.0 - 2.5 * TURN, 1.0 + 1.01 * TURN, 1.3] {
-            let x = dens - 1.0 - DEAD_ZONE * (dens - 1.0).signum();
-            let weight = if dens > 1.0 { depth } else { interior };
-            assert!((excess(dens, interior, depth) - weight * x).abs() < 1e-15, "{dens}");
-        }
-        assert_eq!(excess(1.0 + 0.5 * DEAD_ZONE, interior, depth), 0.0);
-        let h = 1e-7;
-        for k in 0..200 {
-            let dens = 1.0 - 1.5 * TURN + 3.0 * TURN * (k as f64 + 0.37) / 200.0;
-            if (dens - 1.0).abs() < DEAD_ZONE + h {
-                continue;
-            }
-            let (dd, di, dw) = excess_derivatives(dens, interior, depth);
-            let fd = |f: &dyn Fn(f64) -> f64, at: f64| (f(at + h) - f(at - h)) / (2.0 * h);
-            let tol = 1e-6;
-            assert!((dd - fd(&|d| excess(d, interior, depth), dens)).abs() < tol, "{dens}");
-            assert!((di - fd(&|i| excess(dens, i, depth), interior)).abs() < tol, "{dens}");
-            assert!((dw - fd(&|w| excess(dens, interior, w), depth)).abs() < tol, "{dens}");
-        }
-        // Across full, the slope in the density is continuous (the mean of the weights).
-        let slope = |d: f64| excess_derivatives(d, interior, depth).0;
-        let mid = 0.5 * (interior + depth);
-        for d in [1.0 - 2.0 * DEAD_ZONE, 1.0 + 2.0 * DEAD_ZONE] {
-            assert!((slope(d) - mid).abs() < 1e-3, "{d}: {}", slope(d));
         }
     }
 
