@@ -261,10 +261,11 @@ fn two_density_passes_gradient_matches_central_differences() {
 /// (`solver.density_face_ramp = 0.5`: a face the box covers by more than half carries that
 /// share of its displacement less): the backward pass scales their d̄ by the same share and
 /// carries ∂L/∂w to the box's pose through the faces' weights. Every parameter within 2e-5
-/// of central differences of the same map at ε = 1e-7 (measured 1.19e-5 on q₂, 1.05e-5 on
-/// ω₁; under 1e-5 before the box's distance inside was smoothed, which moved the map: the
-/// same scene over one step is off by 2.9e-4 on ω₁ without the smoothing and 2.9e-5 with it,
-/// an inexactness at this level that this test does not isolate); the map is another than
+/// of central differences of the same map at ε = 1e-7. Measured 1.19e-5 (q₂), 1.04e-5 (q₁)
+/// and 1.03e-5 (ω₁) since the box's distance inside it is smoothed (`geometry/interior.rs`),
+/// 6.1e-7 at worst before. The central differences agree with each other from 2.5e-8 to
+/// 1e-6, so the adjoint is what is off, by about 1e-5 of these rows: a defect, not found
+/// yet (reverting the push-out to parry's distance leaves it). The map is another than
 /// without the ramp (some parameter's gradient moves by more than 1e-3 of itself), so the
 /// check reaches the faded faces.
 #[test]
