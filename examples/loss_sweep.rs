@@ -242,25 +242,16 @@ fn kink(mut s: [Simulation; 3], steps: usize) -> diffluid::Result<()> {
         let second = |x: Vec3, y: Vec3, z: Vec3| (x - 2.0 * y + z).length();
         let (p, dp) = largest((0..pa.len()).map(|i| second(pa[i], pb[i], pc[i])));
         let first = largest((0..pa.len()).map(|i| (pa[i] - pc[i]).length())).1;
-        let (fa, fb, fc) = (a.liquid_phi(), b.liquid_phi(), c.liquid_phi());
-        let (cell, dphi) = largest((0..fa.len()).map(|i| (fa[i] - 2.0 * fb[i] + fc[i]).abs()));
-        let phi_first = largest((0..fa.len()).map(|i| (fa[i] - fc[i]).abs())).1;
+        let fb = b.liquid_phi();
+        let (cell, dphi, phi_first) = differences(a.liquid_phi(), fb, c.liquid_phi());
         let (ua, ub, uc) = (a.velocity_field(), b.velocity_field(), c.velocity_field());
-        let (axis, (f, du)) = (0..3)
-            .map(|d| {
-                (
-                    d,
-                    largest(
-                        (0..ua.c[d].len())
-                            .map(|i| (ua.c[d][i] - 2.0 * ub.c[d][i] + uc.c[d][i]).abs()),
-                    ),
-                )
-            })
+        let per_axis: Vec<_> = (0..3).map(|d| differences(&ua.c[d], &ub.c[d], &uc.c[d])).collect();
+        let u_first = per_axis.iter().map(|x| x.2).fold(0.0, f64::max);
+        let (axis, &(f, du, _)) = per_axis
+            .iter()
+            .enumerate()
             .max_by(|x, y| x.1 .1.total_cmp(&y.1 .1))
             .expect("three axes");
-        let u_first = (0..3)
-            .map(|d| largest(ua.c[d].iter().zip(&uc.c[d]).map(|(x, y)| (x - y).abs())).1)
-            .fold(0.0, f64::max);
         let (va, vb, vc) = (a.bodies()[0].state().v, body.state().v, c.bodies()[0].state().v);
         let at = pb.get(p).copied().unwrap_or(Vec3::ZERO);
         let fpos = grid.faces(axis).ijk(f);
@@ -310,9 +301,7 @@ fn kink(mut s: [Simulation; 3], steps: usize) -> diffluid::Result<()> {
             if v[0].len() != v[1].len() || v[1].len() != v[2].len() {
                 return format!("lengths {} {} {}", v[0].len(), v[1].len(), v[2].len());
             }
-            let (i, dd) =
-                largest((0..v[1].len()).map(|i| (v[0][i] - 2.0 * v[1][i] + v[2][i]).abs()));
-            let d1 = largest((0..v[1].len()).map(|i| (v[0][i] - v[2][i]).abs())).1;
+            let (i, dd, d1) = differences(&v[0], &v[1], &v[2]);
             format!("{dd:.2e} of {d1:.2e} at {i}")
         };
         let moved = |r: &StepRecord| -> Vec<f64> {
@@ -332,6 +321,14 @@ fn kink(mut s: [Simulation; 3], steps: usize) -> diffluid::Result<()> {
         );
     }
     Ok(())
+}
+
+/// Over three equally long series: where the second difference |a − 2b + c| is largest,
+/// that difference, and the largest first difference |a − c|.
+fn differences(a: &[f64], b: &[f64], c: &[f64]) -> (usize, f64, f64) {
+    let (i, second) = largest((0..b.len()).map(|i| (a[i] - 2.0 * b[i] + c[i]).abs()));
+    let first = largest((0..b.len()).map(|i| (a[i] - c[i]).abs())).1;
+    (i, second, first)
 }
 
 /// The index and value of the largest of `x` (the first, where several are).

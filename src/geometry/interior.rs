@@ -52,80 +52,48 @@ fn smin(a: f64, b: f64) -> (f64, f64, f64) {
     (value, d_lo + part(sign), d_hi + part(-sign))
 }
 
-/// Folds planes (their distance d ≥ 0 and its gradient) into the smooth minimum.
-#[derive(Clone, Copy, Debug)]
-struct Fold {
-    value: f64,
-    grad: Vec3,
-}
-
-impl Fold {
-    fn new(d: f64, grad: Vec3) -> Fold {
-        Fold { value: d, grad }
+/// The smooth minimum of planes (each its distance d and the gradient of d), folded in
+/// order, and its gradient; None as soon as a plane is not strictly ahead (d ≤ 0: the point
+/// is not inside), or without planes.
+fn fold(planes: impl IntoIterator<Item = (f64, Vec3)>) -> Option<(f64, Vec3)> {
+    let mut planes = planes.into_iter();
+    let (mut value, mut grad) = planes.next().filter(|p| p.0 > 0.0)?;
+    for (d, g) in planes {
+        if d <= 0.0 {
+            return None;
+        }
+        let (v, wa, wb) = smin(value, d);
+        (value, grad) = (v, wa * grad + wb * g);
     }
-
-    #[inline]
-    fn add(&mut self, d: f64, grad: Vec3) {
-        let (value, wa, wb) = smin(self.value, d);
-        self.value = value;
-        self.grad = wa * self.grad + wb * grad;
-    }
+    Some((value, grad))
 }
 
 /// The smoothed signed distance (≤ 0) and its gradient at `p` in the frame of `shape`, when
 /// `p` is inside a shape this module smooths; None outside it, or for another kind of shape.
 pub fn smooth_interior(shape: &SharedShape, p: Vec3) -> Option<(f64, Vec3)> {
-    let fold = if let Some(c) = shape.as_cuboid() {
+    let (value, grad) = if let Some(c) = shape.as_cuboid() {
         let h = c.half_extents;
-        if (0..3).any(|a| p[a].abs() >= h[a]) {
-            return None;
-        }
-        let mut fold: Option<Fold> = None;
-        for a in 0..3 {
+        // Per axis the faces at +h and −h: d = h ∓ p, falling along ±e.
+        fold((0..3).flat_map(|a| {
             let e = crate::math::unit(a);
-            for side in [1.0, -1.0] {
-                // Distance to the face at side·h along axis a; it falls along side·e.
-                let (d, g) = (h[a] - side * p[a], -side * e);
-                match &mut fold {
-                    Some(f) => f.add(d, g),
-                    None => fold = Some(Fold::new(d, g)),
-                }
-            }
-        }
-        fold?
+            [1.0, -1.0].map(|side| (h[a] - side * p[a], -side * e))
+        }))?
     } else if let Some(c) = shape.as_convex_polyhedron() {
-        let points = c.points();
-        let corners = c.vertices_adj_to_face();
-        let mut fold: Option<Fold> = None;
-        for face in c.faces() {
-            let n = face.normal;
+        let (points, corners) = (c.points(), c.vertices_adj_to_face());
+        fold(c.faces().iter().map(|face| {
             let on = points[corners[face.first_vertex_or_edge as usize] as usize];
-            let d = n.dot(on - p);
-            if d <= 0.0 {
-                return None;
-            }
-            match &mut fold {
-                Some(f) => f.add(d, -n),
-                None => fold = Some(Fold::new(d, -n)),
-            }
-        }
-        fold?
+            (face.normal.dot(on - p), -face.normal)
+        }))?
     } else if let Some(c) = shape.as_cylinder() {
         // The axis is y; the radial distance's kink on the axis lies a radius deep.
         let rho = (p.x * p.x + p.z * p.z).sqrt();
-        let (hh, r) = (c.half_height, c.radius);
-        if p.y.abs() >= hh || rho >= r {
-            return None;
-        }
         let radial = if rho > 0.0 { Vec3::new(p.x / rho, 0.0, p.z / rho) } else { Vec3::ZERO };
-        let mut fold = Fold::new(hh - p.y, -Vec3::Y);
-        fold.add(hh + p.y, Vec3::Y);
-        fold.add(r - rho, -radial);
-        fold
+        let (hh, r) = (c.half_height, c.radius);
+        fold([(hh - p.y, -Vec3::Y), (hh + p.y, Vec3::Y), (r - rho, -radial)])?
     } else {
         return None;
     };
-    Some((-fold.value, -fold.grad))
+    Some((-value, -grad))
 }
 
 /// The signed distance of `shape` at `pose` at the world point `p`: parry's, smoothed inside
@@ -142,9 +110,9 @@ pub fn signed_distance(shape: &SharedShape, pose: &Pose, p: Vec3) -> f64 {
 mod tests {
     use super::*;
 
-    /// Central differences of the smoothed distance match its gradient, it is 0 on the
-    /// faces, within c/12 of the depth of parry's distance inside, and equal to it away from
-    /// the bisecting planes.
+    /// The smoothed distance is given exactly inside the shape, never deeper than parry's,
+    /// at most 8.5% shallower within 2 cm of the surface (16% anywhere), blended at enough
+    /// points to be tested, 0 on the faces, and central differences match its gradient.
     #[test]
     fn the_smoothed_interior_distance_is_a_distance_with_its_gradient() {
         let hull = SharedShape::convex_hull(&[
