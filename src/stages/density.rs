@@ -71,7 +71,7 @@ use crate::stages::pressure::{
     has_open_face, GhostFluid, PressureParams, PressureSystem, SystemPool,
 };
 use crate::stages::solid_phi::{solidity_pose_adjoint, PartialSolid, SolidExtension};
-use crate::stages::surface::{self, jacobian_step, jacobian_t, Bins, Walls};
+use crate::stages::surface::{self, jacobian_step, Bins, Walls};
 use crate::stages::system::NEAR_SOLID;
 use rayon::prelude::*;
 
@@ -733,11 +733,8 @@ impl DensityProjection {
                     }
                     let (v, jd) = d.velocity_jacobian(grid, *x);
                     let y = *x + capped(v, grid);
-                    let ybar = if walls.keep(y) == y {
-                        *xb
-                    } else {
-                        jacobian_t(|p| walls.keep(p), y, step, *xb)
-                    };
+                    let ybar =
+                        if walls.keep(y) == y { *xb } else { walls.keep_adjoint(y, *xb, step) };
                     let vbar = capped_adjoint(v, grid, ybar);
                     *xb = ybar + vbar.x * jd[0] + vbar.y * jd[1] + vbar.z * jd[2];
                     *read = (*x, vbar);

@@ -49,6 +49,38 @@ impl<'a> Walls<'a> {
         }
         y.clamp(Vec3::splat(margin), self.grid.size() - Vec3::splat(margin))
     }
+
+    /// The transpose of [`Walls::keep`]'s Jacobian at `y` applied to `bar`, of the rules
+    /// that acted there: the clamp holds a coordinate still, and the solids' push is
+    /// differentiated by central differences of step `h` as a push, also where a point
+    /// within `h` of the margin's edge would not be pushed (a central difference across
+    /// that edge reads the mean of the two sides' slopes; docs/gradients.md, "The
+    /// push-out's two sides").
+    pub fn keep_adjoint(&self, y: Vec3, bar: Vec3, h: f64) -> Vec3 {
+        let margin = 1e-3 * self.grid.dx;
+        let nodes = self.grid.nodes();
+        let push = |p: Vec3| {
+            let sdf = self.solids.expect("a push needs the solids");
+            let (d, g) = nodes.sample_grad(sdf, p);
+            p + (margin - d) * g.normalize()
+        };
+        let pushed = self.solids.is_some_and(|sdf| {
+            nodes.sample(sdf, y) < margin && nodes.sample_grad(sdf, y).1.length() > 1e-12
+        });
+        let z = if pushed { push(y) } else { y };
+        let hi = self.grid.size() - Vec3::splat(margin);
+        let mut b = bar;
+        for a in 0..3 {
+            if z[a] < margin || z[a] > hi[a] {
+                b[a] = 0.0;
+            }
+        }
+        if pushed {
+            jacobian_t(push, y, h, b)
+        } else {
+            b
+        }
+    }
 }
 
 /// One particle's path: `subs` midpoint (RK2) sub-steps of length `h` through `u`, each
@@ -153,8 +185,7 @@ pub fn advect_adjoint(
                     let mut bar = *xb;
                     for (n, &(x, mid, y, free)) in path.iter().rev().enumerate() {
                         // x' = keep(y): the identity unless the push or the clamp acted.
-                        let ybar =
-                            if free { bar } else { jacobian_t(|p| walls.keep(p), y, fd, bar) };
+                        let ybar = if free { bar } else { walls.keep_adjoint(y, bar, fd) };
                         // y = x + h·U(mid), mid = x + h/2·U(x).
                         let (_, jm) = u.velocity_jacobian(grid, mid);
                         let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);

@@ -573,6 +573,62 @@ mod adjoint {
         assert!((ad - fd).abs() <= 1e-6 * fd.abs(), "field: adjoint {ad:e}, fd {fd:e}");
     }
 
+    /// [`Walls::keep`]'s adjoint at points a tenth of the difference step short of the
+    /// margin's edge, at a tank wall (the clamp) and at a static solid (the push): the slope
+    /// of the side each point is on, as central differences small enough to stay there read
+    /// it. A central difference across the edge read half the clamp's zero.
+    #[test]
+    fn keep_adjoint_takes_the_side_of_the_margin_a_point_is_on() {
+        let grid = grid();
+        let centre = Vec3::new(0.4, 0.3, 0.3);
+        let obstacle = Solid::new(SharedShape::ball(0.12), Pose::from_translation(centre));
+        let node_sdf = NodeSdf::new(&grid, &[obstacle]);
+        let walls = Walls::new(&grid, &node_sdf);
+        let (margin, step) = (1e-3 * grid.dx, jacobian_step(&grid));
+        let short = margin - 0.1 * step;
+        let nodes = grid.nodes();
+        let sdf = node_sdf.values().unwrap();
+        // Along a ray from the ball's centre, the point where the sampled distance is `short`.
+        let at_ball = |dir: Vec3| {
+            let (mut lo, mut hi) = (0.05, 0.2);
+            for _ in 0..200 {
+                let mid = 0.5 * (lo + hi);
+                if nodes.sample(sdf, centre + mid * dir) < short {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            centre + lo * dir
+        };
+        let points = [
+            Vec3::new(short, 0.31, 0.27),
+            Vec3::new(0.43, 0.7 - short, 0.12),
+            at_ball(Vec3::new(0.6, 0.75, 0.27).normalize()),
+            at_ball(Vec3::new(-0.36, 0.48, 0.8).normalize()),
+        ];
+        for (i, y) in points.iter().enumerate() {
+            assert_ne!(walls.keep(*y), *y, "point {i} is kept as it is");
+        }
+        let eps = 0.02 * step;
+        for (i, y) in points.iter().enumerate() {
+            for (k, bar) in
+                [Vec3::X, Vec3::Y, Vec3::Z, Vec3::new(0.3, -0.7, 0.5)].iter().enumerate()
+            {
+                let ad = walls.keep_adjoint(*y, *bar, step);
+                for a in 0..3 {
+                    let e = eps * crate::math::unit(a);
+                    let fd = bar.dot(walls.keep(*y + e) - walls.keep(*y - e)) / (2.0 * eps);
+                    assert!(
+                        (ad[a] - fd).abs() <= 1e-5,
+                        "point {i}, bar {k}, axis {a}: adjoint {}, fd {fd}",
+                        ad[a]
+                    );
+                }
+            }
+        }
+    }
+
     /// A point a millimetre inside a box's edge is pushed out continuously as it crosses the
     /// plane where the edge's two faces are equally near (the closest surface point jumped
     /// there from one face to the other, 1.4e-3 apart), and ends `margin` outside; a point
@@ -660,6 +716,85 @@ mod adjoint {
                 (ad - fd).abs() <= 1e-5 * fd.abs().max(1e-3),
                 "body {b} dir {k}: {ad:e} vs {fd:e}"
             );
+        }
+    }
+
+    /// Points a hundredth of the adjoint's difference step inside the margin's edge, where
+    /// the push (by what a point lacks of the margin) meets no push with a kink: the
+    /// adjoint takes the slope of the side each point is on, as central differences small
+    /// enough to stay there do. Reading both sides (the rule before), the Jacobian's
+    /// normal part was half what it is, and a particle of the floating box's run had its
+    /// ∂/∂θ₁ off by 30% (docs/gradients.md, "The push-out's two sides").
+    #[test]
+    fn push_out_adjoint_takes_the_side_of_the_margin_a_point_is_on() {
+        let grid = grid();
+        let box_pose = Pose::from_parts(
+            Vec3::new(0.31, 0.33, 0.29),
+            Rotation::from_axis_angle(Vec3::new(0.3, 1.0, 0.2).normalize(), 0.4),
+        );
+        let body = RigidBody::with_density(
+            "box".into(),
+            SharedShape::cuboid(0.15, 0.1, 0.12),
+            box_pose,
+            500.0,
+        );
+        let bodies = [body];
+        let (margin, step) = (1e-3 * grid.dx, jacobian_step(&grid));
+        // Points on the box's faces (local ±x, ±y, ±z), moved out to just short of the
+        // margin along the face's normal.
+        let local = [
+            Vec3::new(0.15, 0.02, -0.03),
+            Vec3::new(-0.15, -0.04, 0.05),
+            Vec3::new(0.03, 0.1, 0.01),
+            Vec3::new(-0.06, -0.1, 0.04),
+            Vec3::new(0.05, 0.03, 0.12),
+            Vec3::new(-0.02, 0.05, -0.12),
+        ];
+        let p0: Vec<Vec3> = local
+            .iter()
+            .map(|l| {
+                let n = (*l / Vec3::new(0.15, 0.1, 0.12)).round();
+                box_pose.rotation * (*l + n * (margin - 1e-2 * step)) + box_pose.translation
+            })
+            .collect();
+        for (i, x) in p0.iter().enumerate() {
+            let d = bodies[0].sdf(*x);
+            assert!(d < margin && margin - d < 0.1 * step, "point {i} at {d:e}");
+        }
+        let c = dir(p0.len(), 11);
+        let run = |p: &[Vec3], bodies: &[RigidBody]| {
+            let mut q = p.to_vec();
+            push_out_of_bodies(&mut q, bodies, margin);
+            dot(&q, &c)
+        };
+        let mut pbar = c.clone();
+        let pose_bar = push_out_of_bodies_adjoint(&p0, &mut pbar, &bodies, margin, step);
+        // Steps that keep every point on its side of the edge.
+        let eps = 1e-4 * step;
+        for (i, a) in (0..p0.len()).flat_map(|i| (0..3).map(move |a| (i, a))) {
+            let shift = |s: f64| {
+                let mut p = p0.clone();
+                p[i] += s * crate::math::unit(a);
+                p
+            };
+            let fd = (run(&shift(eps), &bodies) - run(&shift(-eps), &bodies)) / (2.0 * eps);
+            let ad = pbar[i][a];
+            assert!((ad - fd).abs() <= 1e-5, "point {i} axis {a}: adjoint {ad:e}, fd {fd:e}");
+        }
+        for k in 0..6 {
+            let moved = |s: f64| {
+                let mut bs = bodies.to_vec();
+                let e = s * crate::math::unit(k % 3);
+                if k < 3 {
+                    bs[0].x += e;
+                } else {
+                    bs[0].q = (Rotation::from_scaled_axis(e) * bs[0].q).normalize();
+                }
+                bs
+            };
+            let fd = (run(&p0, &moved(eps)) - run(&p0, &moved(-eps))) / (2.0 * eps);
+            let ad = pose_bar[0][k];
+            assert!((ad - fd).abs() <= 1e-5, "pose direction {k}: adjoint {ad:e}, fd {fd:e}");
         }
     }
 
