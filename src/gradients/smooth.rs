@@ -270,18 +270,13 @@ pub fn value_and_smoothed_gradient(
         }
         SmoothingEstimator::Values => {
             // Forward passes only, a pair to a thread (a small grid's step keeps few
-            // threads busy), each run's loss in the order of the draws. Each pair runs in a
-            // pool of its own thread: a small grid steps on one shared serial pool otherwise
-            // (`Spread::Serial`), and the pairs would queue for it.
+            // threads busy; it steps on its calling thread's own serial pool), each run's
+            // loss in the order of the draws.
             let runs: Vec<[f64; 2]> = draws
                 .par_iter()
                 .map(|draw| -> Result<[f64; 2]> {
                     let value = |sign: f64| value(perturb(draw, sign), steps, loss);
-                    let pair = || -> Result<[f64; 2]> { Ok([value(1.0)?, value(-1.0)?]) };
-                    match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
-                        Ok(own) => own.install(pair),
-                        Err(_) => pair(),
-                    }
+                    Ok([value(1.0)?, value(-1.0)?])
                 })
                 .collect::<Result<_>>()?;
             let sigma = smoothing.sigma;

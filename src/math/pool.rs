@@ -3,7 +3,7 @@
 //! step when that pays.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::OnceLock;
+use std::cell::OnceCell;
 
 /// How a step's work is spread over the threads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -27,50 +27,54 @@ pub const SERIAL_BELOW: usize = 32_768;
 /// loop of a step is deterministic for any thread count.
 pub fn run_spread<R: Send>(spread: Spread, f: impl FnOnce() -> R + Send) -> R {
     match spread {
-        Spread::Serial if rayon::current_num_threads() > 1 => match serial_pool() {
-            Some(pool) => pool.install(f),
-            None => on_pool(f),
-        },
+        Spread::Serial if rayon::current_num_threads() > 1 => {
+            with_own(&SERIAL, serial_pool, |pool| match pool {
+                Some(pool) => pool.install(f),
+                None => on_pool(f),
+            })
+        }
         Spread::Serial | Spread::Parallel => on_pool(f),
         Spread::Spinning => on_pool_spinning(true, f),
     }
 }
 
-/// The one-thread pool of [`Spread::Serial`], made on first use (None if the thread could
-/// not be started: then the work runs on rayon's pool).
-fn serial_pool() -> Option<&'static rayon::ThreadPool> {
-    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
-    POOL.get_or_init(|| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(1)
-            .thread_name(|_| "diffluid-serial".into())
-            .start_handler(|_| ON_SERIAL.with(|s| s.set(true)))
-            .build()
-            .ok()
-    })
-    .as_ref()
-}
-
 thread_local! {
-    /// Whether this thread is the one of [`serial_pool`].
+    /// This thread's one-thread pool of [`Spread::Serial`], made on first use (None if the
+    /// thread could not be started: then the work runs on rayon's pool). A pool per calling
+    /// thread, not one for the process: small simulations stepped side by side (a parallel
+    /// loop over runs, a smoothed gradient's draws, central differences) each get a thread,
+    /// where one shared pool queued them all on a single thread.
+    static SERIAL: OnceCell<Option<rayon::ThreadPool>> = const { OnceCell::new() };
+    /// This thread's one-thread pool of [`ahead`].
+    static AHEAD: OnceCell<Option<rayon::ThreadPool>> = const { OnceCell::new() };
+    /// This thread's one-thread pool of [`beside`].
+    static BESIDE: OnceCell<Option<rayon::ThreadPool>> = const { OnceCell::new() };
+    /// Whether this thread is that of a serial pool.
     static ON_SERIAL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
-/// The one-thread pool [`ahead`] hands its work to, made on first use.
-fn ahead_pool() -> Option<&'static rayon::ThreadPool> {
-    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
-    POOL.get_or_init(|| one_thread("diffluid-ahead")).as_ref()
+/// `f` with this thread's pool in `cell`, made by `make` on first use.
+fn with_own<R>(
+    cell: &'static std::thread::LocalKey<OnceCell<Option<rayon::ThreadPool>>>,
+    make: fn() -> Option<rayon::ThreadPool>,
+    f: impl FnOnce(Option<&rayon::ThreadPool>) -> R,
+) -> R {
+    cell.with(|c| f(c.get_or_init(make).as_ref()))
+}
+
+/// A pool of one thread for [`Spread::Serial`], whose thread knows it is one.
+fn serial_pool() -> Option<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .thread_name(|_| "diffluid-serial".into())
+        .start_handler(|_| ON_SERIAL.with(|s| s.set(true)))
+        .build()
+        .ok()
 }
 
 /// A pool of one thread named `name` (None if it could not be started).
 fn one_thread(name: &'static str) -> Option<rayon::ThreadPool> {
     rayon::ThreadPoolBuilder::new().num_threads(1).thread_name(move |_| name.into()).build().ok()
-}
-
-/// The one-thread pool [`beside`] hands its second job to, made on first use.
-fn beside_pool() -> Option<&'static rayon::ThreadPool> {
-    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
-    POOL.get_or_init(|| one_thread("diffluid-beside")).as_ref()
 }
 
 /// Runs `now` on this thread and `later` (work that a later call will read and that does
@@ -82,8 +86,10 @@ pub fn ahead<A: Send, B: Send>(
     now: impl FnOnce() -> A + Send,
     later: impl FnOnce() -> B + Send,
 ) -> (A, B) {
-    let pool = if ON_SERIAL.with(|s| s.get()) { ahead_pool() } else { None };
-    on_two(pool, now, later)
+    if !ON_SERIAL.with(|s| s.get()) {
+        return on_two(None, now, later);
+    }
+    with_own(&AHEAD, || one_thread("diffluid-ahead"), |pool| on_two(pool, now, later))
 }
 
 /// [`ahead`] on the thread of a serial step; on rayon's pool, `rayon::join(now, later)`, so
@@ -113,8 +119,10 @@ pub fn beside<A: Send, B: Send>(
 ) -> (A, B) {
     let free = ON_SERIAL.with(|s| s.get())
         || (rayon::current_thread_index().is_none() && rayon::current_num_threads() > 1);
-    let pool = if spread == Spread::Serial && free { beside_pool() } else { None };
-    on_two(pool, now, other)
+    if spread != Spread::Serial || !free {
+        return on_two(None, now, other);
+    }
+    with_own(&BESIDE, || one_thread("diffluid-beside"), |pool| on_two(pool, now, other))
 }
 
 /// `now` here and `later` on `pool` at once, or one after the other without a pool.
