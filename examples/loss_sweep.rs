@@ -40,9 +40,9 @@
 use diffluid::experiments::scene::Scene;
 use diffluid::geometry::body::Param;
 use diffluid::gradients::Loss;
+use diffluid::math::pool::side_by_side;
 use diffluid::math::Vec3;
 use diffluid::world::{Simulation, StepRecord, Tape};
-use rayon::prelude::*;
 use std::path::Path;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -115,16 +115,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let half: f64 = args[3].parse()?;
     let n = 20;
     let ts: Vec<f64> = (-n..=n).map(|k| half * k as f64 / n as f64).collect();
-    let losses: Vec<f64> = ts
-        .par_iter()
-        .map(|&t| {
-            let mut s = start(t)?;
-            for _ in 0..steps {
-                s.step()?;
-            }
-            Ok(loss.value(&s))
-        })
-        .collect::<diffluid::Result<_>>()?;
+    let losses: Vec<f64> = side_by_side(&ts, |&t| {
+        let mut s = start(t)?;
+        for _ in 0..steps {
+            s.step()?;
+        }
+        Ok(loss.value(&s))
+    })
+    .into_iter()
+    .collect::<diffluid::Result<_>>()?;
     let d: Vec<f64> = losses.windows(2).map(|w| w[1] - w[0]).collect();
     let mut sorted = d.clone();
     sorted.sort_by(f64::total_cmp);
@@ -158,20 +157,19 @@ fn spreads(sim: &Simulation, loss: &dyn Loss, steps: usize, k: usize) -> difflui
     let jobs: Vec<(usize, usize, usize)> = (0..coords.len())
         .flat_map(|c| (0..k).flat_map(move |o| (0..4).map(move |h| (c, o, h))))
         .collect();
-    let values: Vec<f64> = jobs
-        .par_iter()
-        .map(|&(c, o, h)| {
-            let (p, a) = coords[c];
-            let mut s = sim.clone();
-            let id = s.handles()[0];
-            let state = p.perturbed(&s.bodies()[0].state(), a, offsets[o] + hs[h]);
-            s.set_body_state(id, &state)?;
-            for _ in 0..steps {
-                s.step()?;
-            }
-            Ok(loss.value(&s))
-        })
-        .collect::<diffluid::Result<_>>()?;
+    let values: Vec<f64> = side_by_side(&jobs, |&(c, o, h)| {
+        let (p, a) = coords[c];
+        let mut s = sim.clone();
+        let id = s.handles()[0];
+        let state = p.perturbed(&s.bodies()[0].state(), a, offsets[o] + hs[h]);
+        s.set_body_state(id, &state)?;
+        for _ in 0..steps {
+            s.step()?;
+        }
+        Ok(loss.value(&s))
+    })
+    .into_iter()
+    .collect::<diffluid::Result<_>>()?;
     // Per coordinate and start: (spread, |fd(1e-6)|).
     let rows: Vec<Vec<(f64, f64)>> = (0..coords.len())
         .map(|c| {

@@ -16,6 +16,7 @@ use super::loss::Loss;
 use super::run::{value_and_gradient, GradientSettings};
 use crate::error::Result;
 use crate::geometry::body::Param;
+use crate::math::pool::Spread;
 use crate::world::Simulation;
 use serde::Serialize;
 
@@ -238,26 +239,80 @@ impl std::fmt::Display for GradcheckReport {
     }
 }
 
-/// One row of a check: the adjoint's component against central differences of `at(h)` (L
-/// with the coordinate moved by h; `l0` at h = 0) at ε and 10·ε, and the one-sided ones.
+/// L with one coordinate moved by h.
+type Moved<'a> = Box<dyn Fn(f64) -> Result<f64> + Sync + 'a>;
+
+/// One row of a check to be made: its name, the adjoint's component, the paper's, and L with
+/// the coordinate moved by h.
+struct RowSpec<'a> {
+    name: String,
+    adjoint: f64,
+    paper: Option<f64>,
+    at: Moved<'a>,
+}
+
+impl<'a> RowSpec<'a> {
+    fn new(
+        name: String,
+        adjoint: f64,
+        paper: Option<f64>,
+        at: impl Fn(f64) -> Result<f64> + Sync + 'a,
+    ) -> RowSpec<'a> {
+        RowSpec { name, adjoint, paper, at: Box::new(at) }
+    }
+}
+
+/// The rows of `specs`: each coordinate moved by ±ε and ±10·ε. The runs are independent,
+/// so for a simulation that steps on one thread (`parallel`, a grid under
+/// [`crate::math::pool::SERIAL_BELOW`] cells) they run side by side
+/// ([`crate::math::pool::side_by_side`]); a larger grid's steps already keep the threads
+/// busy, and running its runs side by side would hold several of its states at once. The
+/// same values either way.
+fn rows(
+    specs: Vec<RowSpec<'_>>,
+    l0: f64,
+    s: &GradcheckSettings,
+    parallel: bool,
+) -> Result<Vec<GradcheckRow>> {
+    let hs = [s.eps, -s.eps, 10.0 * s.eps, -10.0 * s.eps];
+    let jobs: Vec<(usize, f64)> =
+        (0..specs.len()).flat_map(|r| hs.iter().map(move |&h| (r, h))).collect();
+    let run = |&(r, h): &(usize, f64)| (specs[r].at)(h);
+    let values: Vec<f64> = if parallel {
+        crate::math::pool::side_by_side(&jobs, run).into_iter().collect::<Result<_>>()?
+    } else {
+        jobs.iter().map(run).collect::<Result<_>>()?
+    };
+    Ok(specs
+        .into_iter()
+        .zip(values.chunks(4))
+        .map(|(spec, v)| {
+            check_row(spec.name, spec.adjoint, [v[0], v[1], v[2], v[3]], l0, s, spec.paper)
+        })
+        .collect())
+}
+
+/// One row of a check: the adjoint's component against central differences of L with the
+/// coordinate moved by ε, −ε, 10·ε and −10·ε (`at`; `l0` unmoved) at ε and 10·ε, and the
+/// one-sided ones.
 fn check_row(
     name: String,
     adjoint: f64,
-    at: impl Fn(f64) -> Result<f64>,
+    at: [f64; 4],
     l0: f64,
     s: &GradcheckSettings,
     paper: Option<f64>,
-) -> Result<GradcheckRow> {
+) -> GradcheckRow {
     let ok = |err: f64, fd: f64| err <= s.atol + s.rtol * fd.abs();
-    let (plus, minus) = (at(s.eps)?, at(-s.eps)?);
+    let [plus, minus, coarse_plus, coarse_minus] = at;
     let fd = (plus - minus) / (2.0 * s.eps);
-    let fd_coarse = (at(10.0 * s.eps)? - at(-10.0 * s.eps)?) / (20.0 * s.eps);
+    let fd_coarse = (coarse_plus - coarse_minus) / (20.0 * s.eps);
     let (fd_right, fd_left) = ((plus - l0) / s.eps, (l0 - minus) / s.eps);
     let kink = !ok((fd_right - fd_left).abs(), fd_right.abs().max(fd_left.abs()));
     let err = (adjoint - fd).abs();
     let one_sided =
         ok((adjoint - fd_right).abs(), fd_right) || ok((adjoint - fd_left).abs(), fd_left);
-    Ok(GradcheckRow {
+    GradcheckRow {
         name,
         adjoint,
         fd,
@@ -269,7 +324,7 @@ fn check_row(
         fd_left,
         kink,
         paper,
-    })
+    }
 }
 
 /// The adjoint gradient of a trajectory loss under `schedule` against central differences:
@@ -296,8 +351,9 @@ pub fn gradcheck_controlled(
         states.push(sim.bodies().iter().map(|b| b.state()).collect());
         Ok(loss.value(&Trajectory { states: &states, final_state: &sim, schedule }))
     };
+    let value = &value;
     let l0 = value(schedule, sim)?;
-    let mut params = Vec::new();
+    let mut specs = Vec::new();
     let (k_n, j_n) = (schedule.actions.len(), schedule.bodies.len());
     let total = k_n * j_n * 6;
     let picked: Vec<usize> = if samples >= total {
@@ -307,17 +363,17 @@ pub fn gradcheck_controlled(
     };
     for idx in picked {
         let (k, j, d) = (idx / (6 * j_n), (idx / 6) % j_n, idx % 6);
-        let at = |h: f64| {
+        let at = move |h: f64| {
             let mut moved = schedule.clone();
             moved.actions[k][j][d] += h;
             value(&moved, sim)
         };
         let name = format!("{}.a{k}[{d}]", sim.bodies()[schedule.bodies[j].0].name);
-        params.push(check_row(name, run.actions[k][j][d], at, l0, s, None)?);
+        specs.push(RowSpec::new(name, run.actions[k][j][d], None, at));
     }
     for (b, body) in sim.bodies().iter().enumerate().filter(|(_, b)| b.moves()) {
         for c in Coordinate::all() {
-            let at = |h: f64| {
+            let at = move |h: f64| {
                 let mut start = sim.clone();
                 let moved = &mut start.bodies_mut()[b];
                 let state = c.param.perturbed(&moved.state(), c.axis, h);
@@ -325,16 +381,17 @@ pub fn gradcheck_controlled(
                 value(schedule, &start)
             };
             let name = format!("{}.{}", body.name, c.name());
-            params.push(check_row(name, c.of(&run.initial.bodies[b]), at, l0, s, None)?);
+            specs.push(RowSpec::new(name, c.of(&run.initial.bodies[b]), None, at));
         }
-        let at = |h: f64| {
+        let at = move |h: f64| {
             let mut start = sim.clone();
             start.bodies_mut()[b].set_mass(body.mass + h);
             value(schedule, &start)
         };
         let name = format!("{}.mass", body.name);
-        params.push(check_row(name, run.initial.bodies[b].mass, at, l0, s, None)?);
+        specs.push(RowSpec::new(name, run.initial.bodies[b].mass, None, at));
     }
+    let params = rows(specs, l0, s, sim.spread() == Spread::Serial)?;
     Ok(GradcheckReport {
         loss: run.loss,
         steps: schedule.steps(),
@@ -373,15 +430,15 @@ pub fn gradcheck(
         base.step()?;
     }
     let l0 = loss.value(&base);
-    let mut params = Vec::new();
+    let mut specs = Vec::new();
     for (b, body) in sim.bodies().iter().enumerate().filter(|(_, b)| b.moves()) {
         for c in Coordinate::all() {
-            let at = |h: f64| perturbed_loss(sim, steps, loss, b, c, h);
+            let at = move |h: f64| perturbed_loss(sim, steps, loss, b, c, h);
             let paper = paper.as_ref().map(|p| c.of(&p.gradient.bodies[b]));
             let name = format!("{}.{}", body.name, c.name());
-            params.push(check_row(name, c.of(&run.gradient.bodies[b]), at, l0, s, paper)?);
+            specs.push(RowSpec::new(name, c.of(&run.gradient.bodies[b]), paper, at));
         }
-        let at = |h: f64| {
+        let at = move |h: f64| {
             let mut start = sim.clone();
             start.bodies_mut()[b].set_mass(body.mass + h);
             for _ in 0..steps {
@@ -391,8 +448,9 @@ pub fn gradcheck(
         };
         let name = format!("{}.mass", body.name);
         let paper = paper.as_ref().map(|p| p.gradient.bodies[b].mass);
-        params.push(check_row(name, run.gradient.bodies[b].mass, at, l0, s, paper)?);
+        specs.push(RowSpec::new(name, run.gradient.bodies[b].mass, paper, at));
     }
+    let params = rows(specs, l0, s, sim.spread() == Spread::Serial)?;
     Ok(GradcheckReport {
         loss: run.loss,
         steps,

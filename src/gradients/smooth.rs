@@ -23,11 +23,11 @@ use super::run::{value, value_and_gradient, GradientSettings};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, Param};
 use crate::geometry::grid::Mac;
+use crate::math::pool::{side_by_side, Spread};
 use crate::math::{Rotation, Vec3};
 use crate::world::Simulation;
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
-use rayon::prelude::*;
 
 /// The perturbation's standard deviations, per kind of initial state parameter.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -245,14 +245,30 @@ pub fn value_and_smoothed_gradient(
     };
     let (losses, pair_means) = match smoothing.estimator {
         SmoothingEstimator::Gradients => {
+            // The draws' pairs of runs side by side where a run steps on one thread (a grid
+            // under `SERIAL_BELOW` cells); a larger grid's runs keep the threads busy alone,
+            // and one at a time hold one tape.
+            // Each run's loss and bodies' gradient (not the run, which keeps its tape).
+            type Ran = (f64, Vec<BodyGradient>);
+            let pair = |draw: &Draw| -> Result<[Ran; 2]> {
+                let run = |sign: f64| -> Result<Ran> {
+                    let run = value_and_gradient(&perturb(draw, sign), steps, loss, settings)?;
+                    Ok((run.loss, run.gradient.bodies))
+                };
+                Ok([run(1.0)?, run(-1.0)?])
+            };
+            let runs: Vec<[Ran; 2]> = if initial.spread() == Spread::Serial {
+                side_by_side(&draws, pair).into_iter().collect::<Result<_>>()?
+            } else {
+                draws.iter().map(pair).collect::<Result<_>>()?
+            };
             let mut losses = Vec::with_capacity(smoothing.samples);
             let mut pair_means: Vec<Vec<BodyGradient>> = Vec::with_capacity(pairs);
-            for draw in &draws {
+            for (draw, runs) in draws.iter().zip(&runs) {
                 let mut mean = vec![zero; n];
-                for sign in [1.0, -1.0] {
-                    let run = value_and_gradient(&perturb(draw, sign), steps, loss, settings)?;
-                    losses.push(run.loss);
-                    for ((m, g), xi) in mean.iter_mut().zip(&run.gradient.bodies).zip(draw) {
+                for (sign, (loss, bodies)) in [1.0, -1.0].into_iter().zip(runs) {
+                    losses.push(*loss);
+                    for ((m, g), xi) in mean.iter_mut().zip(bodies).zip(draw) {
                         // Back to the unperturbed frame: L(exp(σξ)·exp(θ)·q) =
                         // L(exp(Rθ)·exp(σξ)·q), R the perturbation's rotation, so
                         // ∂/∂θ = Rᵀ·g.
@@ -269,16 +285,15 @@ pub fn value_and_smoothed_gradient(
             (losses, pair_means)
         }
         SmoothingEstimator::Values => {
-            // Forward passes only, a pair to a thread (a small grid's step keeps few
-            // threads busy; it steps on its calling thread's own serial pool), each run's
-            // loss in the order of the draws.
-            let runs: Vec<[f64; 2]> = draws
-                .par_iter()
-                .map(|draw| -> Result<[f64; 2]> {
-                    let value = |sign: f64| value(perturb(draw, sign), steps, loss);
-                    Ok([value(1.0)?, value(-1.0)?])
-                })
-                .collect::<Result<_>>()?;
+            // Forward passes only, a pair to a thread at a time (a small grid's step keeps
+            // few threads busy; it steps on its thread's own serial pool), each run's loss
+            // in the order of the draws.
+            let runs: Vec<[f64; 2]> = side_by_side(&draws, |draw| -> Result<[f64; 2]> {
+                let value = |sign: f64| value(perturb(draw, sign), steps, loss);
+                Ok([value(1.0)?, value(-1.0)?])
+            })
+            .into_iter()
+            .collect::<Result<_>>()?;
             let sigma = smoothing.sigma;
             // (L₊ − L₋)·ξ/(2σ) per coordinate, 0 where σ is.
             let slope = |diff: f64, xi: Vec3, s: f64| {
