@@ -269,6 +269,36 @@ mod tests {
         }
     }
 
+    /// `side_by_side` gives every item's result in the items' order, runs each item once,
+    /// and spreads them over more than one thread when rayon has more; each calling thread
+    /// steps its serial work on a pool of its own, so two of them do not share one.
+    #[test]
+    fn side_by_side_keeps_order_and_each_thread_has_its_own_serial_pool() {
+        use std::sync::atomic::AtomicUsize;
+        use std::sync::Mutex;
+        let items: Vec<usize> = (0..57).collect();
+        let calls = AtomicUsize::new(0);
+        let threads = Mutex::new(std::collections::HashSet::new());
+        let serial = Mutex::new(std::collections::HashSet::new());
+        let out = side_by_side(&items, |&i| {
+            calls.fetch_add(1, Ordering::Relaxed);
+            threads.lock().unwrap().insert(std::thread::current().id());
+            let on = run_spread(Spread::Serial, || std::thread::current().id());
+            serial.lock().unwrap().insert(on);
+            // Long enough that the first thread cannot take every item before the others start.
+            std::thread::sleep(std::time::Duration::from_millis(2));
+            i * i
+        });
+        assert_eq!(out, items.iter().map(|i| i * i).collect::<Vec<_>>());
+        assert_eq!(calls.load(Ordering::Relaxed), items.len());
+        assert!(side_by_side(&[] as &[usize], |&i| i).is_empty());
+        if rayon::current_num_threads() > 1 {
+            let (t, s) = (threads.lock().unwrap().len(), serial.lock().unwrap().len());
+            assert!(t > 1, "one thread ran every item");
+            assert_eq!(s, t, "{t} threads stepped their serial work on {s} pools");
+        }
+    }
+
     /// With spinning (or awake) workers, a parallel sum on a pool of two threads is the same
     /// bits as without, nested calls return, and a panic in the work reaches the caller instead of
     /// leaving the spinners running (the call would never return).
