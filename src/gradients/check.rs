@@ -16,7 +16,7 @@ use super::loss::Loss;
 use super::run::{value_and_gradient, GradientSettings};
 use crate::error::Result;
 use crate::geometry::body::Param;
-use crate::math::pool::Spread;
+use crate::math::pool::{runs, Spread};
 use crate::world::Simulation;
 use serde::Serialize;
 
@@ -262,27 +262,20 @@ impl<'a> RowSpec<'a> {
     }
 }
 
-/// The rows of `specs`: each coordinate moved by ±ε and ±10·ε. The runs are independent,
-/// so for a simulation that steps on one thread (`parallel`, a grid under
-/// [`crate::math::pool::SERIAL_BELOW`] cells) they run side by side
-/// ([`crate::math::pool::side_by_side`]); a larger grid's steps already keep the threads
-/// busy, and running its runs side by side would hold several of its states at once. The
-/// same values either way.
+/// The rows of `specs`: each coordinate moved by ±ε and ±10·ε, the runs of a simulation
+/// whose steps are spread `spread` ([`crate::math::pool::runs`]: side by side on a small
+/// grid). The same values either way.
 fn rows(
     specs: Vec<RowSpec<'_>>,
     l0: f64,
     s: &GradcheckSettings,
-    parallel: bool,
+    spread: Spread,
 ) -> Result<Vec<GradcheckRow>> {
     let hs = [s.eps, -s.eps, 10.0 * s.eps, -10.0 * s.eps];
     let jobs: Vec<(usize, f64)> =
         (0..specs.len()).flat_map(|r| hs.iter().map(move |&h| (r, h))).collect();
     let run = |&(r, h): &(usize, f64)| (specs[r].at)(h);
-    let values: Vec<f64> = if parallel {
-        crate::math::pool::side_by_side(&jobs, run).into_iter().collect::<Result<_>>()?
-    } else {
-        jobs.iter().map(run).collect::<Result<_>>()?
-    };
+    let values: Vec<f64> = runs(spread, &jobs, run).into_iter().collect::<Result<_>>()?;
     Ok(specs
         .into_iter()
         .zip(values.chunks(4))
@@ -391,7 +384,7 @@ pub fn gradcheck_controlled(
         let name = format!("{}.mass", body.name);
         specs.push(RowSpec::new(name, run.initial.bodies[b].mass, None, at));
     }
-    let params = rows(specs, l0, s, sim.spread() == Spread::Serial)?;
+    let params = rows(specs, l0, s, sim.spread())?;
     Ok(GradcheckReport {
         loss: run.loss,
         steps: schedule.steps(),
@@ -450,7 +443,7 @@ pub fn gradcheck(
         let paper = paper.as_ref().map(|p| p.gradient.bodies[b].mass);
         specs.push(RowSpec::new(name, run.gradient.bodies[b].mass, paper, at));
     }
-    let params = rows(specs, l0, s, sim.spread() == Spread::Serial)?;
+    let params = rows(specs, l0, s, sim.spread())?;
     Ok(GradcheckReport {
         loss: run.loss,
         steps,

@@ -23,7 +23,7 @@ use super::run::{value, value_and_gradient, GradientSettings};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, Param};
 use crate::geometry::grid::Mac;
-use crate::math::pool::{side_by_side, Spread};
+use crate::math::pool::{runs, side_by_side};
 use crate::math::{Rotation, Vec3};
 use crate::world::Simulation;
 use rand::SeedableRng;
@@ -257,14 +257,11 @@ pub fn value_and_smoothed_gradient(
                 };
                 Ok([run(1.0)?, run(-1.0)?])
             };
-            let runs: Vec<[Ran; 2]> = if initial.spread() == Spread::Serial {
-                side_by_side(&draws, pair).into_iter().collect::<Result<_>>()?
-            } else {
-                draws.iter().map(pair).collect::<Result<_>>()?
-            };
+            let ran: Vec<[Ran; 2]> =
+                runs(initial.spread(), &draws, pair).into_iter().collect::<Result<_>>()?;
             let mut losses = Vec::with_capacity(smoothing.samples);
             let mut pair_means: Vec<Vec<BodyGradient>> = Vec::with_capacity(pairs);
-            for (draw, runs) in draws.iter().zip(&runs) {
+            for (draw, runs) in draws.iter().zip(&ran) {
                 let mut mean = vec![zero; n];
                 for (sign, (loss, bodies)) in [1.0, -1.0].into_iter().zip(runs) {
                     losses.push(*loss);

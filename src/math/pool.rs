@@ -105,6 +105,18 @@ pub fn side_by_side<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -
         .collect()
 }
 
+/// `f` of every item in order, for independent runs of a simulation whose steps are spread
+/// `spread`: side by side ([`side_by_side`]) where it steps on one thread
+/// ([`Spread::Serial`]); else one after another here, as a larger grid's steps keep the
+/// threads busy alone and its runs side by side would each hold a state.
+pub fn runs<T: Sync, R: Send>(spread: Spread, items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    if spread == Spread::Serial {
+        side_by_side(items, f)
+    } else {
+        items.iter().map(f).collect()
+    }
+}
+
 /// A pool of one thread named `name` (None if it could not be started).
 fn one_thread(name: &'static str) -> Option<rayon::ThreadPool> {
     rayon::ThreadPoolBuilder::new().num_threads(1).thread_name(move |_| name.into()).build().ok()

@@ -29,21 +29,37 @@ impl<'a> Walls<'a> {
         Walls { grid, solids: node_sdf.values() }
     }
 
+    /// The margin kept from the walls and the static solids: a thousandth of a cell.
+    #[inline(always)]
+    fn margin(&self) -> f64 {
+        1e-3 * self.grid.dx
+    }
+
+    /// `p` moved along the gradient of the static solids' distance `sdf` to the margin,
+    /// from wherever it is; None where the distance has no direction.
+    #[inline(always)]
+    fn out_to_margin(&self, sdf: &[f64], p: Vec3) -> Option<Vec3> {
+        let (d, g) = self.grid.nodes().sample_grad(sdf, p);
+        if g.length() > 1e-12 {
+            Some(p + (self.margin() - d) * g.normalize())
+        } else {
+            None
+        }
+    }
+
     /// A point a thousandth of a cell out of the static solids and inside the tank. Always
     /// inlined: left a call, each of a particle's sub-steps and its displacement paid for
     /// one, and for passing the point through memory.
     #[inline(always)]
     pub fn keep(&self, y: Vec3) -> Vec3 {
-        let margin = 1e-3 * self.grid.dx;
-        let nodes = self.grid.nodes();
+        let margin = self.margin();
         let mut y = y;
         // The distance alone first: far from the solids (most particles) that is all. (An
         // `if let` and a test, not `Option::filter`, which stayed a call a point.)
         if let Some(sdf) = self.solids {
-            if nodes.sample(sdf, y) < margin {
-                let (d, g) = nodes.sample_grad(sdf, y);
-                if g.length() > 1e-12 {
-                    y += (margin - d) * g.normalize();
+            if self.grid.nodes().sample(sdf, y) < margin {
+                if let Some(z) = self.out_to_margin(sdf, y) {
+                    y = z;
                 }
             }
         }
@@ -57,17 +73,12 @@ impl<'a> Walls<'a> {
     /// that edge reads the mean of the two sides' slopes; docs/gradients.md, "The
     /// push-out's two sides").
     pub fn keep_adjoint(&self, y: Vec3, bar: Vec3, h: f64) -> Vec3 {
-        let margin = 1e-3 * self.grid.dx;
-        let nodes = self.grid.nodes();
-        let push = |p: Vec3| {
-            let sdf = self.solids.expect("a push needs the solids");
-            let (d, g) = nodes.sample_grad(sdf, p);
-            p + (margin - d) * g.normalize()
-        };
-        let pushed = self.solids.is_some_and(|sdf| {
-            nodes.sample(sdf, y) < margin && nodes.sample_grad(sdf, y).1.length() > 1e-12
-        });
-        let z = if pushed { push(y) } else { y };
+        let margin = self.margin();
+        let pushed = self
+            .solids
+            .filter(|sdf| self.grid.nodes().sample(sdf, y) < margin)
+            .and_then(|sdf| Some((sdf, self.out_to_margin(sdf, y)?)));
+        let z = pushed.map_or(y, |(_, z)| z);
         let hi = self.grid.size() - Vec3::splat(margin);
         let mut b = bar;
         for a in 0..3 {
@@ -75,10 +86,9 @@ impl<'a> Walls<'a> {
                 b[a] = 0.0;
             }
         }
-        if pushed {
-            jacobian_t(push, y, h, b)
-        } else {
-            b
+        match pushed {
+            Some((sdf, _)) => jacobian_t(|p| self.out_to_margin(sdf, p).unwrap_or(p), y, h, b),
+            None => b,
         }
     }
 }

@@ -17,16 +17,15 @@ enum Push {
     Near,
 }
 
-/// The rule of [`push_one`] for `x` against the shape's signed distance `sdf` (bounds `lo`..
-/// `hi`).
+/// The rule of [`push_one`] for `x` against a body's shape at `pose` (bounds `lo`..`hi`).
 #[inline]
-fn push_rule(sdf: impl Fn(Vec3) -> f64, bounds: (Vec3, Vec3), x: Vec3, margin: f64) -> Push {
+fn push_rule(shape: &SharedShape, pose: &Pose, bounds: (Vec3, Vec3), x: Vec3, margin: f64) -> Push {
     let (lo, hi) = bounds;
     let reach = Vec3::splat(margin);
     if x.cmplt(lo - reach).any() || x.cmpgt(hi + reach).any() {
         return Push::Stay;
     }
-    match sdf(x) {
+    match crate::geometry::interior::signed_distance(shape, pose, x) {
         d if d >= margin => Push::Stay,
         d if d < 0.0 => Push::Inside,
         _ => Push::Near,
@@ -44,8 +43,7 @@ fn push_rule(sdf: impl Fn(Vec3) -> f64, bounds: (Vec3, Vec3), x: Vec3, margin: f
 /// to one face or the other, and the step jumped by the gap between them).
 #[inline]
 fn push_one(shape: &SharedShape, pose: &Pose, bounds: (Vec3, Vec3), x: Vec3, margin: f64) -> Vec3 {
-    let sdf = |p: Vec3| crate::geometry::interior::signed_distance(shape, pose, p);
-    push_by(shape, pose, x, margin, push_rule(sdf, bounds, x, margin))
+    push_by(shape, pose, x, margin, push_rule(shape, pose, bounds, x, margin))
 }
 
 /// `x` pushed by `rule`, whichever rule its distance asks for: the adjoint differentiates
@@ -108,12 +106,11 @@ pub fn push_out_of_bodies_adjoint(
     let mut pushes = Vec::new();
     for (bi, b) in bodies.iter().enumerate() {
         let (bounds, pose) = (b.bounds(), b.pose());
-        let sdf = |p: Vec3| crate::geometry::interior::signed_distance(&b.shape, &pose, p);
         let moved: Vec<(usize, Vec3, Vec3, Push)> = pos
             .par_iter()
             .enumerate()
             .filter_map(|(i, x)| {
-                let rule = push_rule(sdf, bounds, *x, margin);
+                let rule = push_rule(&b.shape, &pose, bounds, *x, margin);
                 let y = push_by(&b.shape, &pose, *x, margin, rule);
                 (y != *x).then_some((i, *x, y, rule))
             })
