@@ -87,6 +87,22 @@ pub fn solidity_pose_adjoint(
     }
 }
 
+/// Per cell, whether the extension reads its φ (for `centre_in_solid` and the `partial`
+/// cells of a [`crate::stages::system::Geometry`]): the cells it sets and their neighbours
+/// (L∞, a superset of the face neighbours its layers read). See
+/// [`crate::stages::surface::Reads`].
+pub fn extension_reads(
+    grid: &Grid,
+    centre_in_solid: &[bool],
+    partial: &[PartialSolid],
+) -> Vec<bool> {
+    let mut set = centre_in_solid.to_vec();
+    for p in partial {
+        set[p.cell as usize] = true;
+    }
+    crate::stages::surface::linf_distance(grid, &set, 2).into_par_iter().map(|d| d <= 1).collect()
+}
+
 /// One cell the extension sets: its neighbours and the values of the forward pass that its
 /// transpose reads.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -11,6 +11,7 @@ mod contact;
 mod coupling;
 mod dam_break;
 mod floating_rest;
+mod interior_values;
 mod momentum;
 mod narrow_band;
 mod parity;

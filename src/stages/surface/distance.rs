@@ -154,6 +154,10 @@ fn sparse_phi_gradient(offset: Vec3, dx: f64, radius: f64, depth: f64) -> Vec3 {
 /// The liquid signed distance at cell centres: `min_p |x − x_p| − r`, exact where the
 /// nearest particle is within two cells, and `2·dx − r` or more beyond; or with
 /// `model.softness`, a soft minimum of the particles' distances (see `softmin.rs`).
+///
+/// With `reads` (the soft minimum only), φ is what a step reads: its value wherever the step
+/// reads one, the deep value of [`SurfaceModel::full_phi`] in the liquid's interior (see
+/// [`Reads`]). Without, its value everywhere.
 pub fn liquid_sdf(
     pos: &[Vec3],
     bins: &Bins,
@@ -161,11 +165,40 @@ pub fn liquid_sdf(
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
+    reads: Option<Reads<'_>>,
 ) -> Vec<f64> {
-    liquid_sdf_with(Vec::new(), pos, bins, ghosts, grid, model, deep, false).0
+    liquid_sdf_with(Vec::new(), pos, bins, ghosts, grid, model, deep, reads, false).0
+}
+
+/// Where a step reads the value of φ_L and not only its sign, for [`liquid_sdf`] to make
+/// the soft minimum's sum (about 270 terms a cell) only there.
+///
+/// Reading the step's consumers of φ_L: the pressure's ghost-fluid θ, the blend's share,
+/// the closing of air pockets and the entrained liquid read a liquid cell's value only
+/// beside air (and as that neighbour's φ rises through zero, θ → 1 whatever the liquid
+/// cell's value); the band's update, the unknowns and the measures read signs; the density
+/// projection's depth weights read a value only above −[`DEPTH_RAMP`] cells (below it
+/// they are 1, and φ's highest value over a block is either above it, and then not the
+/// interior cell's, or below it in both); and φ's extension into the solids reads the
+/// cells it sets and their face neighbours, at any depth ([`Reads::near_solids`]). So a
+/// liquid cell whose own particles prove it deeper than a tenth of a cell, whose face
+/// neighbours are all proven liquid, and which is not near a solid may hold any value
+/// below that depth: it holds the deep value, as a narrow band's deep cells do, and the
+/// step's result is the same bits as with the sum made everywhere
+/// (`the_interior_skip_leaves_the_step_unchanged`). A cell changes between the two only
+/// where nothing reads its value, so the map stays as smooth as the sum everywhere.
+///
+/// [`DEPTH_RAMP`]: crate::stages::density::DEPTH_RAMP
+#[derive(Clone, Copy, Debug)]
+pub struct Reads<'a> {
+    /// Per cell, whether φ's extension into the solids reads its value: the cells it sets
+    /// (a centre in a solid or partly in a body) and their neighbours (see
+    /// [`crate::stages::solid_phi::extension_reads`]).
+    pub near_solids: &'a [bool],
 }
 
 /// [`liquid_sdf`] written into the memory of `phi` (whatever it holds).
+#[allow(clippy::too_many_arguments)]
 pub fn liquid_sdf_into(
     phi: &mut Vec<f64>,
     pos: &[Vec3],
@@ -174,8 +207,10 @@ pub fn liquid_sdf_into(
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
+    reads: Option<Reads<'_>>,
 ) {
-    *phi = liquid_sdf_with(std::mem::take(phi), pos, bins, ghosts, grid, model, deep, false).0;
+    let memory = std::mem::take(phi);
+    *phi = liquid_sdf_with(memory, pos, bins, ghosts, grid, model, deep, reads, false).0;
 }
 
 /// [`liquid_sdf`] and, per cell, the particle whose distance φ is (`NONE` where φ does not
@@ -194,8 +229,9 @@ pub fn liquid_sdf_nearest(
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
+    reads: Option<Reads<'_>>,
 ) -> (Vec<f64>, Vec<u32>) {
-    liquid_sdf_with(Vec::new(), pos, bins, ghosts, grid, model, deep, true)
+    liquid_sdf_with(Vec::new(), pos, bins, ghosts, grid, model, deep, reads, true)
 }
 
 /// [`liquid_sdf_nearest`] in the memory of `phi`, the nearest particles only when `nearest`
@@ -209,6 +245,7 @@ fn liquid_sdf_with(
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<Deep<'_>>,
+    reads: Option<Reads<'_>>,
     nearest: bool,
 ) -> (Vec<f64>, Vec<u32>) {
     let radius = model.radius;
@@ -228,6 +265,12 @@ fn liquid_sdf_with(
         (0..cells.len()).into_par_iter().map(|c| !bins.cell(c).is_empty() || counted(c)).collect();
     let reach = linf_distance(grid, &occupied, 3);
     let far = soft.as_ref().map_or(2.0 * dx - radius, SoftSdf::far);
+    // The liquid's interior, where the step reads φ's sign only (see `Reads`).
+    let deep_phi = model.full_phi(dx);
+    let interior = match (&soft, reads) {
+        (Some(soft), Some(reads)) => soft.interior(reads.near_solids, deep_phi),
+        _ => Vec::new(),
+    };
     // Filled in place, a slab a task (not built a slab at a time and copied together).
     if phi.len() != cells.len() {
         refill(&mut phi, cells.len(), 0.0);
@@ -238,11 +281,14 @@ fn liquid_sdf_with(
         if let Some(d) = deep.filter(|d| d.cells[grid.cell(i, j, k)]) {
             return (d.phi, NONE);
         }
-        if reach[grid.cell(i, j, k)] > 2 {
+        let own = grid.cell(i, j, k);
+        if reach[own] > 2 {
             return (far, NONE);
         }
+        if interior.get(own) == Some(&true) {
+            return (deep_phi, NONE);
+        }
         let x = cells.position(i, j, k);
-        let own = grid.cell(i, j, k);
         let (value, particle) = match &soft {
             Some(soft) => soft.phi([i, j, k]),
             None => nearest_particle(pos, bins, grid, radius, [i, j, k], reach[own]),

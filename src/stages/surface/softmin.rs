@@ -439,6 +439,57 @@ impl<'a> SoftSdf<'a> {
         (sum + self.kernel.far, sum > 0.0)
     }
 
+    /// The cells whose sum [`liquid_sdf`](super::liquid_sdf) need not make, given `near`, the
+    /// cells whose value φ's extension into the solids reads: liquid cells at least a tenth of
+    /// a cell deep whose face neighbours are all liquid, away from the solids. Every reader
+    /// of φ_L in the step reads such a cell's sign only, or a value that no longer depends on
+    /// it (see `liquid_sdf_with`). A cell's own particles prove it: every term of its sum is
+    /// positive, so the sum of its own cell's terms bounds φ from above (the far value, the
+    /// other cells, the ghosts only lower it). Empty where the deep value itself (what a
+    /// skipped cell stores) would not be as deep.
+    pub(super) fn interior(&self, near: &[bool], deep_phi: f64) -> Vec<bool> {
+        let grid = self.grid;
+        let dx = grid.dx;
+        let depth = -crate::stages::density::DEPTH_RAMP * dx;
+        if deep_phi >= depth {
+            return Vec::new();
+        }
+        let cells = grid.cells();
+        let start = &self.bins.start;
+        // Per cell: 0 unproven, 1 proven liquid, 2 proven at least `depth` deep.
+        let level: Vec<u8> = (0..cells.len())
+            .into_par_iter()
+            .with_min_len(crate::math::par::MIN_LEN)
+            .map(|c| {
+                if self.deep.is_some_and(|d| d[c]) {
+                    return 2;
+                }
+                let range = start[c] as usize..start[c + 1] as usize;
+                if range.is_empty() {
+                    return 0;
+                }
+                let [i, j, k] = cells.ijk(c);
+                let own = self.kernel.terms.sum(&self.sorted, range, cells.position(i, j, k));
+                match self.kernel.phi(own, self.radius) {
+                    b if b < depth => 2,
+                    b if b < 0.0 => 1,
+                    _ => 0,
+                }
+            })
+            .collect();
+        (0..cells.len())
+            .into_par_iter()
+            .with_min_len(crate::math::par::MIN_LEN)
+            .map(|c| {
+                if level[c] < 2 || near[c] || self.deep.is_some_and(|d| d[c]) {
+                    return false;
+                }
+                let ijk = cells.ijk(c);
+                (0..6).all(|f| cells.neighbour(c, ijk, f / 2, f % 2).is_none_or(|n| level[n] > 0))
+            })
+            .collect()
+    }
+
     /// φ at cell `ijk`, and whether it moves with a particle.
     pub(super) fn phi(&self, ijk: [usize; 3]) -> (f64, u32) {
         let (sum, moves) = self.sum(ijk);

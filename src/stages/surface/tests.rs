@@ -37,7 +37,7 @@ mod forward {
             per_axis: 2,
         };
         let bins = Bins::new(&pos, &grid);
-        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &[], &grid, &model, None);
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &[], &grid, &model, None, None);
         let cells = grid.cells();
         let mut rings = [0; 3];
         for c in 0..grid.num_cells() {
@@ -139,8 +139,8 @@ mod forward {
                 (value, d.1)
             }
         };
-        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &[], &grid, &model, None);
-        let plain = liquid_sdf(&pos, &bins, &[], &grid, &model, None);
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &[], &grid, &model, None, None);
+        let plain = liquid_sdf(&pos, &bins, &[], &grid, &model, None, None);
         let mut tied = 0;
         for c in 0..grid.num_cells() {
             let (value, p) = block_scan(c);
@@ -235,7 +235,7 @@ mod forward {
             softness: 0.0,
             per_axis: 2,
         };
-        let phi = liquid_sdf(&pos, &bins, &[], &grid, &model, None);
+        let phi = liquid_sdf(&pos, &bins, &[], &grid, &model, None, None);
         // Centres at y = 7/16 (below) and 9/16 (above) straddle the surface y = 0.5 evenly.
         let below = phi[grid.cell(3, 3, 3)];
         let above = phi[grid.cell(3, 4, 3)];
@@ -263,7 +263,7 @@ mod forward {
         let plain = SurfaceModel { sparse_cells: false, ..sparse };
         let phi_at = |x: Vec3, model: &SurfaceModel| {
             let pos = [x];
-            liquid_sdf(&pos, &Bins::new(&pos, &grid), &[], &grid, model, None)
+            liquid_sdf(&pos, &Bins::new(&pos, &grid), &[], &grid, model, None, None)
         };
         let (a, b) = (grid.cell(3, 4, 4), grid.cell(4, 4, 4));
         // Near a corner of cell a, 0.1 of a cell inside it, farther from its centre than the
@@ -324,7 +324,7 @@ mod forward {
         }
         for tau in [0.05, 0.1, 0.25] {
             let model = SurfaceModel::soft(grid.dx, 2, tau);
-            let phi = liquid_sdf(&pos, &Bins::new(&pos, &grid), &[], &grid, &model, None);
+            let phi = liquid_sdf(&pos, &Bins::new(&pos, &grid), &[], &grid, &model, None, None);
             // Away from the walls (the reach short of them).
             let (below, above) = (phi[grid.cell(5, 6, 5)], phi[grid.cell(5, 7, 5)]);
             assert!(below < 0.0 && above > 0.0, "τ {tau}: {below} {above}");
@@ -384,6 +384,79 @@ mod forward {
         assert!(inner > 4 * 100, "too few centres read by rows: {inner}");
     }
 
+    /// φ made only where a step reads its value (`Reads`) against φ made everywhere: a
+    /// jittered block of liquid with a sloped surface, droplets above it, a band's deep
+    /// cells below and a solid's neighbourhood in one corner. Every cell keeps its sign; the
+    /// cells that hold the deep value are liquid at least a tenth of a cell deep by the
+    /// full sum, have only liquid face neighbours and are not near the solid; every other
+    /// cell has the same bits.
+    #[test]
+    fn soft_sdf_leaves_out_only_the_interior() {
+        let grid = Grid { n: [14, 12, 10], dx: 0.1 };
+        let off = sub_offsets(2);
+        let mut pos = Vec::new();
+        for c in 0..grid.num_cells() {
+            let [i, j, k] = grid.cells().ijk(c);
+            // A surface sloping from 6 to 9 cells high along x.
+            if (j as f64) > 6.0 + 3.0 * i as f64 / 14.0 {
+                continue;
+            }
+            for (s, (&a, (&b, &e))) in off.iter().zip(off.iter().zip(&off)).enumerate() {
+                for t in 0..2 {
+                    let jitter = |q: usize| ((c * 7919 + s * 104729 + t * 31 + q) % 97) as f64;
+                    let o = Vec3::new(a, if t == 0 { b } else { 1.0 - b }, e)
+                        + (Vec3::new(jitter(1), jitter(2), jitter(3)) / 97.0 - 0.5) * 0.3;
+                    let q = Vec3::new(i as f64, j as f64, k as f64) + o;
+                    pos.push(q * grid.dx);
+                    pos.push(
+                        (Vec3::new(i as f64, j as f64, k as f64) + Vec3::splat(1.0) - o) * grid.dx,
+                    );
+                }
+            }
+        }
+        // Droplets over the surface.
+        pos.extend((0..40).map(|i| Vec3::new(0.1 + 0.03 * i as f64, 1.05, 0.5)));
+        let cells = grid.num_cells();
+        let band: Vec<bool> = (0..cells).map(|c| grid.cells().ijk(c)[1] < 2).collect();
+        let near: Vec<bool> = (0..cells)
+            .map(|c| {
+                let [i, j, k] = grid.cells().ijk(c);
+                i >= 9 && j <= 4 && k >= 6
+            })
+            .collect();
+        let model = SurfaceModel::soft(grid.dx, 2, 0.35);
+        let deep_phi = model.full_phi(grid.dx);
+        let bins = Bins::new(&pos, &grid);
+        for deep in [None, Some(Deep { cells: &band, phi: deep_phi })] {
+            let all = liquid_sdf(&pos, &bins, &[], &grid, &model, deep, None);
+            let reads = Some(Reads { near_solids: &near });
+            let (read, marks) = liquid_sdf_nearest(&pos, &bins, &[], &grid, &model, deep, reads);
+            let mut left_out = 0;
+            for c in 0..cells {
+                let ijk = grid.cells().ijk(c);
+                assert_eq!(all[c] < 0.0, read[c] < 0.0, "sign at {ijk:?}");
+                if all[c].to_bits() == read[c].to_bits() {
+                    continue;
+                }
+                left_out += 1;
+                assert_eq!(read[c], deep_phi, "at {ijk:?}");
+                assert_eq!(marks[c], crate::geometry::grid::NONE, "at {ijk:?}");
+                assert!(all[c] < -0.1 * grid.dx, "at {ijk:?}: {}", all[c] / grid.dx);
+                assert!(!near[c], "near the solid at {ijk:?}");
+                for f in 0..6 {
+                    if let Some(n) = grid.cells().neighbour(c, ijk, f / 2, f % 2) {
+                        assert!(all[n] < 0.0, "air beside {ijk:?}");
+                    }
+                }
+            }
+            // Of 1,110 liquid cells, 700 are left out (507 with the band, whose deep cells
+            // hold the deep value either way).
+            let liquid = all.iter().filter(|p| **p < 0.0).count();
+            eprintln!("{} band: {left_out} of {liquid} liquid cells left out", deep.is_some());
+            assert!(left_out > 400, "only {left_out} cells left out");
+        }
+    }
+
     /// A lone particle moving out of a cell's reach: φ there is its soft distance (its
     /// distance less r, less τ·ln c_p, softly capped by the far value) and goes over
     /// continuously into the far value.
@@ -397,7 +470,8 @@ mod forward {
         let offset = |d: f64| Vec3::new(d, 1e-3, -2e-3);
         let phi_at = |d: f64| {
             let pos = [centre + offset(d)];
-            liquid_sdf(&pos, &Bins::new(&pos, &grid), &[], &grid, &model, None)[grid.cell(2, 2, 2)]
+            liquid_sdf(&pos, &Bins::new(&pos, &grid), &[], &grid, &model, None, None)
+                [grid.cell(2, 2, 2)]
         };
         let samples: Vec<(f64, f64)> =
             (0..=2000).map(|s| 0.05 + 0.2 * s as f64 / 2000.0).map(|d| (d, phi_at(d))).collect();
@@ -473,11 +547,11 @@ mod adjoint {
     ) -> (f64, f64, Vec<f64>, Vec<u32>) {
         let deep_of = || deep.map(|cells| Deep { cells, phi: -0.05 });
         let sdf = |p: &[Vec3]| {
-            let phi = liquid_sdf(p, &Bins::new(p, grid), &[], grid, model, deep_of());
+            let phi = liquid_sdf(p, &Bins::new(p, grid), &[], grid, model, deep_of(), None);
             phi.iter().zip(phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
         let (phi, marks) =
-            liquid_sdf_nearest(p0, &Bins::new(p0, grid), &[], grid, model, deep_of());
+            liquid_sdf_nearest(p0, &Bins::new(p0, grid), &[], grid, model, deep_of(), None);
         let mut g = vec![Vec3::ZERO; p0.len()];
         liquid_sdf_adjoint(p0, &[], &marks, grid, model, deep, phi_bar, &mut g, &mut []);
         let eps = 1e-7;
@@ -513,7 +587,7 @@ mod adjoint {
             per_axis: 2,
         };
         let bins = Bins::new(&pos, &grid);
-        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &[], &grid, &model, None);
+        let (phi, who) = liquid_sdf_nearest(&pos, &bins, &[], &grid, &model, None, None);
         let cells = grid.cells();
         let mut own = 0;
         for c in 0..grid.num_cells() {
@@ -813,7 +887,7 @@ mod adjoint {
             per_axis: 2,
         };
         let sdf = |p: &[Vec3]| {
-            let phi = liquid_sdf(p, &Bins::new(p, &grid), &[], &grid, &model, None);
+            let phi = liquid_sdf(p, &Bins::new(p, &grid), &[], &grid, &model, None, None);
             phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
         let dens = |p: &[Vec3]| {
@@ -824,7 +898,7 @@ mod adjoint {
                 .sum::<f64>()
         };
         let (_, nearest) =
-            liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &[], &grid, &model, None);
+            liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &[], &grid, &model, None, None);
         let mut g_sdf = vec![Vec3::ZERO; p0.len()];
         liquid_sdf_adjoint(&p0, &[], &nearest, &grid, &model, None, &phi_bar, &mut g_sdf, &mut []);
         let mut g_dens = vec![Vec3::ZERO; p0.len()];
@@ -936,11 +1010,11 @@ mod adjoint {
         let model = SurfaceModel::soft(grid.dx, 2, 0.35);
         let loss = |b: &RigidBody| {
             let ghosts = ghost_sites(std::slice::from_ref(b), &displaced);
-            let phi = liquid_sdf(&p0, &bins, &ghosts, &grid, &model, None);
+            let phi = liquid_sdf(&p0, &bins, &ghosts, &grid, &model, None, None);
             phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
         let ghosts = ghost_sites(std::slice::from_ref(&body), &displaced);
-        let (_, marks) = liquid_sdf_nearest(&p0, &bins, &ghosts, &grid, &model, None);
+        let (_, marks) = liquid_sdf_nearest(&p0, &bins, &ghosts, &grid, &model, None, None);
         let mut pbar = vec![Vec3::ZERO; p0.len()];
         let mut gbar = vec![Vec3::ZERO; ghosts.len()];
         liquid_sdf_adjoint(

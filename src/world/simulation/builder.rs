@@ -272,7 +272,7 @@ impl SimulationBuilder {
             let surface = settings.solver.surface_model(grid.dx, radius);
             let deep = band.as_ref().map(Band::deep);
             let ghosts = surface::counted_ghosts(&surface, &self.bodies, &displaced);
-            Arc::new(surface::liquid_sdf(&particles, &bins, &ghosts, &grid, &surface, deep))
+            Arc::new(surface::liquid_sdf(&particles, &bins, &ghosts, &grid, &surface, deep, None))
         });
         let n = self.bodies.len();
         let mut warnings = self.notes.clone();

@@ -237,7 +237,12 @@ impl Simulation {
         &self.pressure
     }
 
-    /// Liquid signed distance at cell centres from the last step.
+    /// Liquid signed distance at cell centres from the last step. Its sign is exact
+    /// everywhere; its value is a distance within a cell or two of the surface. Deep in the
+    /// liquid it holds the deep value [`crate::stages::surface::SurfaceModel::full_phi`] where a narrow band leaves
+    /// no particles, and with the soft minimum (`solver.surface_softness`) wherever the step
+    /// read only its sign, unless `solver.surface_interior_values` (see
+    /// [`crate::stages::surface::Reads`]).
     pub fn liquid_phi(&self) -> &[f64] {
         &self.phi
     }
@@ -556,12 +561,13 @@ impl Simulation {
     /// frozen one, or the current particles'.
     pub fn particle_phi(&self) -> Vec<f64> {
         let mut phi = Vec::new();
-        self.particle_phi_into(&mut phi);
+        self.particle_phi_into(&mut phi, None);
         phi
     }
 
-    /// [`Simulation::particle_phi`] written into the memory of `phi`.
-    fn particle_phi_into(&self, phi: &mut Vec<f64>) {
+    /// With `reads`, where a step reads φ's value (see [`surface::Reads`]): the φ a step
+    /// makes, its value only there. Without, [`Simulation::particle_phi`].
+    pub(crate) fn particle_phi_into(&self, phi: &mut Vec<f64>, reads: Option<surface::Reads<'_>>) {
         match &self.frozen_phi {
             Some(frozen) => {
                 phi.clear();
@@ -577,6 +583,7 @@ impl Simulation {
                     &self.grid,
                     &self.surface_model(),
                     self.band.as_deref().map(Band::deep),
+                    reads,
                 );
                 // The next step's band update bins these same particles.
                 if self.band.is_some() {

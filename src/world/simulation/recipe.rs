@@ -7,7 +7,6 @@ use super::{volume_warning, BodyHandle, Simulation, EXTERNAL_REACH};
 use crate::error::{Error, Result};
 use crate::geometry::body::{BodyState, RigidBody};
 use crate::geometry::grid::Mac;
-use crate::geometry::weights::FaceWeights;
 use crate::math::pool;
 use crate::math::{v3, Twist, TwistParts};
 use crate::solvers::cg::CgStats;
@@ -72,7 +71,7 @@ impl Simulation {
         let (mut record, density) =
             self.move_particles(&geometry, dt, taped, &mut pressures, &mut timed)?;
 
-        let phi = self.surface(record.as_mut(), &geometry.weights);
+        let phi = self.surface(record.as_mut(), &geometry);
         let taped_phi = if taped && self.frozen_phi.is_none() { phi.clone() } else { Vec::new() };
         let crowding = self.controlled_density();
         timed.lap(Stage::Surface);
@@ -326,8 +325,12 @@ impl Simulation {
     fn surface(
         &mut self,
         mut record: Option<&mut ParticleRecord>,
-        weights: &FaceWeights,
+        geometry: &Geometry,
     ) -> Vec<f64> {
+        let weights = &geometry.weights;
+        // Where the step reads φ's value (the soft minimum's sum is made there only).
+        let near_solids = self.value_reads(geometry);
+        let reads = near_solids.as_deref().map(|near_solids| surface::Reads { near_solids });
         let mut phi = match record.as_deref_mut() {
             Some(r) => {
                 let bins = Bins::new(&self.particles, &self.grid);
@@ -341,6 +344,7 @@ impl Simulation {
                     &self.grid,
                     &model,
                     deep,
+                    reads,
                 );
                 r.nearest = nearest;
                 phi
@@ -350,7 +354,7 @@ impl Simulation {
             // gives it back, see `Simulation::step_inner`).
             None => {
                 let mut phi = std::mem::take(&mut self.phi);
-                self.particle_phi_into(&mut phi);
+                self.particle_phi_into(&mut phi, reads);
                 phi
             }
         };

@@ -12,6 +12,7 @@ use crate::math::{v3, Vec3};
 use crate::stages::band::Band;
 use crate::stages::density::DensityInputs;
 use crate::stages::pressure::PressureParams;
+use crate::stages::solid_phi;
 use crate::stages::surface::SurfaceModel;
 use crate::world::step::{Geometry, StepParams, StepReport};
 use crate::world::tape::{Replay, Solves, Tape};
@@ -383,6 +384,16 @@ impl Simulation {
         1e-3 * self.grid.dx
     }
 
+    /// Per cell, whether a step with `geometry` reads φ_L's value near the solids (see
+    /// [`crate::stages::surface::Reads`]); None where it makes φ's value everywhere (the nearest particle,
+    /// whose search deep in the liquid is short, or `solver.surface_interior_values`).
+    pub(crate) fn value_reads(&self, geometry: &Geometry) -> Option<Vec<bool>> {
+        let solver = &self.settings.solver;
+        (solver.surface_softness > 0.0 && !solver.surface_interior_values).then(|| {
+            solid_phi::extension_reads(&self.grid, &geometry.centre_in_solid, &geometry.partial)
+        })
+    }
+
     /// How φ_L is made from the particles.
     pub(crate) fn surface_model(&self) -> SurfaceModel {
         self.settings.solver.surface_model(self.grid.dx, self.radius)
@@ -420,6 +431,7 @@ impl Simulation {
             displaced: &self.displaced,
             gravity: self.settings.fluid.gravity,
             surface: self.surface_model(),
+            value_reads_only: !solver.surface_interior_values,
             particles_per_cell: solver.particles_per_cell,
             gain: solver.density_gain,
             passes: solver.density_passes,
