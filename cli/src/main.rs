@@ -338,6 +338,10 @@ fn run_to(args: RunArgs, console: &mut Console, bar_shown: bool) -> Outcome {
     // The run ends at the first error: no step is tried again, and a fifth of the peak
     // stays free.
     sim.set_rollback(false);
+    // VTK frames and surface meshes read φ_L's values deep in the liquid.
+    if args.vtk || args.surface || scene.output.surface {
+        sim.set_interior_values(true);
+    }
     if !args.quiet {
         console.err(format!("model: {}", sim.model()));
     }

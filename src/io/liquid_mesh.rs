@@ -37,7 +37,11 @@ pub fn body_surfaces(sim: &Simulation) -> Vec<TriangleMesh> {
 /// The distance is the step's φ_L at cell centres (the particles' distance minus their
 /// radius, which puts a freshly seeded flat surface exactly on its cell face), interpolated
 /// trilinearly to the finer lattice. Outside the tank, a sample next to liquid takes minus the
-/// value inside it, so the surface crosses exactly on the wall.
+/// value inside it, so the surface crosses exactly on the wall. With the soft surface the
+/// step makes φ_L's values two cells deep only after
+/// [`Simulation::set_interior_values`] (the CLI sets it when it writes meshes): without, a
+/// cell more than a cell deep beside a diagonal neighbour of air holds the deep value, and
+/// the mesh there moves by a fraction of a cell.
 pub fn liquid_surface(sim: &Simulation, samples: usize) -> TriangleMesh {
     let grid = *sim.grid();
     let r = samples.max(1);

@@ -161,7 +161,8 @@ pub struct SolverSettings {
     /// under `density_face_ramp` carries w/`density_face_ramp` of its displacement: as a
     /// body covers a face it fades to the zero of a closed face. Without it a face opens with
     /// a weight of 1e-9 and takes its full displacement at once, which the particles beside
-    /// it read (a jump of the forward map). Default 0 (off); 0 to 1.
+    /// it read (a jump of the forward map). Default 0.2 (0, off, before 7 December 2026); 0
+    /// to under 1.
     pub density_face_ramp: f64,
     /// Volume control without the density projection: each step's pressure solve gives
     /// every liquid cell whose marker particles hold more than a full cell a divergence that
@@ -214,8 +215,8 @@ pub struct SolverSettings {
     /// `stages/surface/softmin.rs`), instead of the nearest particle's distance. The nearest
     /// particle's distance has a kink wherever another particle becomes a cell's nearest,
     /// which a surface's cells pass through all the time; the soft minimum is infinitely
-    /// differentiable in the particles' positions. Default 0 (the nearest particle); else
-    /// 0.01 to 0.5 cells.
+    /// differentiable in the particles' positions. Default 0.35 (0, the nearest particle,
+    /// before 7 December 2026); 0 or 0.01 to 0.5 cells.
     pub surface_softness: f64,
     /// With the soft minimum, make φ_L's value in every cell. By default a step makes it
     /// only where it reads a value, not just a sign, and gives the liquid's interior (cells
@@ -281,13 +282,13 @@ impl Default for SolverSettings {
             density_correction: true,
             density_gain: 1.75,
             density_passes: 1,
-            density_face_ramp: 0.0,
+            density_face_ramp: 0.2,
             volume_control: None,
             close_pockets: Some(0.5),
             density_tolerance: 1e-6,
             sparse_cells: false,
             sparse_depth: 0.0,
-            surface_softness: 0.0,
+            surface_softness: 0.35,
             surface_interior_values: false,
             particle_substeps: 0,
             narrow_band: NarrowBand::Auto,

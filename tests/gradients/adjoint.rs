@@ -266,10 +266,12 @@ fn two_density_passes_gradient_matches_central_differences() {
 /// in q₂, while the push-out's adjoint read both sides of the margin's edge for a particle
 /// the projection left 1.5e-8 m inside it: docs/gradients.md, "The push-out's two sides").
 /// The map is another than without the ramp (some parameter's gradient moves by more than
-/// 1e-3 of itself), so the check reaches the faded faces.
+/// 1e-4 of itself: measured 6.2e-4 under the soft φ_L, the default since 7 December), so
+/// the check reaches the faded faces.
 #[test]
 fn density_face_ramp_gradient_matches_central_differences() {
-    let plain = tank_with_surface(FLOATING_BOX, 20, false);
+    let mut plain = tank_with_surface(FLOATING_BOX, 20, false);
+    plain.solver.density_face_ramp = 0.0;
     let mut scene = plain.clone();
     scene.solver.density_face_ramp = 0.5;
     check_at("face ramp", &scene, 1e-7, 5e-6);
@@ -286,7 +288,7 @@ fn density_face_ramp_gradient_matches_central_differences() {
         .map(|(k, d)| (a[k][d] - b[k][d]).abs() / a[k][d].abs().max(1e-8))
         .fold(0.0f64, f64::max);
     eprintln!("face ramp: the gradient moved by {moved:.2e} of itself at most");
-    assert!(moved > 1e-3, "the ramp changed nothing: {moved:e}");
+    assert!(moved > 1e-4, "the ramp changed nothing: {moved:e}");
 }
 
 /// The floating box with φ_L ramping into it (`solver.body_ramp`): the extension reads the
@@ -373,6 +375,9 @@ fn closed_pockets_gradient_matches_central_differences() {
     scene.solver.tolerance = 1e-12;
     scene.solver.density_correction = false;
     scene.solver.sparse_cells = false;
+    // The nearest particle's φ_L: the soft one counts the ball's ghosts and leaves no air
+    // inside it to close.
+    scene.solver.surface_softness = 0.0;
     scene.solver.close_pockets = None;
     let open = scene.clone();
     scene.solver.close_pockets = Some(0.5);
@@ -597,6 +602,13 @@ freeze_surface = true
 /// rapier took, so it is the forward map's derivative in every coordinate, the spin and
 /// the height included. Taken as free flight, the same gradient was off by 10–100% on a
 /// ball landing in a shallow pool (see docs/gradients.md, "Through contact").
+///
+/// The map is piecewise smooth in the height at a fine scale: along it the loss turns every
+/// 1e-6 to 3e-6 (slopes −0.135, 0.013, 0.32, −0.11 between turns, `loss_sweep` over ±1e-5),
+/// so central differences at 1e-6 straddle turns (with the soft φ_L they read +0.108 against
+/// the adjoint's −0.148; with the nearest particle's they happened to sit on one piece).
+/// At ε = 1e-8 they sit on the piece the run is on: every coordinate within 2e-5 (measured
+/// 5.9e-6 at worst, v₁; the height 1.9e-7).
 #[test]
 fn contact_gradient_matches_central_differences() {
     let ball = r#"
@@ -615,9 +627,9 @@ enabled = true
     let extra: usize = (0..8).map(|_| s.step().unwrap().contact_iterations).sum();
     assert!(extra > 0, "contact makes no extra solves");
     let settings = GradcheckSettings {
-        eps: 1e-6,
+        eps: 1e-8,
         atol: 1e-10,
-        rtol: 1e-4,
+        rtol: 2e-5,
         options: GradientOptions { through_contact: true, ..Default::default() },
         ..Default::default()
     };
@@ -630,7 +642,7 @@ enabled = true
     }
     // Smooth at ε in every coordinate: no kink is accepted.
     for r in &report.params {
-        let close = (r.adjoint - r.fd).abs() <= 1e-10 + 1e-4 * r.fd.abs();
+        let close = (r.adjoint - r.fd).abs() <= 1e-10 + 2e-5 * r.fd.abs();
         assert!(close, "{}: adjoint {:e}, fd {:e}", r.name, r.adjoint, r.fd);
     }
 }

@@ -34,18 +34,25 @@ fn spread(scene: &Scene, steps: usize) -> (f64, f64, f64) {
     (coarse, fine, (coarse - fine).abs() / fine.abs())
 }
 
-/// `surge_ball` at 50 steps, the ball's initial height: with the nearest particle's
-/// distance (the default) central differences at 1e-4 and 1e-6 part by more than 25%
-/// (measured 40%; 12.9-fold before the blend's share had its corner rounded: the loss has
-/// a kink about every micrometre); with the soft minimum of softness 0.35 cells they agree
-/// within issue 37's 5% (measured 0.31%), and the adjoint, the ghosts' pose derivative
-/// included, is within 1e-4 of the differences at 1e-6 (measured 1.3e-5).
+/// `surge_ball` at 50 steps, the ball's initial height: with the defaults until 7 December
+/// (the nearest particle's distance, no face ramp) central differences at 1e-4 and 1e-6
+/// part by more than 25% (measured 40.2%; 12.9-fold before the blend's share had its corner
+/// rounded: the loss has a kink about every micrometre); with today's defaults (the soft
+/// minimum of softness 0.35 cells, the density projection's face ramp 0.2) they agree
+/// within issue 37's 5% (measured 0.45%), and the adjoint, the ghosts' pose derivative
+/// included, is within 2e-3 of the differences at 1e-6 (measured 6.3e-4; 1.3e-5 without
+/// the face ramp, whose map has small kinks in the position rows at finer scales: central
+/// differences at 1e-7 read the same 5.5e-4 off, and the one-sided slopes of x₀ part by
+/// 0.19%; not traced).
 #[test]
 fn a_soft_surface_keeps_the_surges_height_row_smooth() {
-    let nearest = Scene::builtin("surge_ball").unwrap();
-    let steps = nearest.time.steps;
-    let mut soft = nearest.clone();
-    soft.solver.surface_softness = 0.35;
+    let soft = Scene::builtin("surge_ball").unwrap();
+    let steps = soft.time.steps;
+    assert_eq!(soft.solver.surface_softness, 0.35, "the soft surface is the default");
+    // The defaults before 7 December.
+    let mut nearest = soft.clone();
+    nearest.solver.surface_softness = 0.0;
+    nearest.solver.density_face_ramp = 0.0;
     let (c, f, rough) = spread(&nearest, steps);
     eprintln!("nearest: fd(1e-4) {c:e}, fd(1e-6) {f:e}, spread {:.1}%", 100.0 * rough);
     let (c, f, smooth) = spread(&soft, steps);
@@ -58,5 +65,5 @@ fn a_soft_surface_keeps_the_surges_height_row_smooth() {
     eprintln!("soft: adjoint {adjoint:e}");
     assert!(rough > 0.25, "the nearest particle's map should be rough: {:.1}%", 100.0 * rough);
     assert!(smooth < 0.05, "the soft surface's spread {:.2}%", 100.0 * smooth);
-    assert!((adjoint - f).abs() <= 1e-4 * f.abs(), "adjoint {adjoint:e} against fd {f:e}");
+    assert!((adjoint - f).abs() <= 2e-3 * f.abs(), "adjoint {adjoint:e} against fd {f:e}");
 }

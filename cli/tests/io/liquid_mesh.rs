@@ -72,13 +72,23 @@ fn still_water_is_closed_and_holds_its_volume() {
 
 #[test]
 fn dam_break_first_frame_holds_the_column_and_converges_with_the_samples() {
-    let sim = built("dam_break");
-    let errors: Vec<f64> =
-        (1..=3).map(|r| relative_volume_error(&liquid_surface(&sim, r), &sim)).collect();
-    // Measured −4.32%, −2.65%, −1.65%: the column's free edges (four cells wide at dx 0.1)
-    // are rounded by the distance field over about a sample.
-    assert!(errors[1].abs() < 0.03, "2 samples: volume off by {:.2}%", 100.0 * errors[1]);
-    assert!(errors[2].abs() < errors[1].abs() && errors[1].abs() < errors[0].abs(), "{errors:?}");
+    // The soft φ_L (the default) and the nearest particle's: measured −5.06%, −3.62%,
+    // −2.50% and −4.32%, −2.65%, −1.65% at 1, 2 and 3 samples a cell. The column's free
+    // edges (four cells wide at dx 0.1) are rounded by the distance field over about a
+    // sample, and the soft minimum rounds a convex edge more: a centre there sees fewer
+    // particles about as near than one beside a flat surface, which its radius is set for.
+    let mut scene = Scene::builtin("dam_break").unwrap();
+    for (softness, bound) in [(0.35, 0.04), (0.0, 0.03)] {
+        scene.solver.surface_softness = softness;
+        let sim = scene.build().unwrap();
+        let errors: Vec<f64> =
+            (1..=3).map(|r| relative_volume_error(&liquid_surface(&sim, r), &sim)).collect();
+        eprintln!("softness {softness}: volume errors at 1, 2, 3 samples: {errors:?}");
+        let e = errors[1];
+        assert!(e.abs() < bound, "{softness}: 2 samples: volume off by {:.2}%", 100.0 * e);
+        let converges = errors[2].abs() < errors[1].abs() && errors[1].abs() < errors[0].abs();
+        assert!(converges, "{softness}: {errors:?}");
+    }
 }
 
 #[test]

@@ -116,6 +116,7 @@ pub fn write_optimization(
 #[cfg(feature = "vtk")]
 fn vtk_frames(problem: &Optimization, params: &BodyState, out: &Path) -> Result<()> {
     let mut sim = problem.simulation(params);
+    sim.set_interior_values(true);
     let mut frames = crate::io::vtk::VtkSeries::new(&out.join("vtk"), &problem.scene.name);
     frames.write_frame(&sim, 0)?;
     for n in 1..=problem.scene.time.steps {

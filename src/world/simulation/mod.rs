@@ -641,6 +641,15 @@ impl Simulation {
         self.measures = on;
     }
 
+    /// Make φ_L's value in every cell from here on (`solver.surface_interior_values`), for
+    /// output that reads it deep in the liquid: [`Simulation::liquid_phi`], the VTK frames,
+    /// the surface mesh (which interpolates it within two cells of the surface). The step's
+    /// results are the same bits either way; off, the soft surface's φ costs about half.
+    /// The CLI turns it on for a run that writes VTK frames or surface meshes.
+    pub fn set_interior_values(&mut self, on: bool) {
+        self.settings.solver.surface_interior_values = on;
+    }
+
     /// The mechanical energy of the liquid and the bodies now: the liquid's as the marker
     /// particles carry it (each its share ρ·dx³/particles-per-cell of mass, moving with the
     /// grid velocity where it is), the cells of a narrow band's deep region as full cells at
