@@ -222,7 +222,7 @@ pub struct SolverSettings {
     /// only where it reads a value, not just a sign, and gives the liquid's interior (cells
     /// more than a tenth of a cell deep with no air beside them, away from the solids) the
     /// deep value a narrow band's deep cells hold: the step's results are the same bits,
-    /// and its φ costs about a third less (see `surface::Reads`). For output that reads φ_L's
+    /// and its φ costs about half (see `surface::Reads`). For output that reads φ_L's
     /// values deep in the liquid ([`crate::Simulation::liquid_phi`], the VTK files).
     pub surface_interior_values: bool,
     /// Sub-steps of the marker particles' advection per step. Default 0: as many as keep
