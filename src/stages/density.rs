@@ -70,9 +70,7 @@ use crate::stages::extrapolate::{
 use crate::stages::pressure::{
     has_open_face, GhostFluid, PressureParams, PressureSystem, SystemPool,
 };
-use crate::stages::solid_phi::{
-    extension_reads, solidity_pose_adjoint, PartialSolid, SolidExtension,
-};
+use crate::stages::solid_phi::{solidity_pose_adjoint, value_reads, PartialSolid, SolidExtension};
 use crate::stages::surface::{self, jacobian_step, Bins, Walls};
 use crate::stages::system::NEAR_SOLID;
 use rayon::prelude::*;
@@ -300,9 +298,9 @@ pub struct DensityInputs<'a> {
     pub gravity: [f64; 3],
     /// How φ_L is made from the particles.
     pub surface: surface::SurfaceModel,
-    /// Whether φ_L's value is made only where the projection reads it (see
-    /// [`surface::Reads`]), not in every cell (`solver.surface_interior_values`).
-    pub value_reads_only: bool,
+    /// Whether φ_L's value is made in every cell (`solver.surface_interior_values`), not
+    /// only where the projection reads it (see [`surface::Reads`]).
+    pub interior_values: bool,
     /// Marker particles seeded per cell (the density of a full cell).
     pub particles_per_cell: usize,
     /// How many times its excess a cell's displacement carries (`solver.density_gain`).
@@ -412,14 +410,14 @@ impl DensityProjection {
         let (mut phi, nearest) = {
             let bins = Bins::new(particles, grid);
             let ghosts = g.ghosts();
-            let near_solids = (g.value_reads_only && g.surface.softness > 0.0)
-                .then(|| extension_reads(grid, g.centre_in_solid, g.partial));
+            let (model, everywhere) = (&g.surface, g.interior_values);
+            let near_solids = value_reads(grid, g.centre_in_solid, g.partial, model, everywhere);
             let reads = near_solids.as_deref().map(|near_solids| surface::Reads { near_solids });
-            let (model, at) = (&g.surface, (particles, &bins, &ghosts[..]));
             if adjoint {
-                surface::liquid_sdf_nearest(at.0, at.1, at.2, grid, model, deep, reads)
+                surface::liquid_sdf_nearest(particles, &bins, &ghosts, grid, model, deep, reads)
             } else {
-                (surface::liquid_sdf(at.0, at.1, at.2, grid, model, deep, reads), Vec::new())
+                let phi = surface::liquid_sdf(particles, &bins, &ghosts, grid, model, deep, reads);
+                (phi, Vec::new())
             }
         };
         // The weights closed at the deep cells beside φ's extension into the solids, which
@@ -1135,7 +1133,7 @@ mod tests {
                     softness: 0.0,
                     per_axis: 2,
                 },
-                value_reads_only: true,
+                interior_values: false,
                 particles_per_cell: 8,
                 gain: 1.75,
                 passes: 1,

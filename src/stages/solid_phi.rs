@@ -103,6 +103,20 @@ pub fn extension_reads(
     crate::stages::surface::linf_distance(grid, &set, 2).into_par_iter().map(|d| d <= 1).collect()
 }
 
+/// What a step gives [`crate::stages::surface::liquid_sdf`] as its
+/// [`crate::stages::surface::Reads::near_solids`]: [`extension_reads`] for the soft minimum
+/// of `model`, None where φ_L's value is made in every cell (the nearest particle, whose
+/// search deep in the liquid is short, or `everywhere`: `solver.surface_interior_values`).
+pub fn value_reads(
+    grid: &Grid,
+    centre_in_solid: &[bool],
+    partial: &[PartialSolid],
+    model: &crate::stages::surface::SurfaceModel,
+    everywhere: bool,
+) -> Option<Vec<bool>> {
+    (model.softness > 0.0 && !everywhere).then(|| extension_reads(grid, centre_in_solid, partial))
+}
+
 /// One cell the extension sets: its neighbours and the values of the forward pass that its
 /// transpose reads.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -239,10 +239,10 @@ impl Simulation {
 
     /// Liquid signed distance at cell centres from the last step. Its sign is exact
     /// everywhere; its value is a distance within a cell or two of the surface. Deep in the
-    /// liquid it holds the deep value [`crate::stages::surface::SurfaceModel::full_phi`] where a narrow band leaves
-    /// no particles, and with the soft minimum (`solver.surface_softness`) wherever the step
-    /// read only its sign, unless `solver.surface_interior_values` (see
-    /// [`crate::stages::surface::Reads`]).
+    /// liquid it holds the deep value [`crate::stages::surface::SurfaceModel::full_phi`]
+    /// where a narrow band leaves no particles, and with the soft minimum
+    /// (`solver.surface_softness`) wherever the step read only its sign, unless
+    /// `solver.surface_interior_values` (see [`crate::stages::surface::Reads`]).
     pub fn liquid_phi(&self) -> &[f64] {
         &self.phi
     }

@@ -384,14 +384,16 @@ impl Simulation {
         1e-3 * self.grid.dx
     }
 
-    /// Per cell, whether a step with `geometry` reads φ_L's value near the solids (see
-    /// [`crate::stages::surface::Reads`]); None where it makes φ's value everywhere (the nearest particle,
-    /// whose search deep in the liquid is short, or `solver.surface_interior_values`).
+    /// [`solid_phi::value_reads`] for a step with `geometry` (None with the surface frozen,
+    /// whose φ_L is not made again).
     pub(crate) fn value_reads(&self, geometry: &Geometry) -> Option<Vec<bool>> {
-        let solver = &self.settings.solver;
-        (solver.surface_softness > 0.0 && !solver.surface_interior_values).then(|| {
-            solid_phi::extension_reads(&self.grid, &geometry.centre_in_solid, &geometry.partial)
-        })
+        if self.frozen_phi.is_some() {
+            return None;
+        }
+        let everywhere = self.settings.solver.surface_interior_values;
+        let (centre_in_solid, partial) = (&geometry.centre_in_solid, &geometry.partial);
+        let model = self.surface_model();
+        solid_phi::value_reads(&self.grid, centre_in_solid, partial, &model, everywhere)
     }
 
     /// How φ_L is made from the particles.
@@ -431,7 +433,7 @@ impl Simulation {
             displaced: &self.displaced,
             gravity: self.settings.fluid.gravity,
             surface: self.surface_model(),
-            value_reads_only: !solver.surface_interior_values,
+            interior_values: solver.surface_interior_values,
             particles_per_cell: solver.particles_per_cell,
             gain: solver.density_gain,
             passes: solver.density_passes,
