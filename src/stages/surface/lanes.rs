@@ -91,6 +91,81 @@ impl Terms {
         sum
     }
 
+    /// The soft minimum's adjoint through [`Terms::sum`]: adds −τ·g·∂(term of point i seen
+    /// from `x`)/∂x_i = g·term·(u + 6τ/(R² t)·d) to (`bx[i]`, `by[i]`, `bz[i]`) for the points
+    /// i of `points[range]` (the bars indexed from `range.start`), for d = x_i − x, u = d/|d|
+    /// (zero at d = 0) and t = 1 − |d|²/R² (φ = −τ ln(sum) − r, so with g = φ̄/sum this is
+    /// the point's share of φ̄). Four points at a time where [`Terms::sum`] is.
+    #[inline]
+    pub(super) fn add_gradients(
+        &self,
+        points: &Points,
+        range: std::ops::Range<usize>,
+        x: Vec3,
+        g: f64,
+        bar: [&mut [f64]; 3],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if self.lanes {
+            // SAFETY: `lanes` is set only where the processor has AVX2 and FMA.
+            return unsafe { avx2::add_gradients(self, points, range, x, g, bar) };
+        }
+        self.add_gradients_one_by_one(points, range, x, g, bar)
+    }
+
+    /// [`Terms::add_gradients`] a point at a time (where there are no lanes, and to test them).
+    pub(super) fn add_gradients_one_by_one(
+        &self,
+        points: &Points,
+        range: std::ops::Range<usize>,
+        x: Vec3,
+        g: f64,
+        bar: [&mut [f64]; 3],
+    ) {
+        let [bx, by, bz] = bar;
+        let first = range.start;
+        for i in range {
+            let d = Vec3::new(points.x[i] - x.x, points.y[i] - x.y, points.z[i] - x.z);
+            let w = self.gradient_weight(d.length_squared(), g);
+            bx[i - first] += w * d.x;
+            by[i - first] += w * d.y;
+            bz[i - first] += w * d.z;
+        }
+    }
+
+    /// The w with −τ·g·∂(a term at squared distance `d2`)/∂x_i = w·d: g·term·(1/|d| +
+    /// 6τ/(R² t)); zero beyond the reach.
+    #[inline(always)]
+    fn gradient_weight(&self, d2: f64, g: f64) -> f64 {
+        let t = 1.0 - d2 * self.inv_r2;
+        if t <= 0.0 {
+            return 0.0;
+        }
+        let len = d2.sqrt();
+        let term = t * t * t * (-len * self.inv_tau).exp();
+        let unit = if len > 0.0 { 1.0 / len } else { 0.0 };
+        g * term * (unit + 6.0 * self.inv_r2 / (self.inv_tau * t))
+    }
+
+    /// [`Terms::add_gradients`] four points at a time, false without AVX2 and FMA.
+    #[cfg(test)]
+    pub(super) fn add_gradients_in_lanes(
+        &self,
+        points: &Points,
+        range: std::ops::Range<usize>,
+        x: Vec3,
+        g: f64,
+        bar: [&mut [f64]; 3],
+    ) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if has_lanes() {
+            // SAFETY: checked just now.
+            unsafe { avx2::add_gradients(self, points, range, x, g, bar) };
+            return true;
+        }
+        false
+    }
+
     /// [`Terms::sum`] four points at a time, None without AVX2 and FMA.
     #[cfg(test)]
     pub(super) fn sum_in_lanes(
@@ -269,6 +344,78 @@ mod avx2 {
         (lanes[0] + lanes[1]) + (lanes[2] + lanes[3])
     }
 
+    /// [`Terms::add_gradients`] four points at a time.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn add_gradients(
+        terms_of: &Terms,
+        points: &Points,
+        range: std::ops::Range<usize>,
+        x: Vec3,
+        g: f64,
+        bar: [&mut [f64]; 3],
+    ) {
+        let (xs, ys, zs) = (&points.x[..], &points.y[..], &points.z[..]);
+        let (first, n) = (range.start, range.end);
+        assert!(first <= n && n <= xs.len() && n <= ys.len() && n <= zs.len());
+        let [bx, by, bz] = bar;
+        assert!(bx.len() >= n - first && by.len() >= n - first && bz.len() >= n - first);
+        let (cx, cy, cz) = (_mm256_set1_pd(x.x), _mm256_set1_pd(x.y), _mm256_set1_pd(x.z));
+        let inv_r2 = _mm256_set1_pd(terms_of.inv_r2);
+        let inv_tau = _mm256_set1_pd(terms_of.inv_tau);
+        let six_tau_r2 = _mm256_set1_pd(6.0 * terms_of.inv_r2 / terms_of.inv_tau);
+        let gs = _mm256_set1_pd(g);
+        let (zero, one) = (_mm256_setzero_pd(), _mm256_set1_pd(1.0));
+        let mut i = first;
+        while i < n {
+            // Four lanes, or the last one to three (the lanes past the end masked off).
+            let left = _mm256_set1_epi64x((n - i) as i64);
+            let live = _mm256_castsi256_pd(_mm256_cmpgt_epi64(
+                left,
+                _mm256_setr_epi64x(0, 1, 2, 3),
+            ));
+            let mask = _mm256_castpd_si256(live);
+            let o = i - first;
+            // SAFETY: a masked load reads only the lanes whose mask is set, all below n.
+            let (px, py, pz) = unsafe {
+                (
+                    _mm256_maskload_pd(xs.as_ptr().add(i), mask),
+                    _mm256_maskload_pd(ys.as_ptr().add(i), mask),
+                    _mm256_maskload_pd(zs.as_ptr().add(i), mask),
+                )
+            };
+            let (dx, dy, dz) =
+                (_mm256_sub_pd(px, cx), _mm256_sub_pd(py, cy), _mm256_sub_pd(pz, cz));
+            let d2 = _mm256_fmadd_pd(dx, dx, _mm256_fmadd_pd(dy, dy, _mm256_mul_pd(dz, dz)));
+            let t = _mm256_fnmadd_pd(d2, inv_r2, one);
+            let inside = _mm256_and_pd(_mm256_cmp_pd::<_CMP_GT_OQ>(t, zero), live);
+            i += 4;
+            if _mm256_movemask_pd(inside) == 0 {
+                continue;
+            }
+            let len = _mm256_sqrt_pd(d2);
+            let e = exp(_mm256_sub_pd(zero, _mm256_mul_pd(len, inv_tau)));
+            let term = _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(t, t), t), e);
+            let unit = _mm256_and_pd(
+                _mm256_div_pd(one, len),
+                _mm256_cmp_pd::<_CMP_GT_OQ>(len, zero),
+            );
+            let w = _mm256_mul_pd(
+                _mm256_mul_pd(gs, term),
+                _mm256_add_pd(unit, _mm256_div_pd(six_tau_r2, t)),
+            );
+            // Lanes beyond the reach (or the end) divide by t ≤ 0: masked to zero.
+            let w = _mm256_and_pd(w, inside);
+            // SAFETY: the masked loads and stores touch only lanes below n − first.
+            unsafe {
+                for (b, d) in [(&mut *bx, dx), (&mut *by, dy), (&mut *bz, dz)] {
+                    let at = b.as_mut_ptr().add(o);
+                    let sum = _mm256_fmadd_pd(w, d, _mm256_maskload_pd(at, mask));
+                    _mm256_maskstore_pd(at, mask, sum);
+                }
+            }
+        }
+    }
+
     /// [`exp`] of four values, for the tests.
     #[cfg(test)]
     #[target_feature(enable = "avx2,fma")]
@@ -370,6 +517,76 @@ mod tests {
         }
         eprintln!("{checked} sums, worst difference {worst:.3} of what rounding allows");
         assert!(checked > 700, "{checked}");
+        assert!(worst <= 1.0, "{worst}");
+    }
+
+    /// The gradients four points at a time are those a point at a time gives, to rounding,
+    /// for runs of every length up to 13 and centres with points inside and beyond the
+    /// reach (one at a centre); and a point at a time they are the terms' derivatives
+    /// (central differences of [`Terms::term`]).
+    #[test]
+    fn the_lanes_gradients_match_one_by_one_and_the_terms_derivatives() {
+        let n = 400;
+        let u = uniform(3 * n, 5);
+        let mut at: Vec<Vec3> =
+            (0..n).map(|i| Vec3::new(u[3 * i], u[3 * i + 1], u[3 * i + 2]) * 0.5).collect();
+        at[8] = Vec3::splat(0.25);
+        let order: Vec<u32> = (0..n as u32).collect();
+        let points = Points::gather(&order, &at);
+        let terms = Terms::new(1.0 / 0.04, 1.0 / 0.035);
+        let g = -1.7;
+        // One by one against the derivatives of the terms.
+        let x = Vec3::new(0.22, 0.27, 0.24);
+        let mut bar = [vec![0.0; 40], vec![0.0; 40], vec![0.0; 40]];
+        let [bx, by, bz] = &mut bar;
+        terms.add_gradients_one_by_one(&points, 0..40, x, g, [bx, by, bz]);
+        let mut inside = 0;
+        for i in 0..40 {
+            let h = 1e-7;
+            let fd = Vec3::from_array([0, 1, 2].map(|a| {
+                let e = h * crate::math::unit(a);
+                let term = |p: Vec3| terms.term((p - x).length_squared());
+                g * (term(at[i] + e) - term(at[i] - e)) / (2.0 * h)
+            }));
+            // What is added is −τ·g·∂term (φ = −τ ln(sum) − r).
+            let got = Vec3::new(bar[0][i], bar[1][i], bar[2][i]) * (-terms.inv_tau);
+            inside += usize::from(got != Vec3::ZERO);
+            assert!((got - fd).length() <= 1e-6 * (1.0 + fd.length()), "{i}: {got} against {fd}");
+        }
+        assert!(inside > 5, "{inside} of 40 points within the reach");
+        let mut worst: f64 = 0.0;
+        for start in 0..40 {
+            for len in 0..=13 {
+                for x in [Vec3::splat(0.25), Vec3::new(0.1, 0.3, 0.2), Vec3::splat(0.6)] {
+                    let range = 7 * start..7 * start + len;
+                    let mut one = [vec![0.0; len], vec![0.0; len], vec![0.0; len]];
+                    let [ox, oy, oz] = &mut one;
+                    terms.add_gradients_one_by_one(&points, range.clone(), x, g, [ox, oy, oz]);
+                    let mut four = [vec![0.0; len], vec![0.0; len], vec![0.0; len]];
+                    let [fx, fy, fz] = &mut four;
+                    if !terms.add_gradients_in_lanes(&points, range.clone(), x, g, [fx, fy, fz]) {
+                        eprintln!("no AVX2 and FMA here: the lanes are not used");
+                        return;
+                    }
+                    for i in 0..len {
+                        let a = Vec3::new(one[0][i], one[1][i], one[2][i]);
+                        let b = Vec3::new(four[0][i], four[1][i], four[2][i]);
+                        if a == Vec3::ZERO {
+                            assert_eq!(b, Vec3::ZERO);
+                            continue;
+                        }
+                        // As for the sums: d² and t rounded differently read 3d²/(R²t)
+                        // and d/(2τ) times over, and 1/t once more in the weight.
+                        let d2 = (points.get(range.start + i) - x).length_squared();
+                        let t = 1.0 - d2 * terms.inv_r2;
+                        let gain = 4.0 * d2 * terms.inv_r2 / t + 0.5 * d2.sqrt() * terms.inv_tau;
+                        let allowed = a.length() * f64::EPSILON * (16.0 + 4.0 * gain);
+                        worst = worst.max((a - b).length() / allowed);
+                    }
+                }
+            }
+        }
+        eprintln!("worst difference {worst:.3} of what rounding allows");
         assert!(worst <= 1.0, "{worst}");
     }
 }

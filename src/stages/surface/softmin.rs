@@ -154,17 +154,6 @@ impl Kernel {
     fn phi(&self, sum: f64, radius: f64) -> f64 {
         -self.tau * sum.ln() - radius
     }
-
-    /// ∂/∂x_p of τ·ln of particle p's term (its distance less τ·ln c_p), for `d` = x_p − x:
-    /// the unit vector from x plus 6τ d/(R² − |d|²).
-    #[inline]
-    fn gradient(&self, d: Vec3) -> Vec3 {
-        let d2 = d.length_squared();
-        let len = d2.sqrt();
-        let unit = if len > 0.0 { d / len } else { Vec3::ZERO };
-        let inv_r2 = self.terms.inv_r2;
-        unit + 6.0 * self.tau * inv_r2 / (1.0 - d2 * inv_r2) * d
-    }
 }
 
 /// The particle radius r for the soft minimum of softness `tau` (cells) and `m` particles
@@ -219,11 +208,9 @@ fn lattice_terms(kernel: &Kernel, off: &[f64], o: [i64; 3], dx: f64) -> f64 {
 /// The soft minimum of φ_L at the cell centres of `grid`, with the softness (metres) of the
 /// surface model.
 pub(super) struct SoftSdf<'a> {
-    pos: &'a [Vec3],
     bins: &'a Bins,
-    /// The bodies' ghosts (see `ghosts.rs`), counted as particles, and their bins (None
-    /// without ghosts: no bins to build or read a cell).
-    ghosts: &'a [Vec3],
+    /// The bins of the bodies' ghosts (see `ghosts.rs`), counted as particles (None without
+    /// ghosts: no bins to build or read a cell).
     ghost_bins: Option<Bins>,
     grid: &'a Grid,
     block: Vec<[i64; 3]>,
@@ -330,9 +317,7 @@ impl<'a> SoftSdf<'a> {
         let sorted_ghosts =
             ghost_bins.as_ref().map_or_else(Points::default, |b| Points::gather(&b.items, ghosts));
         SoftSdf {
-            pos,
             bins,
-            ghosts,
             ghost_bins,
             grid,
             block,
@@ -518,48 +503,67 @@ impl<'a> SoftSdf<'a> {
                 g / self.sum(cells.ijk(c)).0
             })
             .collect();
-        let point = |x: Vec3| self.point_adjoint(&per_term, x);
-        pbar.par_iter_mut().zip(self.pos).for_each(|(bar, &x)| *bar += point(x));
-        gbar.par_iter_mut().zip(self.ghosts).for_each(|(bar, &x)| *bar += point(x));
+        if let Some(ghosts) = &self.ghost_bins {
+            self.points_adjoint(&per_term, ghosts, &self.sorted_ghosts, gbar);
+        }
+        self.points_adjoint(&per_term, self.bins, &self.sorted, pbar);
     }
 
-    /// Σ_c per_term_c · ∂(term of a point at `xp` in cell c's sum)/∂x_p: the adjoint of one
-    /// particle (or ghost) at `xp`.
-    fn point_adjoint(&self, per_term: &[f64], xp: Vec3) -> Vec3 {
+    /// Σ_c per_term_c · ∂(term of a point in cell c's sum)/∂x_p for every point p binned in
+    /// `bins` (`sorted` in bin order), added into `bar`: a bin at a time, in parallel, each
+    /// bin's points together four at a time, seen from every cell whose block holds their
+    /// cell or its mirror image beyond a wall. A mirrored point is as far from a centre as
+    /// the point is from the centre mirrored, and moves the other way along the mirrored
+    /// axes, so the point's own coordinates are differentiated seen from the centre mirrored.
+    fn points_adjoint(&self, per_term: &[f64], bins: &Bins, sorted: &Points, bar: &mut [Vec3]) {
         let grid = self.grid;
         let cells = grid.cells();
         let size = grid.size();
         let n = grid.n.map(|n| n as i64);
-        let own = cell_of(grid, xp);
-        // A deep cell's sums count its sub-lattice, not what it holds.
-        if self.deep.is_some_and(|d| d[own]) {
-            return Vec3::ZERO;
-        }
-        let own = cells.ijk(own).map(|i| i as i64);
-        let mut bar = Vec3::ZERO;
-        // The point and its mirror images in the cells beyond the walls within a block of
-        // the tank: each seen from the cells whose block holds its (virtual) cell.
-        for_images(own, n, |at, flip| {
-            let q = reflect(xp, flip, size);
-            let signs = Vec3::from_array(flip.map(|f| if f == 0 { 1.0 } else { -1.0 }));
-            for o in &self.block {
-                let c = [0, 1, 2].map(|d| at[d] - o[d]);
-                if !(0..3).all(|d| (0..n[d]).contains(&c[d])) {
-                    continue;
-                }
-                let c = grid.cell(c[0] as usize, c[1] as usize, c[2] as usize);
-                let g = per_term[c];
-                if g == 0.0 {
-                    continue;
-                }
-                let [i, j, k] = cells.ijk(c);
-                let d = q - cells.position(i, j, k);
-                let term = self.kernel.term(d.length_squared());
-                if term > 0.0 {
-                    bar += (g * term) * signs * self.kernel.gradient(d);
-                }
+        let len = bins.items.len();
+        let (mut bx, mut by, mut bz) = (vec![0.0; len], vec![0.0; len], vec![0.0; len]);
+        // Each bin's share of the three arrays; a deep cell's sums count its sub-lattice, not
+        // what it holds, so its points have no share.
+        let mut shares = Vec::new();
+        let (mut rx, mut ry, mut rz) = (&mut bx[..], &mut by[..], &mut bz[..]);
+        for c in 0..cells.len() {
+            let count = (bins.start[c + 1] - bins.start[c]) as usize;
+            if count == 0 {
+                continue;
             }
+            let (x, tx) = std::mem::take(&mut rx).split_at_mut(count);
+            let (y, ty) = std::mem::take(&mut ry).split_at_mut(count);
+            let (z, tz) = std::mem::take(&mut rz).split_at_mut(count);
+            (rx, ry, rz) = (tx, ty, tz);
+            if !self.deep.is_some_and(|d| d[c]) {
+                shares.push((c, [x, y, z]));
+            }
+        }
+        let terms = &self.kernel.terms;
+        shares.into_par_iter().with_min_len(64).for_each(|(b, [x, y, z])| {
+            let range = bins.start[b] as usize..bins.start[b + 1] as usize;
+            let own = cells.ijk(b).map(|i| i as i64);
+            for_images(own, n, |at, flip| {
+                for o in &self.block {
+                    let c = [0, 1, 2].map(|d| at[d] - o[d]);
+                    if !(0..3).all(|d| (0..n[d]).contains(&c[d])) {
+                        continue;
+                    }
+                    let c = grid.cell(c[0] as usize, c[1] as usize, c[2] as usize);
+                    let g = per_term[c];
+                    if g == 0.0 {
+                        continue;
+                    }
+                    let [i, j, k] = cells.ijk(c);
+                    let seen_from = reflect(cells.position(i, j, k), flip, size);
+                    terms.add_gradients(sorted, range.clone(), seen_from, g, [
+                        &mut *x, &mut *y, &mut *z,
+                    ]);
+                }
+            });
         });
-        bar
+        for (i, &p) in bins.items.iter().enumerate() {
+            bar[p as usize] += Vec3::new(bx[i], by[i], bz[i]);
+        }
     }
 }
