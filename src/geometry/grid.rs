@@ -484,6 +484,30 @@ impl Mac {
         (v3(v), j)
     }
 
+    /// [`Mac::velocity_jacobian`]'s Jacobian at `x`, and [`Mac::scatter_velocity`] of `coef`
+    /// at `x` into `into`, from one set of stencils (the same bits as the two calls).
+    #[inline(always)]
+    pub fn jacobian_and_scatter(
+        &self,
+        grid: &Grid,
+        x: Vec3,
+        coef: Vec3,
+        into: &mut Mac,
+    ) -> [Vec3; 3] {
+        let places = face_stencil_places(grid, x);
+        let mut j = [Vec3::ZERO; 3];
+        for (a, c) in coef.to_array().into_iter().enumerate() {
+            let st = stencil_at(grid.face_dims(a), places[a]);
+            j[a] = st.value_and_gradient(&self.c[a]).1;
+            if c != 0.0 {
+                for k in 0..8 {
+                    into.c[a][st.idx[k]] += c * st.w[k];
+                }
+            }
+        }
+        j
+    }
+
     /// Transpose of [`Mac::velocity`] in the field: adds `coef_a · ∂v_a(x)/∂u` into `self`
     /// (component a's trilinear weights at `x`, times `coef_a`).
     #[inline]

@@ -167,6 +167,55 @@ pub fn advect_adjoint(
     let walls = Walls::new(grid, node_sdf);
     let h = dt / subs as f64;
     let fd = jacobian_step(grid);
+    let sampler = MacSampler::new(u, grid);
+    // A particle's path through its sub-steps: each start, midpoint, end before the walls,
+    // and whether the walls left it there.
+    let replay = |path: &mut Vec<(Vec3, Vec3, Vec3, bool)>, x0: Vec3| {
+        path.clear();
+        let mut x = x0;
+        for _ in 0..subs {
+            let mid = x + 0.5 * h * sampler.velocity(x);
+            let y = x + h * sampler.velocity(mid);
+            let kept = walls.keep(y);
+            path.push((x, mid, y, kept == y));
+            x = kept;
+        }
+    };
+    // x' = keep(y): the identity unless the push or the clamp acted.
+    let wall_bar = |y: Vec3, bar: Vec3, free: bool| {
+        if free {
+            bar
+        } else {
+            walls.keep_adjoint(y, bar, fd)
+        }
+    };
+    // y = x + h·U(mid), mid = x + h/2·U(x): mid's adjoint from y's, and x's from both.
+    let mid_bar =
+        |ybar: Vec3, jm: [Vec3; 3]| h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
+    let start_bar = |ybar: Vec3, mbar: Vec3, jx: [Vec3; 3]| {
+        ybar + mbar + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2])
+    };
+    if rayon::current_num_threads() == 1 {
+        // One thread: each read scattered where its stencil is made (the same reads in the
+        // same order as below, so the same bits), not kept and made again.
+        let mut path = Vec::with_capacity(subs);
+        for (x0, xb) in pos0.iter().zip(pbar.iter_mut()) {
+            if *xb == Vec3::ZERO {
+                continue;
+            }
+            replay(&mut path, *x0);
+            let mut bar = *xb;
+            for &(x, mid, y, free) in path.iter().rev() {
+                let ybar = wall_bar(y, bar, free);
+                let jm = u.jacobian_and_scatter(grid, mid, h * ybar, ubar);
+                let mbar = mid_bar(ybar, jm);
+                let jx = u.jacobian_and_scatter(grid, x, 0.5 * h * mbar, ubar);
+                bar = start_bar(ybar, mbar, jx);
+            }
+            *xb = bar;
+        }
+        return;
+    }
     // Per particle, in parallel: its start adjoint and the points and coefficients at which
     // its path read the field (2 a sub-step).
     let stride = 2 * subs;
@@ -183,27 +232,15 @@ pub fn advect_adjoint(
                         out.fill((Vec3::ZERO, Vec3::ZERO));
                         return;
                     }
-                    path.clear();
-                    let mut x = *x0;
-                    for _ in 0..subs {
-                        let mid = x + 0.5 * h * u.velocity(grid, x);
-                        let y = x + h * u.velocity(grid, mid);
-                        let kept = walls.keep(y);
-                        path.push((x, mid, y, kept == y));
-                        x = kept;
-                    }
+                    replay(path, *x0);
                     let mut bar = *xb;
                     for (n, &(x, mid, y, free)) in path.iter().rev().enumerate() {
-                        // x' = keep(y): the identity unless the push or the clamp acted.
-                        let ybar = if free { bar } else { walls.keep_adjoint(y, bar, fd) };
-                        // y = x + h·U(mid), mid = x + h/2·U(x).
+                        let ybar = wall_bar(y, bar, free);
                         let (_, jm) = u.velocity_jacobian(grid, mid);
-                        let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
+                        let mbar = mid_bar(ybar, jm);
                         out[2 * n] = (mid, h * ybar);
                         let (_, jx) = u.velocity_jacobian(grid, x);
-                        bar = ybar
-                            + mbar
-                            + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2]);
+                        bar = start_bar(ybar, mbar, jx);
                         out[2 * n + 1] = (x, 0.5 * h * mbar);
                     }
                     *xb = bar;

@@ -369,10 +369,8 @@ mod avx2 {
         while i < n {
             // Four lanes, or the last one to three (the lanes past the end masked off).
             let left = _mm256_set1_epi64x((n - i) as i64);
-            let live = _mm256_castsi256_pd(_mm256_cmpgt_epi64(
-                left,
-                _mm256_setr_epi64x(0, 1, 2, 3),
-            ));
+            let live =
+                _mm256_castsi256_pd(_mm256_cmpgt_epi64(left, _mm256_setr_epi64x(0, 1, 2, 3)));
             let mask = _mm256_castpd_si256(live);
             let o = i - first;
             // SAFETY: a masked load reads only the lanes whose mask is set, all below n.
@@ -395,10 +393,8 @@ mod avx2 {
             let len = _mm256_sqrt_pd(d2);
             let e = exp(_mm256_sub_pd(zero, _mm256_mul_pd(len, inv_tau)));
             let term = _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(t, t), t), e);
-            let unit = _mm256_and_pd(
-                _mm256_div_pd(one, len),
-                _mm256_cmp_pd::<_CMP_GT_OQ>(len, zero),
-            );
+            let unit =
+                _mm256_and_pd(_mm256_div_pd(one, len), _mm256_cmp_pd::<_CMP_GT_OQ>(len, zero));
             let w = _mm256_mul_pd(
                 _mm256_mul_pd(gs, term),
                 _mm256_add_pd(unit, _mm256_div_pd(six_tau_r2, t)),

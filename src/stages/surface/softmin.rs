@@ -556,9 +556,13 @@ impl<'a> SoftSdf<'a> {
                     }
                     let [i, j, k] = cells.ijk(c);
                     let seen_from = reflect(cells.position(i, j, k), flip, size);
-                    terms.add_gradients(sorted, range.clone(), seen_from, g, [
-                        &mut *x, &mut *y, &mut *z,
-                    ]);
+                    terms.add_gradients(
+                        sorted,
+                        range.clone(),
+                        seen_from,
+                        g,
+                        [&mut *x, &mut *y, &mut *z],
+                    );
                 }
             });
         });

@@ -610,7 +610,8 @@ mod adjoint {
     }
 
     /// Advection through a field with a solid obstacle and the tank walls in reach: the
-    /// adjoint in the positions and in the field against central differences.
+    /// adjoint in the positions and in the field against central differences, the same on
+    /// one thread and two.
     #[test]
     fn advection_adjoint_matches_central_differences() {
         let grid = grid();
@@ -625,9 +626,20 @@ mod adjoint {
             advect_substepped(&mut q, u, &grid, dt, subs, &node_sdf);
             dot(&q, &c)
         };
-        let mut pbar = c.clone();
-        let mut ubar = Mac::zeros(&grid);
-        advect_adjoint(&p0, &mut pbar, &u, &grid, dt, subs, &node_sdf, &mut ubar);
+        // On one thread the reads are scattered as they are made, on more they are kept and
+        // scattered after: the same bits.
+        let adjoint = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut pbar = c.clone();
+            let mut ubar = Mac::zeros(&grid);
+            pool.install(|| {
+                advect_adjoint(&p0, &mut pbar, &u, &grid, dt, subs, &node_sdf, &mut ubar)
+            });
+            (pbar, ubar)
+        };
+        let (pbar, ubar) = adjoint(1);
+        let (pbar_two, ubar_two) = adjoint(2);
+        assert_eq!((&pbar, &ubar), (&pbar_two, &ubar_two));
         let eps = 1e-7;
         let shift = |s: f64| p0.iter().zip(&dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
         let fd = (run(&shift(eps), &u) - run(&shift(-eps), &u)) / (2.0 * eps);
