@@ -226,6 +226,50 @@ fn stencil_at(n: [usize; 3], p: [Place; 3]) -> Stencil {
     st
 }
 
+/// The gradient, with respect to the point, of the trilinear interpolation of `field` (a
+/// lattice of `n` samples) at the places `p`, by differences and lerps: the slopes along x
+/// of the four rows, lerped in y and z; the differences along y of the rows' lerps, lerped
+/// in z; the difference along z of the two planes' (a fifth of the arithmetic of
+/// [`Stencil::value_and_gradient`]).
+#[inline(always)]
+fn trilinear_gradient(field: &[f64], n: [usize; 3], p: [Place; 3]) -> Vec3 {
+    let (n0, n01) = (n[0], n[0] * n[1]);
+    let [px, py, pz] = p;
+    // A row's value and slope along x.
+    let row = |j: usize, k: usize| {
+        let b = j * n0 + k * n01;
+        let (lo, hi) = (field[b + px.lo], field[b + px.hi]);
+        (lo + px.t * (hi - lo), hi - lo)
+    };
+    // A plane's value, slope along x, difference along y.
+    let plane = |k: usize| {
+        let ((a0, s0), (a1, s1)) = (row(py.lo, k), row(py.hi, k));
+        (a0 + py.t * (a1 - a0), s0 + py.t * (s1 - s0), a1 - a0)
+    };
+    let ((v0, x0, y0), (v1, x1, y1)) = (plane(pz.lo), plane(pz.hi));
+    Vec3::new(
+        (x0 + pz.t * (x1 - x0)) * px.live,
+        (y0 + pz.t * (y1 - y0)) * py.live,
+        (v1 - v0) * pz.live,
+    )
+}
+
+/// The transpose of the trilinear interpolation at the places `p` on a lattice of `n`
+/// samples: adds `c` times each corner's weight into `field`.
+#[inline(always)]
+fn trilinear_scatter(field: &mut [f64], n: [usize; 3], p: [Place; 3], c: f64) {
+    let (n0, n01) = (n[0], n[0] * n[1]);
+    let [px, py, pz] = p;
+    for (k, wz) in [(pz.lo, 1.0 - pz.t), (pz.hi, pz.t)] {
+        for (j, wy) in [(py.lo, 1.0 - py.t), (py.hi, py.t)] {
+            let b = j * n0 + k * n01;
+            let cw = c * wz * wy;
+            field[b + px.lo] += cw * (1.0 - px.t);
+            field[b + px.hi] += cw * px.t;
+        }
+    }
+}
+
 impl Stencil {
     /// The interpolated value of `field` and its gradient with respect to the point.
     #[inline(always)]
@@ -484,10 +528,18 @@ impl Mac {
         (v3(v), j)
     }
 
-    /// [`Mac::velocity_jacobian`]'s Jacobian at `x`, and [`Mac::scatter_velocity`] of `coef`
-    /// at `x` into `into`, from one set of stencils (the same bits as the two calls).
+    /// The velocity's Jacobian at `x` (as [`Mac::velocity_jacobian`]'s, to rounding): row `a`
+    /// the gradient of component `a`.
     #[inline(always)]
-    pub fn jacobian_and_scatter(
+    pub fn velocity_gradient(&self, grid: &Grid, x: Vec3) -> [Vec3; 3] {
+        let places = face_stencil_places(grid, x);
+        [0, 1, 2].map(|a| trilinear_gradient(&self.c[a], grid.face_dims(a), places[a]))
+    }
+
+    /// [`Mac::velocity_gradient`] at `x`, and [`Mac::scatter_velocity`] of `coef` at `x` into
+    /// `into`, from one set of places (the same bits as the two calls).
+    #[inline(always)]
+    pub fn gradient_and_scatter(
         &self,
         grid: &Grid,
         x: Vec3,
@@ -497,12 +549,10 @@ impl Mac {
         let places = face_stencil_places(grid, x);
         let mut j = [Vec3::ZERO; 3];
         for (a, c) in coef.to_array().into_iter().enumerate() {
-            let st = stencil_at(grid.face_dims(a), places[a]);
-            j[a] = st.value_and_gradient(&self.c[a]).1;
+            let n = grid.face_dims(a);
+            j[a] = trilinear_gradient(&self.c[a], n, places[a]);
             if c != 0.0 {
-                for k in 0..8 {
-                    into.c[a][st.idx[k]] += c * st.w[k];
-                }
+                trilinear_scatter(&mut into.c[a], n, places[a], c);
             }
         }
         j
@@ -514,12 +564,8 @@ impl Mac {
     pub fn scatter_velocity(&mut self, grid: &Grid, x: Vec3, coef: Vec3) {
         let places = face_stencil_places(grid, x);
         for (a, c) in coef.to_array().into_iter().enumerate() {
-            if c == 0.0 {
-                continue;
-            }
-            let s = stencil_at(grid.face_dims(a), places[a]);
-            for k in 0..8 {
-                self.c[a][s.idx[k]] += c * s.w[k];
+            if c != 0.0 {
+                trilinear_scatter(&mut self.c[a], grid.face_dims(a), places[a], c);
             }
         }
     }
@@ -709,8 +755,8 @@ mod tests {
     #[test]
     fn velocity_is_each_lattice_sampled() {
         // The velocity's shared places along each axis give the bits of each face lattice's
-        // own sample, inside, on the ends and beyond them (clamped); so do the Jacobian and
-        // the transpose.
+        // own sample, inside, on the ends and beyond them (clamped); so does the Jacobian.
+        // The lerped gradient and the transpose are the stencil's to rounding.
         let g = grid();
         let u = Mac {
             c: [0, 1, 2].map(|a| {
@@ -737,13 +783,24 @@ mod tests {
                 let (own, grad) = lat.sample_grad(&u.c[a], x);
                 assert_eq!(crate::math::comp(vj, a).to_bits(), own.to_bits(), "{x:?} axis {a}");
                 assert_eq!(j[a].to_array().map(f64::to_bits), grad.to_array().map(f64::to_bits));
+                // The lerps' gradient and the transpose: the stencil's to rounding (values
+                // up to 4.44, a few operations).
+                let lerped = u.velocity_gradient(&g, x)[a];
+                let most = 16.0 * f64::EPSILON * 4.44 / g.dx;
+                assert!((lerped - grad).abs().max_element() <= most, "{lerped} against {grad}");
                 let s = lat.stencil(x);
                 let mut own = vec![0.0; lat.len()];
                 for k in 0..8 {
                     own[s.idx[k]] += crate::math::comp(coef, a) * s.w[k];
                 }
-                assert!(own.iter().zip(&scattered.c[a]).all(|(p, q)| p.to_bits() == q.to_bits()));
+                let most = 8.0 * f64::EPSILON * 2.9;
+                assert!(own.iter().zip(&scattered.c[a]).all(|(p, q)| (p - q).abs() <= most));
             }
+            // Together from one set of places: the same bits as apart.
+            let mut together = Mac::zeros(&g);
+            let j = u.gradient_and_scatter(&g, x, coef, &mut together);
+            assert_eq!(j, u.velocity_gradient(&g, x));
+            assert_eq!(together, scattered);
         }
     }
 

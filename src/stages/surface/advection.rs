@@ -207,9 +207,9 @@ pub fn advect_adjoint(
             let mut bar = *xb;
             for &(x, mid, y, free) in path.iter().rev() {
                 let ybar = wall_bar(y, bar, free);
-                let jm = u.jacobian_and_scatter(grid, mid, h * ybar, ubar);
+                let jm = u.gradient_and_scatter(grid, mid, h * ybar, ubar);
                 let mbar = mid_bar(ybar, jm);
-                let jx = u.jacobian_and_scatter(grid, x, 0.5 * h * mbar, ubar);
+                let jx = u.gradient_and_scatter(grid, x, 0.5 * h * mbar, ubar);
                 bar = start_bar(ybar, mbar, jx);
             }
             *xb = bar;
@@ -236,10 +236,10 @@ pub fn advect_adjoint(
                     let mut bar = *xb;
                     for (n, &(x, mid, y, free)) in path.iter().rev().enumerate() {
                         let ybar = wall_bar(y, bar, free);
-                        let (_, jm) = u.velocity_jacobian(grid, mid);
+                        let jm = u.velocity_gradient(grid, mid);
                         let mbar = mid_bar(ybar, jm);
                         out[2 * n] = (mid, h * ybar);
-                        let (_, jx) = u.velocity_jacobian(grid, x);
+                        let jx = u.velocity_gradient(grid, x);
                         bar = start_bar(ybar, mbar, jx);
                         out[2 * n + 1] = (x, 0.5 * h * mbar);
                     }
