@@ -626,10 +626,13 @@ fn particles_adjoint(
     let deep = band.as_ref().map(|b| b.deep.as_slice());
     let ghosts = initial.ghosts_at(bodies);
     let mut gbar = vec![Vec3::ZERO; ghosts.len()];
+    // The step's φ_L as taped: the closing of air pockets changed some cells, whose φ̄ its
+    // adjoint has moved to others (the soft sums are read where φ̄ is left).
     surface::liquid_sdf_adjoint(
         &replayed.end,
         &ghosts,
         &pr.nearest,
+        Some(&rec.phi),
         &grid,
         &model,
         deep,

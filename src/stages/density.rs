@@ -809,6 +809,7 @@ impl DensityProjection {
             }
         }
         let sbar = self.extension.transpose(&self.phi, &mut phi_bar);
+        let raw = self.extension.raw(&self.phi);
         solidity_pose_adjoint(grid, g.bodies, &sbar, pose);
         let deep = g.band.map(|b| b.deep.as_slice());
         let ghosts = g.ghosts();
@@ -817,6 +818,7 @@ impl DensityProjection {
             particles,
             &ghosts,
             &self.nearest,
+            Some(&raw),
             grid,
             &g.surface,
             deep,

@@ -302,6 +302,15 @@ impl SolidExtension {
         SolidExtension { across, set, partial: partial.to_vec() }
     }
 
+    /// φ before [`SolidExtension::apply_new`] extended it into `phi`.
+    pub fn raw(&self, phi: &[f64]) -> Vec<f64> {
+        let mut raw = phi.to_vec();
+        for s in &self.set {
+            raw[s.cell as usize] = s.raw;
+        }
+        raw
+    }
+
     /// The cells set, in cell order.
     pub fn cells(&self) -> impl Iterator<Item = usize> + '_ {
         self.set.iter().map(|s| s.cell as usize)

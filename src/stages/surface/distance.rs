@@ -394,12 +394,16 @@ fn nearest_particle(
 /// cells) in the particles: ∂φ_c/∂x_p = (x_p − x_c)/|x_p − x_c| for the particle p whose
 /// distance φ_c is, the soft minimum's derivative where it set φ_c (see `softmin.rs`), or the
 /// derivative of `sparse_phi` where the sparse-cell rule set φ_c. Adds into `pbar`, and the
-/// soft minimum's derivative in the bodies' `ghosts` (see `ghosts.rs`) into `gbar`.
+/// soft minimum's derivative in the bodies' `ghosts` (see `ghosts.rs`) into `gbar`. Given
+/// `phi`, φ_L as [`liquid_sdf_nearest`] made it (at least at the cells the soft minimum set
+/// whose φ̄ is not zero), the soft minimum's sums are read from it (sum = e^{−(φ + r)/τ}, to
+/// rounding) instead of being summed again.
 #[allow(clippy::too_many_arguments)]
 pub fn liquid_sdf_adjoint(
     pos: &[Vec3],
     ghosts: &[Vec3],
     nearest: &[u32],
+    phi: Option<&[f64]>,
     grid: &Grid,
     model: &SurfaceModel,
     deep: Option<&[bool]>,
@@ -410,7 +414,8 @@ pub fn liquid_sdf_adjoint(
     let cells = grid.cells();
     if model.softness > 0.0 {
         let bins = Bins::new(pos, grid);
-        SoftSdf::new(pos, &bins, ghosts, grid, model, deep).adjoint(nearest, phi_bar, pbar, gbar);
+        let sdf = SoftSdf::new(pos, &bins, ghosts, grid, model, deep);
+        sdf.adjoint(nearest, phi, phi_bar, pbar, gbar);
     }
     for (c, (&p, &g)) in nearest.iter().zip(phi_bar).enumerate() {
         if g == 0.0 || p == crate::geometry::grid::NONE || p == SOFT {

@@ -482,17 +482,21 @@ impl<'a> SoftSdf<'a> {
     }
 
     /// Adjoint: adds ∂φ_c/∂x_p · φ̄_c over the cells `marks` tags [`SOFT`] into `pbar` (the
-    /// particles) and `gbar` (the ghosts). ∂φ/∂x_p is particle p's share of the sum times
+    /// particles) and `gbar` (the ghosts), their sums read from `phi` (φ as
+    /// [`SoftSdf::phi`] made it there) or else summed again. ∂φ/∂x_p is particle p's share of the sum times
     /// the gradient of its distance less τ·ln c_p.
     pub(super) fn adjoint(
         &self,
         marks: &[u32],
+        phi: Option<&[f64]>,
         phi_bar: &[f64],
         pbar: &mut [Vec3],
         gbar: &mut [Vec3],
     ) {
         let cells = self.grid.cells();
-        // Per cell φ̄ over its sum: a particle's share of φ̄ is its term times this.
+        let tau = self.kernel.tau;
+        // Per cell φ̄ over its sum: a particle's share of φ̄ is its term times this. The sum
+        // is e^{−(φ + r)/τ} (see [`Kernel::phi`]).
         let per_term: Vec<f64> = (0..marks.len())
             .into_par_iter()
             .map(|c| {
@@ -500,7 +504,10 @@ impl<'a> SoftSdf<'a> {
                 if marks[c] != SOFT || g == 0.0 {
                     return 0.0;
                 }
-                g / self.sum(cells.ijk(c)).0
+                match phi {
+                    Some(phi) => g * ((phi[c] + self.radius) / tau).exp(),
+                    None => g / self.sum(cells.ijk(c)).0,
+                }
             })
             .collect();
         if let Some(ghosts) = &self.ghost_bins {

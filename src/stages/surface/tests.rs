@@ -553,7 +553,15 @@ mod adjoint {
         let (phi, marks) =
             liquid_sdf_nearest(p0, &Bins::new(p0, grid), &[], grid, model, deep_of(), None);
         let mut g = vec![Vec3::ZERO; p0.len()];
-        liquid_sdf_adjoint(p0, &[], &marks, grid, model, deep, phi_bar, &mut g, &mut []);
+        liquid_sdf_adjoint(p0, &[], &marks, None, grid, model, deep, phi_bar, &mut g, &mut []);
+        // The sums read from φ: the same to rounding.
+        let mut read = vec![Vec3::ZERO; p0.len()];
+        let phi_in = Some(phi.as_slice());
+        liquid_sdf_adjoint(p0, &[], &marks, phi_in, grid, model, deep, phi_bar, &mut read, &mut []);
+        let most = g.iter().map(|v| v.length()).fold(0.0, f64::max);
+        for (a, b) in g.iter().zip(&read) {
+            assert!((*a - *b).length() <= 1e-13 * most, "{a} summed, {b} read from φ");
+        }
         let eps = 1e-7;
         let shift = |s: f64| p0.iter().zip(dp).map(|(x, d)| *x + s * *d).collect::<Vec<_>>();
         let fd = (sdf(&shift(eps)) - sdf(&shift(-eps))) / (2.0 * eps);
@@ -912,7 +920,18 @@ mod adjoint {
         let (_, nearest) =
             liquid_sdf_nearest(&p0, &Bins::new(&p0, &grid), &[], &grid, &model, None, None);
         let mut g_sdf = vec![Vec3::ZERO; p0.len()];
-        liquid_sdf_adjoint(&p0, &[], &nearest, &grid, &model, None, &phi_bar, &mut g_sdf, &mut []);
+        liquid_sdf_adjoint(
+            &p0,
+            &[],
+            &nearest,
+            None,
+            &grid,
+            &model,
+            None,
+            &phi_bar,
+            &mut g_sdf,
+            &mut [],
+        );
         let mut g_dens = vec![Vec3::ZERO; p0.len()];
         particle_density_adjoint(&p0, &grid, 8, &phi_bar, &mut g_dens);
         let eps = 1e-7;
@@ -1026,11 +1045,20 @@ mod adjoint {
             phi.iter().zip(&phi_bar).map(|(a, b)| a * b).sum::<f64>()
         };
         let ghosts = ghost_sites(std::slice::from_ref(&body), &displaced);
-        let (_, marks) = liquid_sdf_nearest(&p0, &bins, &ghosts, &grid, &model, None, None);
+        let (phi, marks) = liquid_sdf_nearest(&p0, &bins, &ghosts, &grid, &model, None, None);
         let mut pbar = vec![Vec3::ZERO; p0.len()];
         let mut gbar = vec![Vec3::ZERO; ghosts.len()];
         liquid_sdf_adjoint(
-            &p0, &ghosts, &marks, &grid, &model, None, &phi_bar, &mut pbar, &mut gbar,
+            &p0,
+            &ghosts,
+            &marks,
+            Some(&phi),
+            &grid,
+            &model,
+            None,
+            &phi_bar,
+            &mut pbar,
+            &mut gbar,
         );
         let mut pose = [[0.0; 6]];
         ghost_pose_adjoint(std::slice::from_ref(&body), &displaced, &gbar, &mut pose);
