@@ -110,18 +110,7 @@ impl Terms {
             // SAFETY: `lanes` is set only where the processor has AVX2 and FMA.
             return unsafe { avx2::add_gradients(self, points, range, x, g, bar) };
         }
-        self.add_gradients_one_by_one(points, range, x, g, bar)
-    }
-
-    /// [`Terms::add_gradients`] a point at a time (where there are no lanes, and to test them).
-    pub(super) fn add_gradients_one_by_one(
-        &self,
-        points: &Points,
-        range: std::ops::Range<usize>,
-        x: Vec3,
-        g: f64,
-        bar: [&mut [f64]; 3],
-    ) {
+        // A point at a time (where there are no lanes, and to test them).
         let [bx, by, bz] = bar;
         let first = range.start;
         for i in range {
@@ -145,25 +134,6 @@ impl Terms {
         let term = t * t * t * (-len * self.inv_tau).exp();
         let unit = if len > 0.0 { 1.0 / len } else { 0.0 };
         g * term * (unit + 6.0 * self.inv_r2 / (self.inv_tau * t))
-    }
-
-    /// [`Terms::add_gradients`] four points at a time, false without AVX2 and FMA.
-    #[cfg(test)]
-    pub(super) fn add_gradients_in_lanes(
-        &self,
-        points: &Points,
-        range: std::ops::Range<usize>,
-        x: Vec3,
-        g: f64,
-        bar: [&mut [f64]; 3],
-    ) -> bool {
-        #[cfg(target_arch = "x86_64")]
-        if has_lanes() {
-            // SAFETY: checked just now.
-            unsafe { avx2::add_gradients(self, points, range, x, g, bar) };
-            return true;
-        }
-        false
     }
 
     /// [`Terms::sum`] four points at a time, None without AVX2 and FMA.
@@ -530,12 +500,14 @@ mod tests {
         let order: Vec<u32> = (0..n as u32).collect();
         let points = Points::gather(&order, &at);
         let terms = Terms::new(1.0 / 0.04, 1.0 / 0.035);
+        // The same terms a point at a time.
+        let one_by_one = Terms { lanes: false, ..terms };
         let g = -1.7;
         // One by one against the derivatives of the terms.
         let x = Vec3::new(0.22, 0.27, 0.24);
         let mut bar = [vec![0.0; 40], vec![0.0; 40], vec![0.0; 40]];
         let [bx, by, bz] = &mut bar;
-        terms.add_gradients_one_by_one(&points, 0..40, x, g, [bx, by, bz]);
+        one_by_one.add_gradients(&points, 0..40, x, g, [bx, by, bz]);
         let mut inside = 0;
         for i in 0..40 {
             let h = 1e-7;
@@ -550,6 +522,10 @@ mod tests {
             assert!((got - fd).length() <= 1e-6 * (1.0 + fd.length()), "{i}: {got} against {fd}");
         }
         assert!(inside > 5, "{inside} of 40 points within the reach");
+        if !terms.lanes {
+            eprintln!("no AVX2 and FMA here: the lanes are not used");
+            return;
+        }
         let mut worst: f64 = 0.0;
         for start in 0..40 {
             for len in 0..=13 {
@@ -557,13 +533,10 @@ mod tests {
                     let range = 7 * start..7 * start + len;
                     let mut one = [vec![0.0; len], vec![0.0; len], vec![0.0; len]];
                     let [ox, oy, oz] = &mut one;
-                    terms.add_gradients_one_by_one(&points, range.clone(), x, g, [ox, oy, oz]);
+                    one_by_one.add_gradients(&points, range.clone(), x, g, [ox, oy, oz]);
                     let mut four = [vec![0.0; len], vec![0.0; len], vec![0.0; len]];
                     let [fx, fy, fz] = &mut four;
-                    if !terms.add_gradients_in_lanes(&points, range.clone(), x, g, [fx, fy, fz]) {
-                        eprintln!("no AVX2 and FMA here: the lanes are not used");
-                        return;
-                    }
+                    terms.add_gradients(&points, range.clone(), x, g, [fx, fy, fz]);
                     for i in 0..len {
                         let a = Vec3::new(one[0][i], one[1][i], one[2][i]);
                         let b = Vec3::new(four[0][i], four[1][i], four[2][i]);
