@@ -626,13 +626,13 @@ fn particles_adjoint(
     let deep = band.as_ref().map(|b| b.deep.as_slice());
     let ghosts = initial.ghosts_at(bodies);
     let mut gbar = vec![Vec3::ZERO; ghosts.len()];
-    // The step's φ_L as taped: the closing of air pockets changed some cells, whose φ̄ its
-    // adjoint has moved to others (the soft sums are read where φ̄ is left).
+    // The step's φ_L as taped (the soft sums are read from it where φ̄ is left; the cells the
+    // closing of air pockets changed have passed theirs on). Without it, summed again.
     surface::liquid_sdf_adjoint(
         &replayed.end,
         &ghosts,
         &pr.nearest,
-        Some(&rec.phi),
+        (!rec.phi.is_empty()).then_some(rec.phi.as_slice()),
         &grid,
         &model,
         deep,
