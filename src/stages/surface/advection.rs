@@ -181,20 +181,6 @@ pub fn advect_adjoint(
             x = kept;
         }
     };
-    // x' = keep(y): the identity unless the push or the clamp acted.
-    let wall_bar = |y: Vec3, bar: Vec3, free: bool| {
-        if free {
-            bar
-        } else {
-            walls.keep_adjoint(y, bar, fd)
-        }
-    };
-    // y = x + h·U(mid), mid = x + h/2·U(x): mid's adjoint from y's, and x's from both.
-    let mid_bar =
-        |ybar: Vec3, jm: [Vec3; 3]| h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
-    let start_bar = |ybar: Vec3, mbar: Vec3, jx: [Vec3; 3]| {
-        ybar + mbar + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2])
-    };
     if rayon::current_num_threads() == 1 {
         // One thread: each read scattered where its stencil is made (the same reads in the
         // same order as below, so the same bits), not kept and made again.
@@ -204,15 +190,9 @@ pub fn advect_adjoint(
                 continue;
             }
             replay(&mut path, *x0);
-            let mut bar = *xb;
-            for &(x, mid, y, free) in path.iter().rev() {
-                let ybar = wall_bar(y, bar, free);
-                let jm = u.gradient_and_scatter(grid, mid, h * ybar, ubar);
-                let mbar = mid_bar(ybar, jm);
-                let jx = u.gradient_and_scatter(grid, x, 0.5 * h * mbar, ubar);
-                bar = start_bar(ybar, mbar, jx);
-            }
-            *xb = bar;
+            *xb = walk_back(&path, *xb, h, &walls, fd, |p, coef| {
+                u.gradient_and_scatter(grid, p, coef, ubar)
+            });
         }
         return;
     }
@@ -233,20 +213,41 @@ pub fn advect_adjoint(
                         return;
                     }
                     replay(path, *x0);
-                    let mut bar = *xb;
-                    for (n, &(x, mid, y, free)) in path.iter().rev().enumerate() {
-                        let ybar = wall_bar(y, bar, free);
-                        let jm = u.velocity_gradient(grid, mid);
-                        let mbar = mid_bar(ybar, jm);
-                        out[2 * n] = (mid, h * ybar);
-                        let jx = u.velocity_gradient(grid, x);
-                        bar = start_bar(ybar, mbar, jx);
-                        out[2 * n + 1] = (x, 0.5 * h * mbar);
-                    }
-                    *xb = bar;
+                    let mut n = 0;
+                    *xb = walk_back(path, *xb, h, &walls, fd, |p, coef| {
+                        out[n] = (p, coef);
+                        n += 1;
+                        u.velocity_gradient(grid, p)
+                    });
                 },
             );
     });
+}
+
+/// One particle's sub-steps `path` (start, midpoint, end before the walls, whether they
+/// left it there) walked back from ∂L/∂(its end) `bar` to ∂L/∂(its start): x' = keep(y),
+/// the identity unless the push or the clamp acted; y = x + h·U(mid), mid = x + h/2·U(x).
+/// Each read of the field, the point and the coefficient of the velocity there (the
+/// midpoint's, then the start's, last sub-step first), goes to `read`, which gives the
+/// field's gradient at that point.
+#[inline(always)]
+fn walk_back(
+    path: &[(Vec3, Vec3, Vec3, bool)],
+    bar: Vec3,
+    h: f64,
+    walls: &Walls<'_>,
+    fd: f64,
+    mut read: impl FnMut(Vec3, Vec3) -> [Vec3; 3],
+) -> Vec3 {
+    let mut bar = bar;
+    for &(x, mid, y, free) in path.iter().rev() {
+        let ybar = if free { bar } else { walls.keep_adjoint(y, bar, fd) };
+        let jm = read(mid, h * ybar);
+        let mbar = h * (ybar.x * jm[0] + ybar.y * jm[1] + ybar.z * jm[2]);
+        let jx = read(x, 0.5 * h * mbar);
+        bar = ybar + mbar + 0.5 * h * (mbar.x * jx[0] + mbar.y * jx[1] + mbar.z * jx[2]);
+    }
+    bar
 }
 
 /// The particles' reads of a velocity field in an adjoint pass, scattered into its adjoint

@@ -482,8 +482,8 @@ impl<'a> SoftSdf<'a> {
     }
 
     /// Adjoint: adds ∂φ_c/∂x_p · φ̄_c over the cells `marks` tags [`SOFT`] into `pbar` (the
-    /// particles) and `gbar` (the ghosts), their sums read from `phi` (φ as
-    /// [`SoftSdf::phi`] made it there) or else summed again. ∂φ/∂x_p is particle p's share of the sum times
+    /// particles) and `gbar` (the ghosts), their sums read from `phi` (φ as [`SoftSdf::phi`]
+    /// made it there) or else summed again. ∂φ/∂x_p is particle p's share of the sum times
     /// the gradient of its distance less τ·ln c_p.
     pub(super) fn adjoint(
         &self,
